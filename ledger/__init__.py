@@ -1,0 +1,68 @@
+"""The append-only event ledger: stores, records, errors, clocks.
+
+>>> from ledger import open_ledger
+>>> with open_ledger(":memory:") as store:
+...     store.head().global_seq
+-1
+
+- :mod:`ledger.store`: the store interface and the shared append logic
+- :mod:`ledger.duckdb_store`: the default backend (one DuckDB file)
+- :mod:`ledger.memory`: the in-memory backend
+- :mod:`ledger.testing`: the contract test class every backend passes
+- :mod:`ledger.errors`: the exception tree
+- :mod:`ledger.views`: SQL views for auditors
+"""
+
+from __future__ import annotations
+
+import os
+
+from ledger.clock import EventClock, ManualClock, SiteClock, WallClock, clock_by_name
+from ledger.errors import (
+    DatabaseError,
+    DataError,
+    IntegrityError,
+    InterfaceError,
+    InternalError,
+    LedgerError,
+    NotSupportedError,
+    OperationalError,
+    ProgrammingError,
+)
+from ledger.records import (
+    AppendOutcome,
+    AppendResult,
+    Gap,
+    Head,
+    LedgerStats,
+    QuarantineEntry,
+    RecordedEvent,
+    StreamInfo,
+    VerifyReport,
+)
+from ledger.store import LedgerStore
+
+MEMORY = ":memory:"
+
+
+def open_ledger(path: str | os.PathLike[str], clock: SiteClock | None = None, *,
+                read_only: bool = False) -> LedgerStore:
+    """Open (or create) a ledger: a DuckDB file, or ``":memory:"`` for the in-memory store."""
+    if str(path) == MEMORY:
+        from ledger.memory import MemoryStore
+
+        if read_only:
+            raise InterfaceError("an in-memory ledger cannot be opened read-only")
+        return MemoryStore(clock)
+    from ledger.duckdb_store import DuckDBStore
+
+    return DuckDBStore(path, clock, read_only=read_only)
+
+
+__all__ = [
+    "AppendOutcome", "AppendResult", "DataError", "DatabaseError", "EventClock", "Gap", "Head",
+    "IntegrityError", "InterfaceError", "InternalError", "LedgerError", "LedgerStats",
+    "LedgerStore", "MEMORY", "ManualClock", "NotSupportedError", "OperationalError",
+    "ProgrammingError", "QuarantineEntry", "RecordedEvent", "SiteClock", "StreamInfo",
+    "VerifyReport", "WallClock", "clock_by_name", "open_ledger",
+]

@@ -1,0 +1,424 @@
+"""DuckDB ledger store: the default backend, one file.
+
+Tables (raw, append-only; the auditors' views are in :mod:`ledger.views`):
+
+``event_log``
+    one row per stored event: identity, valid and recorded time (ns), payload,
+    sha256(payload), chain hash, flags, and for domain events the JSON body.
+``gaps``
+    missing source sequence ranges, opened and closed.
+``quarantine``
+    everything refused, with its reason and raw bytes.
+``ledger_meta``
+    schema version.
+
+Global sequence numbers are assigned by the writer inside its transaction (never a
+DuckDB SEQUENCE, whose rolled-back values leave holes).  Every batch is one
+transaction.
+
+DuckDB allows one process to open a file for writing *or* many processes to open
+it read-only, never both at once.  While a writer (the ledger service) runs, other
+processes read through it (the ledger service's Zenoh queryables), or read a copy.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import threading
+from pathlib import Path
+from typing import Iterator, Sequence
+
+import duckdb
+import pyarrow as pa
+
+from ledger import views
+from ledger.chain import GENESIS
+from ledger.clock import SiteClock
+from ledger.errors import InterfaceError, OperationalError, ProgrammingError, backend_errors
+from ledger.records import Gap, LedgerStats, QuarantineEntry, RecordedEvent
+from ledger.store import BatchPlan, Key, LedgerStore, StreamState, WriterState
+
+SCHEMA_VERSION = "1"
+
+_DDL = [
+    """CREATE TABLE IF NOT EXISTS ledger_meta (key VARCHAR NOT NULL, value VARCHAR NOT NULL)""",
+    """CREATE TABLE IF NOT EXISTS event_log (
+        global_seq BIGINT NOT NULL,
+        type VARCHAR NOT NULL,
+        source VARCHAR NOT NULL,
+        epoch BIGINT NOT NULL,
+        seq BIGINT NOT NULL,
+        valid_time_ns BIGINT NOT NULL,
+        recorded_time_ns BIGINT NOT NULL,
+        payload BLOB NOT NULL,
+        payload_sha256 BLOB NOT NULL,
+        chain_sha256 BLOB NOT NULL,
+        flags VARCHAR,
+        body JSON
+    )""",
+    """CREATE TABLE IF NOT EXISTS gaps (
+        gap_id BIGINT NOT NULL,
+        source VARCHAR NOT NULL,
+        epoch BIGINT NOT NULL,
+        first_seq BIGINT NOT NULL,
+        last_seq BIGINT NOT NULL,
+        opened_recorded_ns BIGINT NOT NULL,
+        closed_recorded_ns BIGINT
+    )""",
+    """CREATE TABLE IF NOT EXISTS quarantine (
+        quarantine_id BIGINT NOT NULL,
+        recorded_time_ns BIGINT NOT NULL,
+        type VARCHAR NOT NULL,
+        source VARCHAR NOT NULL,
+        epoch BIGINT,
+        seq BIGINT,
+        valid_time_ns BIGINT,
+        code VARCHAR NOT NULL,
+        detail VARCHAR NOT NULL,
+        raw BLOB NOT NULL,
+        existing_global_seq BIGINT
+    )""",
+]
+
+_ROW_COLUMNS = ("global_seq, type, source, epoch, seq, valid_time_ns, recorded_time_ns, "
+                "payload, payload_sha256, chain_sha256, flags")
+
+_EVENT_SCHEMA = pa.schema([
+    ("global_seq", pa.int64()), ("type", pa.string()), ("source", pa.string()),
+    ("epoch", pa.int64()), ("seq", pa.int64()), ("valid_time_ns", pa.int64()),
+    ("recorded_time_ns", pa.int64()), ("payload", pa.binary()),
+    ("payload_sha256", pa.binary()), ("chain_sha256", pa.binary()),
+    ("flags", pa.string()), ("body", pa.string()),
+])
+
+_FETCH_ROWS = 8192
+
+# one writer per file per process: a second DuckDBStore on the same file would hold a
+# stale copy of the writer state
+_OPEN_WRITERS: set[str] = set()
+_OPEN_WRITERS_LOCK = threading.Lock()
+
+
+def _row(values: tuple) -> RecordedEvent:
+    flags = values[10]
+    return RecordedEvent(values[0], values[1], values[2], values[3], values[4], values[5],
+                         values[6], values[7], values[8], values[9],
+                         tuple(flags.split(",")) if flags else ())
+
+
+class DuckDBStore(LedgerStore):
+    """A ledger in one DuckDB file.
+
+    Parameters
+    ----------
+    path : str or Path
+        The ledger file; created (with its folder) when missing unless ``read_only``.
+    clock : SiteClock, optional
+        Source of recorded time (default: wall clock).
+    read_only : bool
+        Open for reading only; many read-only processes may share a file that no
+        writer has open.
+
+    Raises
+    ------
+    OperationalError
+        The file is missing (read-only) or locked by a writer in another process.
+    InterfaceError
+        This process already has a writer open on the file.
+    ProgrammingError
+        The file is not a ledger of this schema version.
+    """
+
+    backend = "duckdb"
+
+    def __init__(self, path: str | os.PathLike[str], clock: SiteClock | None = None, *,
+                 read_only: bool = False) -> None:
+        super().__init__(clock, read_only=read_only)
+        self.path = Path(path)
+        self._registered = False
+        resolved = str(self.path.resolve())
+        if read_only and not self.path.exists():
+            raise OperationalError(f"no ledger at {self.path}")
+        if not read_only:
+            with _OPEN_WRITERS_LOCK:
+                if resolved in _OPEN_WRITERS:
+                    raise InterfaceError(f"this process already has {self.path} open for writing")
+                _OPEN_WRITERS.add(resolved)
+                self._registered = True
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._resolved = resolved
+        try:
+            with backend_errors():
+                self._con = duckdb.connect(str(self.path), read_only=read_only)
+            try:
+                with backend_errors():
+                    if not read_only:
+                        self._create_schema()
+                    self._check_schema()
+                    self._state, self._analytes = self._load_state()
+            except BaseException:
+                self._con.close()
+                raise
+        except BaseException:
+            self._unregister()
+            raise
+
+    # -- opening ---------------------------------------------------------------------------
+
+    def _create_schema(self) -> None:
+        con = self._con
+        con.execute("BEGIN TRANSACTION")
+        try:
+            for ddl in _DDL:
+                con.execute(ddl)
+            if not con.execute("SELECT count(*) FROM ledger_meta").fetchone()[0]:
+                con.execute("INSERT INTO ledger_meta VALUES ('schema_version', ?)", [SCHEMA_VERSION])
+            con.execute("COMMIT")
+        except BaseException:
+            con.execute("ROLLBACK")
+            raise
+
+    def _check_schema(self) -> None:
+        try:
+            row = self._con.execute(
+                "SELECT value FROM ledger_meta WHERE key = 'schema_version'").fetchone()
+        except duckdb.CatalogException:
+            raise ProgrammingError(f"{self.path} is not a stockpile ledger") from None
+        if row is None or row[0] != SCHEMA_VERSION:
+            raise ProgrammingError(
+                f"{self.path} has ledger schema version {row and row[0]!r}, "
+                f"this program reads version {SCHEMA_VERSION!r}")
+
+    def _load_state(self) -> tuple[WriterState, set[str]]:
+        con = self._con
+        state = WriterState()
+        head = con.execute("SELECT global_seq, recorded_time_ns, chain_sha256 FROM event_log "
+                           "ORDER BY global_seq DESC LIMIT 1").fetchone()
+        if head is not None:
+            state.head_seq, state.last_recorded_ns, state.head_chain = head[0], head[1], bytes(head[2])
+        else:
+            state.head_chain = GENESIS
+        for source, epoch, max_seq in con.execute(
+                "SELECT source, epoch, max(seq) FROM event_log GROUP BY source, epoch").fetchall():
+            state.streams[(source, epoch)] = StreamState(max_seq=max_seq)
+        for values in con.execute(
+                "SELECT gap_id, source, epoch, first_seq, last_seq, opened_recorded_ns, "
+                "closed_recorded_ns FROM gaps WHERE closed_recorded_ns IS NULL "
+                "ORDER BY first_seq").fetchall():
+            gap = Gap(*values)
+            state.streams.setdefault((gap.source, gap.epoch), StreamState()).open_gaps.append(gap)
+        state.latest_clock_event_ns = con.execute(
+            "SELECT max(valid_time_ns) FROM event_log WHERE type = 'clock'").fetchone()[0]
+        state.known_lots = {
+            r[0] for r in con.execute(
+                "SELECT DISTINCT body->>'lot_id' FROM event_log WHERE type = 'lot_declared'"
+            ).fetchall() if r[0] is not None
+        }
+        state.next_gap_id = con.execute("SELECT coalesce(max(gap_id) + 1, 0) FROM gaps").fetchone()[0]
+        state.next_quarantine_id = con.execute(
+            "SELECT coalesce(max(quarantine_id) + 1, 0) FROM quarantine").fetchone()[0]
+        analytes = views.stored_analytes(con)
+        if not self.read_only:
+            views.create_views(con, analytes)
+        return state, analytes
+
+    # -- writing ---------------------------------------------------------------------------
+
+    def _lookup(self, keys: Sequence[Key]) -> dict[Key, tuple[int, bytes]]:
+        if not keys:
+            return {}
+        wanted = pa.table({
+            "source": pa.array([k[0] for k in keys], pa.string()),
+            "epoch": pa.array([k[1] for k in keys], pa.int64()),
+            "seq": pa.array([k[2] for k in keys], pa.int64()),
+        })
+        low = min(k[2] for k in keys)
+        high = max(k[2] for k in keys)
+        with backend_errors():
+            cur = self._con.cursor()
+            try:
+                cur.register("wanted_keys", wanted)
+                rows = cur.execute(
+                    "SELECT e.source, e.epoch, e.seq, e.global_seq, e.payload_sha256 "
+                    "FROM event_log e JOIN wanted_keys w USING (source, epoch, seq) "
+                    "WHERE e.seq BETWEEN ? AND ?", [low, high]).fetchall()
+            finally:
+                cur.close()
+        return {(r[0], r[1], r[2]): (r[3], bytes(r[4])) for r in rows}
+
+    def _commit(self, plan: BatchPlan) -> None:
+        con = self._con
+        new_analytes = self._new_analytes(plan)
+        with backend_errors():
+            con.execute("BEGIN TRANSACTION")
+            try:
+                if plan.rows:
+                    rows = plan.rows
+                    batch = pa.Table.from_arrays([
+                        pa.array([r.global_seq for r in rows], pa.int64()),
+                        pa.array([r.type for r in rows], pa.string()),
+                        pa.array([r.source for r in rows], pa.string()),
+                        pa.array([r.epoch for r in rows], pa.int64()),
+                        pa.array([r.seq for r in rows], pa.int64()),
+                        pa.array([r.valid_time_ns for r in rows], pa.int64()),
+                        pa.array([r.recorded_time_ns for r in rows], pa.int64()),
+                        pa.array([r.payload for r in rows], pa.binary()),
+                        pa.array([r.payload_sha256 for r in rows], pa.binary()),
+                        pa.array([r.chain_sha256 for r in rows], pa.binary()),
+                        pa.array([",".join(r.flags) if r.flags else None for r in rows], pa.string()),
+                        pa.array(plan.bodies, pa.string()),
+                    ], schema=_EVENT_SCHEMA)
+                    con.register("new_events", batch)
+                    try:
+                        con.execute("INSERT INTO event_log SELECT * FROM new_events")
+                    finally:
+                        con.unregister("new_events")
+                if plan.quarantine:
+                    con.executemany(
+                        "INSERT INTO quarantine VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                        [[q.quarantine_id, q.recorded_time_ns, q.type, q.source, q.epoch, q.seq,
+                          q.valid_time_ns, q.code, q.detail, q.raw, q.existing_global_seq]
+                         for q in plan.quarantine])
+                for gap in plan.closed_gaps:
+                    con.execute("UPDATE gaps SET closed_recorded_ns = ? WHERE gap_id = ?",
+                                [gap.closed_recorded_ns, gap.gap_id])
+                if plan.opened_gaps:
+                    con.executemany(
+                        "INSERT INTO gaps VALUES (?, ?, ?, ?, ?, ?, ?)",
+                        [[g.gap_id, g.source, g.epoch, g.first_seq, g.last_seq,
+                          g.opened_recorded_ns, g.closed_recorded_ns] for g in plan.opened_gaps])
+                if new_analytes:
+                    views.create_views(con, self._analytes | new_analytes)
+                con.execute("COMMIT")
+            except BaseException:
+                con.execute("ROLLBACK")
+                raise
+        self._analytes |= new_analytes
+
+    def _new_analytes(self, plan: BatchPlan) -> set[str]:
+        found: set[str] = set()
+        for row, body in zip(plan.rows, plan.bodies):
+            if row.type == "assay" and body:
+                found.update(json.loads(body).get("analytes", {}))
+        return found - self._analytes
+
+    # -- reading ---------------------------------------------------------------------------
+
+    def _query(self, sql: str, params: list) -> Iterator[RecordedEvent]:
+        with self._lock:
+            self._check_open()
+            with backend_errors():
+                cur = self._con.cursor()
+                cur.execute(sql, params)
+        try:
+            while True:
+                with backend_errors():
+                    chunk = cur.fetchmany(_FETCH_ROWS)
+                if not chunk:
+                    return
+                for values in chunk:
+                    yield _row(values)
+        finally:
+            cur.close()
+
+    @staticmethod
+    def _filters(types: Sequence[str] | None, sources: Sequence[str] | None,
+                 where: list[str], params: list) -> None:
+        if types is not None:
+            where.append("list_contains(?, type)")
+            params.append(list(types))
+        if sources is not None:
+            where.append("list_contains(?, source)")
+            params.append(list(sources))
+
+    def read(self, start_seq: int = 0, stop_seq: int | None = None, *,
+             types: Sequence[str] | None = None,
+             sources: Sequence[str] | None = None) -> Iterator[RecordedEvent]:
+        where, params = ["global_seq >= ?"], [start_seq]
+        if stop_seq is not None:
+            where.append("global_seq < ?")
+            params.append(stop_seq)
+        self._filters(types, sources, where, params)
+        return self._query(f"SELECT {_ROW_COLUMNS} FROM event_log WHERE {' AND '.join(where)} "
+                           "ORDER BY global_seq", params)
+
+    def as_of(self, valid_time_ns: int, known_time_ns: int, *,
+              types: Sequence[str] | None = None) -> Iterator[RecordedEvent]:
+        where = ["valid_time_ns <= ?", "recorded_time_ns <= ?"]
+        params: list = [valid_time_ns, known_time_ns]
+        self._filters(types, None, where, params)
+        return self._query(f"SELECT {_ROW_COLUMNS} FROM event_log WHERE {' AND '.join(where)} "
+                           "ORDER BY valid_time_ns, global_seq", params)
+
+    def gaps(self, *, open_only: bool = False) -> list[Gap]:
+        where = "WHERE closed_recorded_ns IS NULL" if open_only else ""
+        with self._lock:
+            self._check_open()
+            with backend_errors():
+                rows = self._con.execute(
+                    "SELECT gap_id, source, epoch, first_seq, last_seq, opened_recorded_ns, "
+                    f"closed_recorded_ns FROM gaps {where} ORDER BY gap_id").fetchall()
+        return [Gap(*r) for r in rows]
+
+    def quarantine(self) -> list[QuarantineEntry]:
+        with self._lock:
+            self._check_open()
+            with backend_errors():
+                rows = self._con.execute(
+                    "SELECT quarantine_id, recorded_time_ns, type, source, epoch, seq, "
+                    "valid_time_ns, code, detail, raw, existing_global_seq FROM quarantine "
+                    "ORDER BY quarantine_id").fetchall()
+        return [QuarantineEntry(*r[:9], bytes(r[9]), r[10]) for r in rows]
+
+    def stats(self) -> LedgerStats:
+        """As :meth:`LedgerStore.stats`, computed in SQL (no payloads are read)."""
+        with self._lock:
+            self._check_open()
+            with backend_errors():
+                con = self._con
+                per_type = dict(con.execute(
+                    "SELECT type, count(*) FROM event_log GROUP BY type ORDER BY type").fetchall())
+                per_source = dict(con.execute(
+                    "SELECT source, count(*) FROM event_log GROUP BY source ORDER BY source").fetchall())
+                vmin, vmax, rmin, rmax = con.execute(
+                    "SELECT min(valid_time_ns), max(valid_time_ns), min(recorded_time_ns), "
+                    "max(recorded_time_ns) FROM event_log").fetchone()
+                flagged = dict(con.execute(
+                    "SELECT f, count(*) FROM (SELECT unnest(string_split(flags, ',')) AS f "
+                    "FROM event_log WHERE flags IS NOT NULL) GROUP BY f ORDER BY f").fetchall())
+                open_gaps, missing, closed_gaps = con.execute(
+                    "SELECT count(*) FILTER (WHERE closed_recorded_ns IS NULL), "
+                    "coalesce(sum(last_seq - first_seq + 1) FILTER (WHERE closed_recorded_ns IS NULL), 0), "
+                    "count(*) FILTER (WHERE closed_recorded_ns IS NOT NULL) FROM gaps").fetchone()
+                by_code = dict(con.execute(
+                    "SELECT code, count(*) FROM quarantine GROUP BY code ORDER BY code").fetchall())
+        return LedgerStats(
+            events=sum(per_type.values()),
+            head=self.head(),
+            per_type=per_type,
+            per_source=per_source,
+            valid_time_range_ns=None if vmin is None else (vmin, vmax),
+            recorded_time_range_ns=None if rmin is None else (rmin, rmax),
+            open_gaps=open_gaps,
+            missing_events=int(missing),
+            closed_gaps=closed_gaps,
+            quarantined=sum(by_code.values()),
+            quarantine_by_code=by_code,
+            flagged=flagged,
+        )
+
+    # -- closing ---------------------------------------------------------------------------
+
+    def _close(self) -> None:
+        try:
+            with backend_errors():
+                self._con.close()
+        finally:
+            self._unregister()
+
+    def _unregister(self) -> None:
+        if self._registered:
+            with _OPEN_WRITERS_LOCK:
+                _OPEN_WRITERS.discard(self._resolved)
+            self._registered = False

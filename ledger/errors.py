@@ -1,0 +1,127 @@
+"""The ledger's exception tree, and the one place backend errors are mapped into it.
+
+::
+
+    LedgerError                      base of everything the ledger raises
+    ├── InterfaceError               misuse of the API: closed store, wrong argument types,
+    │                                a second writer on one file in one process
+    └── DatabaseError                the backend could not do what was asked
+        ├── DataError                a value the backend cannot store
+        ├── OperationalError         not now: file locked by another process, missing file,
+        │                            disk full, I/O error
+        ├── IntegrityError           stored data contradicts the ledger's invariants
+        ├── InternalError            an unexpected backend failure
+        ├── ProgrammingError         schema version or SQL mismatch (a bug or an old file)
+        └── NotSupportedError        an operation this backend does not offer
+
+Bad *events* are not exceptions: they are quarantined and reported per event in
+:class:`~ledger.records.AppendResult`.  Exceptions are for the store itself.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from typing import Iterator
+
+
+class LedgerError(Exception):
+    """Base class of every error the ledger raises."""
+
+
+class InterfaceError(LedgerError):
+    """The API was used wrongly (closed store, wrong argument types, second writer)."""
+
+
+class DatabaseError(LedgerError):
+    """The backend could not do what was asked."""
+
+
+class DataError(DatabaseError):
+    """A value the backend cannot store."""
+
+
+class OperationalError(DatabaseError):
+    """Not possible now: locked by another process, missing file, disk full, I/O."""
+
+
+class IntegrityError(DatabaseError):
+    """Stored data contradicts the ledger's invariants."""
+
+
+class InternalError(DatabaseError):
+    """An unexpected backend failure."""
+
+
+class ProgrammingError(DatabaseError):
+    """Schema version or SQL mismatch: a bug, or a ledger file from another version."""
+
+
+class NotSupportedError(DatabaseError):
+    """An operation this backend does not offer."""
+
+
+def _duckdb_mapping() -> list[tuple[type[BaseException], type[LedgerError]]]:
+    import duckdb
+
+    mapping: list[tuple[type[BaseException], type[LedgerError]]] = []
+    # most specific first: duckdb's exceptions subclass each other
+    for name, ours in (
+        ("ConstraintException", IntegrityError),
+        ("IntegrityError", IntegrityError),
+        ("ConversionException", DataError),
+        ("OutOfRangeException", DataError),
+        ("DataError", DataError),
+        ("IOException", OperationalError),
+        ("OutOfMemoryException", OperationalError),
+        ("TransactionException", OperationalError),
+        ("InterruptException", OperationalError),
+        ("OperationalError", OperationalError),
+        ("NotImplementedException", NotSupportedError),
+        ("NotSupportedError", NotSupportedError),
+        ("CatalogException", ProgrammingError),
+        ("BinderException", ProgrammingError),
+        ("ParserException", ProgrammingError),
+        ("ProgrammingError", ProgrammingError),
+        ("InternalException", InternalError),
+        ("InternalError", InternalError),
+        ("Error", DatabaseError),
+    ):
+        cls = getattr(duckdb, name, None)
+        if isinstance(cls, type) and issubclass(cls, BaseException):
+            mapping.append((cls, ours))
+    return mapping
+
+
+_MAPPING: list[tuple[type[BaseException], type[LedgerError]]] | None = None
+
+
+def map_backend_error(exc: BaseException) -> LedgerError:
+    """The :class:`LedgerError` for a backend exception (DuckDB or OS)."""
+    global _MAPPING
+    if isinstance(exc, LedgerError):
+        return exc
+    if _MAPPING is None:
+        _MAPPING = _duckdb_mapping()
+    message = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+    if isinstance(exc, OSError):
+        return OperationalError(message)
+    for backend_cls, ours in _MAPPING:
+        if isinstance(exc, backend_cls):
+            if ours is OperationalError and "lock" in message.lower():
+                message = (
+                    "the ledger is open for writing by another process "
+                    f"(one writer or many readers, never both): {message}"
+                )
+            return ours(message)
+    return InternalError(f"{type(exc).__name__}: {message}")
+
+
+@contextlib.contextmanager
+def backend_errors() -> Iterator[None]:
+    """Re-raise backend exceptions inside the block as :class:`LedgerError` subclasses."""
+    try:
+        yield
+    except LedgerError:
+        raise
+    except Exception as exc:
+        raise map_backend_error(exc) from exc

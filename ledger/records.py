@@ -1,0 +1,177 @@
+"""Frozen record types the ledger returns.  All times are UTC nanoseconds."""
+
+from __future__ import annotations
+
+from collections import Counter
+from dataclasses import dataclass, field
+from typing import Literal
+
+from schemas.events import Event
+
+Status = Literal["appended", "duplicate", "conflict", "rejected"]
+STATUSES: tuple[Status, ...] = ("appended", "duplicate", "conflict", "rejected")
+
+#: Flag on an assay whose lot had not been declared when it was recorded.
+FLAG_UNKNOWN_LOT = "unknown_lot"
+
+
+@dataclass(frozen=True, slots=True)
+class RecordedEvent:
+    """An event as stored: its identity and payload plus what the ledger added."""
+
+    global_seq: int
+    type: str
+    source: str
+    epoch: int
+    seq: int
+    valid_time_ns: int
+    recorded_time_ns: int
+    payload: bytes
+    payload_sha256: bytes
+    chain_sha256: bytes
+    flags: tuple[str, ...] = ()
+
+    @property
+    def key(self) -> tuple[str, int, int]:
+        """The idempotency key ``(source, epoch, seq)``."""
+        return (self.source, self.epoch, self.seq)
+
+    def to_event(self, *, keep_recorded_time: bool = True) -> Event:
+        """Back to an :class:`~schemas.events.Event` (for copying between ledgers)."""
+        return Event(self.type, self.source, self.epoch, self.seq, self.valid_time_ns,
+                     self.payload, self.recorded_time_ns if keep_recorded_time else None)
+
+
+@dataclass(frozen=True, slots=True)
+class AppendOutcome:
+    """What happened to one event of a batch.
+
+    ``global_seq`` is the event's position for ``appended``, the stored event's for
+    ``duplicate`` and ``conflict``, and ``None`` for ``rejected``.  ``code`` and
+    ``detail`` say why for ``conflict`` and ``rejected``
+    (codes: :data:`schemas.validate.REASON_CODES`).
+    """
+
+    status: Status
+    global_seq: int | None = None
+    code: str | None = None
+    detail: str | None = None
+    flags: tuple[str, ...] = ()
+
+    @property
+    def reason(self) -> str | None:
+        return None if self.code is None else f"{self.code}: {self.detail}"
+
+
+@dataclass(frozen=True, slots=True)
+class AppendResult:
+    """Per-event outcomes of one atomic batch, in input order."""
+
+    outcomes: tuple[AppendOutcome, ...]
+    head_seq: int  # last global sequence after the batch, -1 for an empty ledger
+
+    @property
+    def counts(self) -> dict[str, int]:
+        """Number of events per status, every status present."""
+        counter = Counter(o.status for o in self.outcomes)
+        return {status: counter.get(status, 0) for status in STATUSES}
+
+    @property
+    def appended(self) -> int:
+        return sum(1 for o in self.outcomes if o.status == "appended")
+
+
+@dataclass(frozen=True, slots=True)
+class Gap:
+    """A missing range of source sequence numbers, ``first_seq..last_seq`` inclusive.
+
+    Open while ``closed_recorded_ns`` is ``None``.  When some of the missing events
+    arrive the gap is closed and what is still missing is opened again as new gaps
+    (which keep the original ``opened_recorded_ns``).
+    """
+
+    gap_id: int
+    source: str
+    epoch: int
+    first_seq: int
+    last_seq: int
+    opened_recorded_ns: int
+    closed_recorded_ns: int | None = None
+
+    @property
+    def is_open(self) -> bool:
+        return self.closed_recorded_ns is None
+
+    @property
+    def size(self) -> int:
+        return self.last_seq - self.first_seq + 1
+
+
+@dataclass(frozen=True, slots=True)
+class StreamInfo:
+    """Sequence bookkeeping of one (source, epoch)."""
+
+    source: str
+    epoch: int
+    highest_contiguous_seq: int  # -1 when seq 0 is still missing
+    max_seq: int
+    open_gaps: int
+    missing: int  # events in open gaps
+
+
+@dataclass(frozen=True, slots=True)
+class QuarantineEntry:
+    """Something that arrived and was not stored as an event, with why and its raw bytes."""
+
+    quarantine_id: int
+    recorded_time_ns: int
+    type: str
+    source: str
+    epoch: int | None
+    seq: int | None
+    valid_time_ns: int | None
+    code: str
+    detail: str
+    raw: bytes
+    existing_global_seq: int | None = None  # for conflicts: the stored event's
+
+    @property
+    def reason(self) -> str:
+        return f"{self.code}: {self.detail}"
+
+
+@dataclass(frozen=True, slots=True)
+class Head:
+    """The committed end of the ledger."""
+
+    global_seq: int  # -1 for an empty ledger
+    recorded_time_ns: int | None
+    chain_sha256: bytes
+
+
+@dataclass(frozen=True, slots=True)
+class VerifyReport:
+    """Result of recomputing hashes and the chain over every row."""
+
+    ok: bool
+    rows_checked: int
+    first_bad_seq: int | None = None
+    problem: str | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class LedgerStats:
+    """Counts and time ranges for people and dashboards."""
+
+    events: int
+    head: Head
+    per_type: dict[str, int] = field(default_factory=dict)
+    per_source: dict[str, int] = field(default_factory=dict)
+    valid_time_range_ns: tuple[int, int] | None = None
+    recorded_time_range_ns: tuple[int, int] | None = None
+    open_gaps: int = 0
+    missing_events: int = 0
+    closed_gaps: int = 0
+    quarantined: int = 0
+    quarantine_by_code: dict[str, int] = field(default_factory=dict)
+    flagged: dict[str, int] = field(default_factory=dict)

@@ -1,0 +1,516 @@
+"""The ledger store interface and the append logic every backend shares.
+
+A store is an append-only log of :class:`~ledger.records.RecordedEvent` rows with a
+dense global sequence, plus a quarantine and a table of sequence gaps.  One
+:class:`LedgerStore` object is the single writer of its ledger; threads may share
+it (appends are serialised by a lock).
+
+Appending a batch (:meth:`LedgerStore.append`) is atomic: every event of it is
+either stored, found to be a duplicate, or quarantined with a reason, and the
+batch's rows, quarantine entries and gap changes commit together or not at all.
+The decisions are made here, by :class:`_BatchPlanner`, from the writer's
+in-memory :class:`WriterState`; a backend only persists a :class:`BatchPlan`
+(``_commit``) and answers reads.  Both backends therefore behave identically, which
+:class:`ledger.testing.LedgerStoreContract` checks.
+"""
+
+from __future__ import annotations
+
+import abc
+import bisect
+import threading
+from collections import Counter
+from dataclasses import dataclass, field
+from typing import Iterable, Iterator, Sequence
+
+from schemas.events import Event, Malformed
+from schemas.jsonl import body_json
+from schemas.validate import REASON_CODES, InvalidEvent, check_event
+
+from ledger.chain import GENESIS, chain_hash, payload_hash
+from ledger.clock import SiteClock, WallClock
+from ledger.errors import InterfaceError, LedgerError
+from ledger.records import (
+    FLAG_UNKNOWN_LOT,
+    AppendOutcome,
+    AppendResult,
+    Gap,
+    Head,
+    LedgerStats,
+    QuarantineEntry,
+    RecordedEvent,
+    StreamInfo,
+    VerifyReport,
+)
+
+Key = tuple[str, int, int]
+
+#: Types whose decoded body is kept beside the payload (as JSON) for the SQL views.
+BODY_TYPES: frozenset[str] = frozenset(
+    {
+        "site_declared",
+        "pile_declared",
+        "machine_declared",
+        "lot_declared",
+        "stack_started",
+        "stack_ended",
+        "reclaim_cut",
+        "assay",
+    }
+)
+
+
+@dataclass
+class StreamState:
+    """Sequence bookkeeping of one (source, epoch): the writer's view."""
+
+    max_seq: int = -1
+    open_gaps: list[Gap] = field(default_factory=list)  # sorted by first_seq
+
+    def copy(self) -> StreamState:
+        return StreamState(self.max_seq, list(self.open_gaps))
+
+    def gap_containing(self, seq: int) -> int | None:
+        """Index in ``open_gaps`` of the gap holding ``seq``, or None."""
+        starts = [g.first_seq for g in self.open_gaps]
+        i = bisect.bisect_right(starts, seq) - 1
+        if i >= 0 and self.open_gaps[i].last_seq >= seq:
+            return i
+        return None
+
+    def is_stored(self, seq: int) -> bool:
+        """Whether an event with ``seq`` has been stored for this stream."""
+        return seq <= self.max_seq and self.gap_containing(seq) is None
+
+    @property
+    def highest_contiguous_seq(self) -> int:
+        return self.open_gaps[0].first_seq - 1 if self.open_gaps else self.max_seq
+
+
+@dataclass
+class WriterState:
+    """Everything the writer needs to decide a batch without reading rows back."""
+
+    head_seq: int = -1
+    head_chain: bytes = GENESIS
+    last_recorded_ns: int | None = None
+    latest_clock_event_ns: int | None = None
+    streams: dict[tuple[str, int], StreamState] = field(default_factory=dict)
+    known_lots: set[str] = field(default_factory=set)
+    next_gap_id: int = 0
+    next_quarantine_id: int = 0
+
+
+@dataclass
+class BatchPlan:
+    """What one batch writes; a backend persists it atomically in ``_commit``."""
+
+    rows: list[RecordedEvent] = field(default_factory=list)
+    bodies: list[str | None] = field(default_factory=list)  # JSON body per row (BODY_TYPES)
+    quarantine: list[QuarantineEntry] = field(default_factory=list)
+    opened_gaps: list[Gap] = field(default_factory=list)
+    closed_gaps: list[Gap] = field(default_factory=list)  # with closed_recorded_ns set
+    outcomes: list[AppendOutcome] = field(default_factory=list)
+    state: WriterState | None = None  # the writer state after the batch
+
+
+def _split_reason(reason: str) -> tuple[str, str]:
+    code, sep, detail = reason.partition(": ")
+    if sep and code in REASON_CODES:
+        return code, detail
+    return "malformed", reason
+
+
+class _BatchPlanner:
+    """Decides one batch against a copy-on-write view of the writer state."""
+
+    def __init__(self, state: WriterState, clock: SiteClock) -> None:
+        self.base = state
+        self.clock = clock
+        self.state = WriterState(
+            head_seq=state.head_seq,
+            head_chain=state.head_chain,
+            last_recorded_ns=state.last_recorded_ns,
+            latest_clock_event_ns=state.latest_clock_event_ns,
+            streams=dict(state.streams),  # values copied on first touch
+            known_lots=state.known_lots,  # copied on first change
+            next_gap_id=state.next_gap_id,
+            next_quarantine_id=state.next_quarantine_id,
+        )
+        self._touched: set[tuple[str, int]] = set()
+        self._lots_copied = False
+        self.plan = BatchPlan()
+        self._batch_keys: dict[Key, RecordedEvent] = {}
+
+    # -- state helpers --------------------------------------------------------------
+
+    def _stream(self, source: str, epoch: int) -> StreamState:
+        sid = (source, epoch)
+        if sid not in self._touched:
+            self._touched.add(sid)
+            existing = self.state.streams.get(sid)
+            self.state.streams[sid] = existing.copy() if existing else StreamState()
+        return self.state.streams[sid]
+
+    def _recorded_ns(self, preserved: int | None) -> int:
+        last = self.state.last_recorded_ns
+        if preserved is not None:
+            if last is not None and preserved < last:
+                raise InvalidEvent(
+                    "recorded_time_backwards",
+                    f"recorded_time_ns {preserved} is before the ledger head's {last}",
+                )
+            return preserved
+        now = self.clock.now_ns(self.state.latest_clock_event_ns)
+        return now if last is None or now > last else last
+
+    def _quarantine(self, item: Event | Malformed, code: str, detail: str,
+                    existing: int | None = None) -> None:
+        s = self.state
+        recorded = self.clock.now_ns(s.latest_clock_event_ns)
+        if s.last_recorded_ns is not None and recorded < s.last_recorded_ns:
+            recorded = s.last_recorded_ns
+        if isinstance(item, Malformed):
+            raw, epoch, seq, valid = item.raw, item.epoch, item.seq, item.valid_time_ns
+        else:
+            raw = bytes(item.payload) if isinstance(item.payload, (bytes, bytearray, memoryview)) else b""
+            epoch = item.epoch if isinstance(item.epoch, int) else None
+            seq = item.seq if isinstance(item.seq, int) else None
+            valid = item.valid_time_ns if isinstance(item.valid_time_ns, int) else None
+        entry = QuarantineEntry(
+            quarantine_id=s.next_quarantine_id,
+            recorded_time_ns=recorded,
+            type=str(item.type or ""),
+            source=str(item.source or ""),
+            epoch=epoch,
+            seq=seq,
+            valid_time_ns=valid,
+            code=code,
+            detail=detail,
+            raw=raw,
+            existing_global_seq=existing,
+        )
+        s.next_quarantine_id += 1
+        self.plan.quarantine.append(entry)
+        status = "conflict" if code == "conflict" else "rejected"
+        self.plan.outcomes.append(AppendOutcome(status, existing, code, detail))
+
+    def _track_sequence(self, source: str, epoch: int, seq: int, recorded_ns: int) -> None:
+        stream = self._stream(source, epoch)
+        s = self.state
+        if seq > stream.max_seq:
+            if seq > stream.max_seq + 1:
+                gap = Gap(s.next_gap_id, source, epoch, stream.max_seq + 1, seq - 1, recorded_ns)
+                s.next_gap_id += 1
+                stream.open_gaps.append(gap)
+                self.plan.opened_gaps.append(gap)
+            stream.max_seq = seq
+            return
+        index = stream.gap_containing(seq)
+        assert index is not None, "planner called _track_sequence for a stored seq"
+        gap = stream.open_gaps.pop(index)
+        closed = Gap(gap.gap_id, source, epoch, gap.first_seq, gap.last_seq,
+                     gap.opened_recorded_ns, recorded_ns)
+        # a gap opened earlier in this same batch is replaced, not closed in the store
+        opened_here = [g for g in self.plan.opened_gaps if g.gap_id == gap.gap_id]
+        if opened_here:
+            self.plan.opened_gaps.remove(opened_here[0])
+        else:
+            self.plan.closed_gaps.append(closed)
+        remainders = []
+        for first, last in ((gap.first_seq, seq - 1), (seq + 1, gap.last_seq)):
+            if first <= last:
+                new = Gap(s.next_gap_id, source, epoch, first, last, gap.opened_recorded_ns)
+                s.next_gap_id += 1
+                remainders.append(new)
+                self.plan.opened_gaps.append(new)
+        stream.open_gaps[index:index] = remainders
+
+    # -- the batch --------------------------------------------------------------------
+
+    def run(self, batch: Sequence[Event | Malformed],
+            stored: dict[Key, tuple[int, bytes]]) -> BatchPlan:
+        for item in batch:
+            self._one(item, stored)
+        self.plan.state = self.state
+        return self.plan
+
+    def _one(self, item: Event | Malformed, stored: dict[Key, tuple[int, bytes]]) -> None:
+        if isinstance(item, Malformed):
+            self._quarantine(item, *_split_reason(item.reason))
+            return
+        if not isinstance(item, Event):
+            raise InterfaceError(f"append takes Event or Malformed, not {type(item).__name__}")
+        try:
+            message = check_event(item)
+        except InvalidEvent as exc:
+            self._quarantine(item, exc.code, exc.detail)
+            return
+        payload = bytes(item.payload)
+        digest = payload_hash(payload)
+        key = (item.source, item.epoch, item.seq)
+        previous = self._batch_keys.get(key)
+        if previous is not None:
+            prior = (previous.global_seq, previous.payload_sha256)
+        elif self._stream_view(item.source, item.epoch).is_stored(item.seq):
+            prior = stored.get(key)
+            if prior is None:  # pragma: no cover - would mean state and rows disagree
+                raise LedgerError(f"stored event {key} not found; the writer state is stale")
+        else:
+            prior = None
+        if prior is not None:
+            if prior[1] == digest:
+                self.plan.outcomes.append(AppendOutcome("duplicate", prior[0]))
+            else:
+                self._quarantine(item, "conflict",
+                                 f"{key} is stored as global_seq {prior[0]} with another payload",
+                                 existing=prior[0])
+            return
+        try:
+            recorded = self._recorded_ns(item.recorded_time_ns)
+        except InvalidEvent as exc:
+            self._quarantine(item, exc.code, exc.detail)
+            return
+        flags: tuple[str, ...] = ()
+        s = self.state
+        if item.type == "assay" and message.lot_id not in s.known_lots:
+            flags = (FLAG_UNKNOWN_LOT,)
+        elif item.type == "lot_declared" and message.lot_id not in s.known_lots:
+            if not self._lots_copied:
+                s.known_lots = set(s.known_lots)
+                self._lots_copied = True
+            s.known_lots.add(message.lot_id)
+        elif item.type == "clock":
+            if s.latest_clock_event_ns is None or item.valid_time_ns > s.latest_clock_event_ns:
+                s.latest_clock_event_ns = item.valid_time_ns
+        global_seq = s.head_seq + 1
+        chain = chain_hash(s.head_chain, global_seq, item.type, item.source, item.epoch,
+                           item.seq, item.valid_time_ns, recorded, digest)
+        row = RecordedEvent(global_seq, item.type, item.source, item.epoch, item.seq,
+                            item.valid_time_ns, recorded, payload, digest, chain, flags)
+        s.head_seq, s.head_chain, s.last_recorded_ns = global_seq, chain, recorded
+        self._track_sequence(item.source, item.epoch, item.seq, recorded)
+        self._batch_keys[key] = row
+        self.plan.rows.append(row)
+        self.plan.bodies.append(body_json(message) if item.type in BODY_TYPES else None)
+        self.plan.outcomes.append(AppendOutcome("appended", global_seq, flags=flags))
+
+    def _stream_view(self, source: str, epoch: int) -> StreamState:
+        return self.state.streams.get((source, epoch)) or StreamState()
+
+
+def keys_to_look_up(state: WriterState, batch: Iterable[Event | Malformed]) -> list[Key]:
+    """Keys of a batch that may already be stored (so their payload hash is needed)."""
+    keys = []
+    for item in batch:
+        if not isinstance(item, Event) or not isinstance(item.seq, int):
+            continue
+        stream = state.streams.get((item.source, item.epoch))
+        if stream is not None and stream.is_stored(item.seq):
+            keys.append((item.source, item.epoch, item.seq))
+    return keys
+
+
+class LedgerStore(abc.ABC):
+    """An append-only event ledger.  Subclasses: the DuckDB and in-memory stores.
+
+    Parameters
+    ----------
+    clock : SiteClock, optional
+        Source of recorded time (default: the wall clock).
+    """
+
+    #: short backend name for messages ("duckdb", "memory")
+    backend: str = "abstract"
+
+    def __init__(self, clock: SiteClock | None = None, *, read_only: bool = False) -> None:
+        self.clock: SiteClock = clock or WallClock()
+        self.read_only = read_only
+        self._lock = threading.RLock()
+        self._closed = False
+        self._state = WriterState()
+
+    # -- writing ------------------------------------------------------------------------
+
+    def append(self, batch: Sequence[Event | Malformed]) -> AppendResult:
+        """Append one batch atomically; return an outcome per event, in input order.
+
+        Events are validated (:func:`schemas.validate.check_event`); an event whose
+        ``(source, epoch, seq)`` is already stored with the same payload is a
+        ``duplicate`` (a no-op); with another payload a ``conflict`` (quarantined,
+        never overwriting).  Rejected and conflicting events are quarantined with
+        their reason and raw bytes; the rest of the batch is kept.
+
+        Raises
+        ------
+        InterfaceError
+            The store is closed or read-only.
+        DatabaseError
+            The backend failed; nothing of the batch was stored.
+        """
+        batch = list(batch)
+        with self._lock:
+            self._check_writable()
+            stored = self._lookup(keys_to_look_up(self._state, batch)) if batch else {}
+            plan = _BatchPlanner(self._state, self.clock).run(batch, stored)
+            if plan.rows or plan.quarantine or plan.opened_gaps or plan.closed_gaps:
+                self._commit(plan)
+            assert plan.state is not None
+            self._state = plan.state
+            return AppendResult(tuple(plan.outcomes), self._state.head_seq)
+
+    # -- reading ------------------------------------------------------------------------
+
+    def head(self) -> Head:
+        """The committed end of the ledger (global seq -1 when empty)."""
+        with self._lock:
+            self._check_open()
+            s = self._state
+            return Head(s.head_seq, s.last_recorded_ns, s.head_chain)
+
+    @abc.abstractmethod
+    def read(
+        self,
+        start_seq: int = 0,
+        stop_seq: int | None = None,
+        *,
+        types: Sequence[str] | None = None,
+        sources: Sequence[str] | None = None,
+    ) -> Iterator[RecordedEvent]:
+        """Events with ``start_seq <= global_seq < stop_seq`` in global order (catch-up).
+
+        ``types`` / ``sources`` keep only those event types / sources.
+        """
+
+    @abc.abstractmethod
+    def as_of(
+        self,
+        valid_time_ns: int,
+        known_time_ns: int,
+        *,
+        types: Sequence[str] | None = None,
+    ) -> Iterator[RecordedEvent]:
+        """The ledger as it was known at ``known_time_ns`` about ``valid_time_ns``.
+
+        Events with valid time <= V recorded at or before K, ordered by
+        (valid time, global seq).
+        """
+
+    @abc.abstractmethod
+    def gaps(self, *, open_only: bool = False) -> list[Gap]:
+        """Sequence gaps, ordered by gap id (open and closed unless ``open_only``)."""
+
+    @abc.abstractmethod
+    def quarantine(self) -> list[QuarantineEntry]:
+        """Every quarantined input, in arrival order."""
+
+    def streams(self) -> list[StreamInfo]:
+        """Sequence bookkeeping per (source, epoch), sorted."""
+        with self._lock:
+            self._check_open()
+            return [
+                StreamInfo(source, epoch, st.highest_contiguous_seq, st.max_seq,
+                           len(st.open_gaps), sum(g.size for g in st.open_gaps))
+                for (source, epoch), st in sorted(self._state.streams.items())
+            ]
+
+    def verify(self) -> VerifyReport:
+        """Recompute payload hashes and the chain over every row; name the first bad one."""
+        with self._lock:
+            self._check_open()
+            previous = GENESIS
+            last_recorded: int | None = None
+            count = 0
+            for row in self._rows_for_verify():
+                if row.global_seq != count:
+                    return VerifyReport(False, count, count,
+                                        f"global_seq {row.global_seq} where {count} was expected")
+                if payload_hash(row.payload) != row.payload_sha256:
+                    return VerifyReport(False, count, row.global_seq,
+                                        "payload does not match its sha256")
+                if last_recorded is not None and row.recorded_time_ns < last_recorded:
+                    return VerifyReport(False, count, row.global_seq, "recorded time goes backwards")
+                expected = chain_hash(previous, row.global_seq, row.type, row.source, row.epoch,
+                                      row.seq, row.valid_time_ns, row.recorded_time_ns,
+                                      row.payload_sha256)
+                if expected != row.chain_sha256:
+                    return VerifyReport(False, count, row.global_seq,
+                                        "chain hash mismatch (row fields or an earlier row changed)")
+                previous, last_recorded = row.chain_sha256, row.recorded_time_ns
+                count += 1
+            return VerifyReport(True, count)
+
+    def stats(self) -> LedgerStats:
+        """Counts per type and source, gaps, quarantine and time ranges."""
+        with self._lock:
+            self._check_open()
+            per_type: Counter[str] = Counter()
+            per_source: Counter[str] = Counter()
+            flagged: Counter[str] = Counter()
+            valid = recorded = None
+            for row in self._rows_for_stats():
+                per_type[row.type] += 1
+                per_source[row.source] += 1
+                for flag in row.flags:
+                    flagged[flag] += 1
+                v, r = row.valid_time_ns, row.recorded_time_ns
+                valid = (v, v) if valid is None else (min(valid[0], v), max(valid[1], v))
+                recorded = (r, r) if recorded is None else (min(recorded[0], r), max(recorded[1], r))
+            gaps = self.gaps()
+            quarantine = self.quarantine()
+            return LedgerStats(
+                events=sum(per_type.values()),
+                head=self.head(),
+                per_type=dict(sorted(per_type.items())),
+                per_source=dict(sorted(per_source.items())),
+                valid_time_range_ns=valid,
+                recorded_time_range_ns=recorded,
+                open_gaps=sum(1 for g in gaps if g.is_open),
+                missing_events=sum(g.size for g in gaps if g.is_open),
+                closed_gaps=sum(1 for g in gaps if not g.is_open),
+                quarantined=len(quarantine),
+                quarantine_by_code=dict(sorted(Counter(q.code for q in quarantine).items())),
+                flagged=dict(sorted(flagged.items())),
+            )
+
+    # -- lifecycle ------------------------------------------------------------------------
+
+    def close(self) -> None:
+        with self._lock:
+            if not self._closed:
+                self._closed = True
+                self._close()
+
+    def __enter__(self) -> LedgerStore:
+        return self
+
+    def __exit__(self, *exc_info: object) -> None:
+        self.close()
+
+    def _check_open(self) -> None:
+        if self._closed:
+            raise InterfaceError(f"the {self.backend} ledger is closed")
+
+    def _check_writable(self) -> None:
+        self._check_open()
+        if self.read_only:
+            raise InterfaceError(f"the {self.backend} ledger was opened read-only")
+
+    # -- what a backend provides ------------------------------------------------------------
+
+    @abc.abstractmethod
+    def _lookup(self, keys: Sequence[Key]) -> dict[Key, tuple[int, bytes]]:
+        """``key -> (global_seq, payload_sha256)`` for stored events among ``keys``."""
+
+    @abc.abstractmethod
+    def _commit(self, plan: BatchPlan) -> None:
+        """Persist a plan atomically (all of it or nothing), or raise DatabaseError."""
+
+    def _rows_for_verify(self) -> Iterator[RecordedEvent]:
+        return self.read()
+
+    def _rows_for_stats(self) -> Iterator[RecordedEvent]:
+        return self.read()
+
+    def _close(self) -> None:
+        return None

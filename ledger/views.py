@@ -1,0 +1,122 @@
+"""Typed SQL views over the raw ``event_log`` table, for auditors (DuckDB backend).
+
+Times appear twice: ``*_ns`` (UTC nanoseconds, exact) and as ``TIMESTAMP_NS``
+(UTC, no zone) for reading.  Domain events keep their protobuf JSON body in
+``event_log.body``; the views unpack it.
+
+==================  =====================================================================
+view                one row per
+==================  =====================================================================
+``events``          stored event (identity, times, payload size and hash, flags, body)
+``assays``          assay, one DOUBLE column per analyte ever seen (``"Fe"``, ``"SiO2"``
+                    ...), lateness in hours, whether it was superseded
+``reclaim_cuts``    reclaim cut (travel, luff, slew range, belt-scale tonnes)
+``stack_passes``    stacking pass (start joined with its end, when it has one)
+``lots``            declared lot (planned tonnes, planned grade as JSON)
+==================  =====================================================================
+
+The views are recreated by the writer when a new analyte first appears, so
+``assays`` always has a column for every analyte in the ledger.
+"""
+
+from __future__ import annotations
+
+from typing import Iterable
+
+import duckdb
+
+
+def _ts(expr: str) -> str:
+    """A protobuf-JSON timestamp string (RFC 3339, 'Z') as TIMESTAMP_NS."""
+    return f"TRY_CAST(rtrim({expr}, 'Z') AS TIMESTAMP_NS)"
+
+
+def _quote(name: str) -> str:
+    return '"' + name.replace('"', '""') + '"'
+
+
+def _literal(text: str) -> str:
+    return "'" + text.replace("'", "''") + "'"
+
+
+def stored_analytes(con: duckdb.DuckDBPyConnection) -> set[str]:
+    """Every analyte name that appears in a stored assay."""
+    rows = con.execute(
+        "SELECT DISTINCT unnest(json_keys(body->'analytes')) FROM event_log "
+        "WHERE type = 'assay' AND body IS NOT NULL").fetchall()
+    return {r[0] for r in rows if r[0]}
+
+
+def view_statements(analytes: Iterable[str]) -> list[str]:
+    """``CREATE OR REPLACE VIEW`` statements for every auditor view."""
+    analyte_columns = "".join(
+        f",\n        TRY_CAST(body->'analytes'->>{_literal(a)} AS DOUBLE) AS {_quote(a)}"
+        for a in sorted(analytes)
+    )
+    return [
+        """CREATE OR REPLACE VIEW events AS
+    SELECT global_seq, type, source, epoch, seq,
+        make_timestamp_ns(valid_time_ns) AS valid_time, valid_time_ns,
+        make_timestamp_ns(recorded_time_ns) AS recorded_time, recorded_time_ns,
+        octet_length(payload) AS payload_bytes, lower(hex(payload_sha256)) AS payload_sha256,
+        lower(hex(chain_sha256)) AS chain_sha256, flags, body
+    FROM event_log""",
+        f"""CREATE OR REPLACE VIEW assays AS
+    SELECT a.global_seq, a.source,
+        body->>'assay_id' AS assay_id,
+        body->>'lot_id' AS lot_id,
+        body->>'lab_id' AS lab_id,
+        coalesce(body->>'status', 'ASSAY_STATUS_UNSPECIFIED') AS status,
+        nullif(body->>'supersedes', '') AS supersedes,
+        {_ts("body->>'window_start'")} AS window_start,
+        make_timestamp_ns(valid_time_ns) AS window_end,
+        {_ts("body->>'reported_time'")} AS reported_time,
+        make_timestamp_ns(recorded_time_ns) AS recorded_time,
+        valid_time_ns, recorded_time_ns,
+        (recorded_time_ns - valid_time_ns) / 3.6e12 AS lateness_h,
+        coalesce(TRY_CAST(body->>'moisture_pct' AS DOUBLE), 0) AS moisture_pct,
+        coalesce(TRY_CAST(body->>'bulk_density_t_m3' AS DOUBLE), 0) AS bulk_density_t_m3,
+        EXISTS (SELECT 1 FROM event_log s WHERE s.type = 'assay'
+                AND s.body->>'supersedes' = a.body->>'assay_id') AS superseded,
+        coalesce(flags LIKE '%unknown_lot%', false) AS unknown_lot_when_recorded{analyte_columns}
+    FROM event_log a WHERE type = 'assay'""",
+        """CREATE OR REPLACE VIEW reclaim_cuts AS
+    SELECT global_seq, source,
+        body->>'pile_id' AS pile_id, body->>'cut_id' AS cut_id,
+        body->>'bench_id' AS bench_id, body->>'machine_id' AS machine_id,
+        """ + _ts("body->>'start_time'") + """ AS start_time,
+        make_timestamp_ns(valid_time_ns) AS end_time,
+        make_timestamp_ns(recorded_time_ns) AS recorded_time,
+        coalesce(TRY_CAST(body->>'travel_m' AS DOUBLE), 0) AS travel_m,
+        coalesce(TRY_CAST(body->>'luff_rad' AS DOUBLE), 0) AS luff_rad,
+        coalesce(TRY_CAST(body->>'slew_start_rad' AS DOUBLE), 0) AS slew_start_rad,
+        coalesce(TRY_CAST(body->>'slew_end_rad' AS DOUBLE), 0) AS slew_end_rad,
+        coalesce(TRY_CAST(body->>'tonnes' AS DOUBLE), 0) AS belt_tonnes
+    FROM event_log WHERE type = 'reclaim_cut'""",
+        """CREATE OR REPLACE VIEW stack_passes AS
+    WITH s AS (SELECT * FROM event_log WHERE type = 'stack_started'),
+         e AS (SELECT * FROM event_log WHERE type = 'stack_ended')
+    SELECT s.body->>'pile_id' AS pile_id, s.body->>'pass_id' AS pass_id,
+        s.body->>'lot_id' AS lot_id, s.body->>'machine_id' AS machine_id,
+        s.body->>'pattern' AS pattern,
+        coalesce(TRY_CAST(s.body->>'start_y_m' AS DOUBLE), 0) AS start_y_m,
+        coalesce(TRY_CAST(s.body->>'end_y_m' AS DOUBLE), 0) AS end_y_m,
+        make_timestamp_ns(s.valid_time_ns) AS started,
+        make_timestamp_ns(e.valid_time_ns) AS ended,
+        coalesce(TRY_CAST(e.body->>'tonnes' AS DOUBLE), 0) AS belt_tonnes,
+        s.global_seq AS started_global_seq, e.global_seq AS ended_global_seq
+    FROM s LEFT JOIN e ON s.body->>'pile_id' = e.body->>'pile_id'
+                      AND s.body->>'pass_id' = e.body->>'pass_id'""",
+        """CREATE OR REPLACE VIEW lots AS
+    SELECT global_seq, body->>'lot_id' AS lot_id, body->>'origin' AS origin,
+        make_timestamp_ns(valid_time_ns) AS declared,
+        coalesce(TRY_CAST(body->>'planned_tonnes' AS DOUBLE), 0) AS planned_tonnes,
+        body->'planned_grade' AS planned_grade
+    FROM event_log WHERE type = 'lot_declared'""",
+    ]
+
+
+def create_views(con: duckdb.DuckDBPyConnection, analytes: Iterable[str]) -> None:
+    """(Re)create every view; call inside the writer's transaction."""
+    for statement in view_statements(analytes):
+        con.execute(statement)

@@ -1,0 +1,1 @@
+"""MCAP recording and replay (a later issue)."""

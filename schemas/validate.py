@@ -1,0 +1,397 @@
+"""Validation of events at the ledger boundary.
+
+:func:`check_event` decodes an :class:`~schemas.events.Event` and either returns
+its message or raises :class:`InvalidEvent` with a machine-readable ``code`` (one
+of :data:`REASON_CODES`) and a human-readable ``detail``.  It is pure: the checks
+that need ledger state (duplicates, conflicts, unknown lots) live in the ledger.
+"""
+
+from __future__ import annotations
+
+import math
+from functools import lru_cache
+
+import numpy as np
+from google.protobuf import unknown_fields
+from google.protobuf.descriptor import Descriptor, FieldDescriptor
+from google.protobuf.message import DecodeError, Message
+
+from schemas.events import (
+    EVENT_TYPES,
+    MAX_COUNTER,
+    Event,
+    is_valid_source,
+    payload_valid_time_ns,
+)
+
+#: Every reason the ledger can give for refusing an event.
+REASON_CODES: dict[str, str] = {
+    "bad_identity": "source, epoch or sequence malformed or out of range",
+    "bad_key": "Zenoh key expression is not a stockpile event key",
+    "bad_attachment": "Zenoh attachment missing or malformed",
+    "malformed": "input line is not a valid event record",
+    "unknown_type": "event type is not in the schema",
+    "undecodable": "payload does not parse as the type's protobuf message",
+    "valid_time_mismatch": "valid time differs from the payload's own timestamp",
+    "non_finite": "NaN or infinity where a number is required",
+    "out_of_range": "a value outside its physical or declared range",
+    "missing_field": "a required identifier is empty",
+    "ranges_angles_mismatch": "number of scan ranges inconsistent with its angles",
+    "negative_tonnes": "a tonnage below zero",
+    "analyte_out_of_range": "an analyte outside 0-100 mass %",
+    "analyte_sum": "analytes summing to more than 100 mass %",
+    "unknown_enum": "an enum value that is unspecified or not in the schema",
+    "conflict": "same (source, epoch, seq) as a stored event, different payload",
+    "recorded_time_backwards": "a preserved recorded time earlier than the ledger head",
+}
+
+#: Analytes may sum to 100 % plus this rounding allowance (mass %, absolute).
+ANALYTE_SUM_TOLERANCE_PCT = 0.1
+
+#: LMS200 field / step combinations (degrees) a scan's angles must match.
+LMS200_STEPS_DEG: tuple[float, ...] = (0.25, 0.5, 1.0)
+_STEP_TOLERANCE_RAD = 1e-6
+
+_MIN_TIMESTAMP_S = -62135596800  # 0001-01-01T00:00:00Z
+_MAX_TIMESTAMP_S = 253402300799  # 9999-12-31T23:59:59Z
+
+#: Identifiers that must not be empty, per event type.
+REQUIRED_IDS: dict[str, tuple[str, ...]] = {
+    "frame_transform": ("child_frame_id",),
+    "joint_reading": ("machine_id",),
+    "joint_estimate": ("machine_id",),
+    "site_declared": ("site_id",),
+    "pile_declared": ("pile_id",),
+    "machine_declared": ("machine_id",),
+    "lot_declared": ("lot_id",),
+    "stack_started": ("pile_id", "pass_id", "lot_id"),
+    "stack_ended": ("pile_id", "pass_id"),
+    "reclaim_cut": ("pile_id", "cut_id"),
+    "assay": ("assay_id", "lot_id"),
+}
+
+#: Enum fields that must hold a defined, non-zero value.
+REQUIRED_ENUMS: dict[str, tuple[str, ...]] = {
+    "machine_declared": ("kind",),
+    "stack_started": ("pattern",),
+    "assay": ("status",),
+}
+
+#: Repeated double fields in which NaN is allowed (a NaN range means "no return");
+#: the generic walk skips them and the type's own check reads them from the wire.
+NAN_ALLOWED: frozenset[tuple[str, str]] = frozenset(
+    {("foxglove.LaserScan", "ranges"), ("foxglove.LaserScan", "intensities")}
+)
+
+
+class InvalidEvent(ValueError):
+    """An event refused at the ledger boundary.
+
+    Attributes
+    ----------
+    code : str
+        One of :data:`REASON_CODES`.
+    detail : str
+        What exactly is wrong, for people.
+    """
+
+    def __init__(self, code: str, detail: str) -> None:
+        assert code in REASON_CODES, code
+        super().__init__(f"{code}: {detail}")
+        self.code = code
+        self.detail = detail
+
+
+def check_identity(event: Event) -> None:
+    """Raise :class:`InvalidEvent` unless type, source, epoch and seq are well formed."""
+    if event.type not in EVENT_TYPES:
+        raise InvalidEvent("unknown_type", f"unknown event type {event.type!r}")
+    if not isinstance(event.source, str) or not is_valid_source(event.source):
+        raise InvalidEvent("bad_identity", f"bad source {event.source!r}")
+    for name in ("epoch", "seq"):
+        value = getattr(event, name)
+        if not isinstance(value, int) or isinstance(value, bool) or not 0 <= value <= MAX_COUNTER:
+            raise InvalidEvent("bad_identity", f"{name} {value!r} is not in [0, 2^63)")
+    if not isinstance(event.valid_time_ns, int) or isinstance(event.valid_time_ns, bool):
+        raise InvalidEvent("bad_identity", f"valid_time_ns {event.valid_time_ns!r} is not an integer")
+    if not isinstance(event.payload, (bytes, bytearray, memoryview)):
+        raise InvalidEvent("undecodable", "payload is not bytes")
+
+
+def check_event(event: Event) -> Message:
+    """Decode and validate one event; return its protobuf message.
+
+    Raises
+    ------
+    InvalidEvent
+        With the first problem found; ``code`` is one of :data:`REASON_CODES`.
+    """
+    check_identity(event)
+    cls = EVENT_TYPES[event.type]
+    try:
+        message = cls.FromString(bytes(event.payload))
+    except DecodeError as exc:
+        raise InvalidEvent("undecodable", f"payload is not a {cls.DESCRIPTOR.full_name}: {exc}") from None
+    if len(unknown_fields.UnknownFieldSet(message)):
+        raise InvalidEvent(
+            "undecodable",
+            f"payload has fields unknown to {cls.DESCRIPTOR.full_name} (wrong type or schema?)",
+        )
+    _check_fields(message, message.DESCRIPTOR.full_name)
+    payload_time = payload_valid_time_ns(event.type, message)
+    if payload_time != event.valid_time_ns:
+        raise InvalidEvent(
+            "valid_time_mismatch",
+            f"valid_time_ns {event.valid_time_ns} but payload says {payload_time}",
+        )
+    for name in REQUIRED_IDS.get(event.type, ()):
+        if not getattr(message, name):
+            raise InvalidEvent("missing_field", f"{name} is empty")
+    for name in REQUIRED_ENUMS.get(event.type, ()):
+        if getattr(message, name) == 0:
+            raise InvalidEvent("unknown_enum", f"{name} is unspecified")
+    check = _TYPE_CHECKS.get(event.type)
+    if check is _check_scan:
+        _check_scan(message, bytes(event.payload))
+    elif check is not None:
+        check(message)
+    return message
+
+
+# --- generic walk over a message: finiteness, enums, timestamps -----------------------
+
+
+@lru_cache(maxsize=None)
+def _field_plan(descriptor: Descriptor) -> tuple[tuple[FieldDescriptor, ...], ...]:
+    """(scalar doubles, repeated doubles, enums, singular messages, maps of doubles)."""
+    doubles, repeated_doubles, enums, messages, double_maps = [], [], [], [], []
+    for field in descriptor.fields:
+        is_repeated = field.is_repeated
+        if (descriptor.full_name, field.name) in NAN_ALLOWED:
+            continue  # checked by the type's own check
+        if field.type in (FieldDescriptor.TYPE_DOUBLE, FieldDescriptor.TYPE_FLOAT):
+            (repeated_doubles if is_repeated else doubles).append(field)
+        elif field.type == FieldDescriptor.TYPE_ENUM:
+            enums.append(field)
+        elif field.type == FieldDescriptor.TYPE_MESSAGE:
+            entry = field.message_type
+            if entry.GetOptions().map_entry:
+                if entry.fields_by_name["value"].type == FieldDescriptor.TYPE_DOUBLE:
+                    double_maps.append(field)
+            elif not is_repeated:
+                messages.append(field)
+    return tuple(doubles), tuple(repeated_doubles), tuple(enums), tuple(messages), tuple(double_maps)
+
+
+def _check_fields(message: Message, path: str) -> None:
+    descriptor = message.DESCRIPTOR
+    if descriptor.full_name == "google.protobuf.Timestamp":
+        if not 0 <= message.nanos < 1_000_000_000 or not (
+            _MIN_TIMESTAMP_S <= message.seconds <= _MAX_TIMESTAMP_S
+        ):
+            raise InvalidEvent("out_of_range", f"{path} is not a valid timestamp")
+        return
+    doubles, repeated_doubles, enums, messages, double_maps = _field_plan(descriptor)
+    for field in doubles:
+        if not math.isfinite(getattr(message, field.name)):
+            raise InvalidEvent("non_finite", f"{path}.{field.name} is not finite")
+    for field in repeated_doubles:
+        for index, value in enumerate(getattr(message, field.name)):
+            if not math.isfinite(value):
+                raise InvalidEvent("non_finite", f"{path}.{field.name}[{index}] is not finite")
+    for field in double_maps:
+        for key, value in getattr(message, field.name).items():
+            if not math.isfinite(value):
+                raise InvalidEvent("non_finite", f"{path}.{field.name}[{key!r}] is not finite")
+    for field in enums:
+        value = getattr(message, field.name)
+        if value not in field.enum_type.values_by_number:
+            raise InvalidEvent(
+                "unknown_enum", f"{path}.{field.name} = {value} is not a {field.enum_type.full_name}"
+            )
+    for field in messages:
+        if message.HasField(field.name):
+            _check_fields(getattr(message, field.name), f"{path}.{field.name}")
+
+
+# --- per-type semantic checks ----------------------------------------------------------
+
+
+def _require(condition: bool, code: str, detail: str) -> None:
+    if not condition:
+        raise InvalidEvent(code, detail)
+
+
+def check_analytes(grades, field: str) -> None:
+    """Each analyte in [0, 100] mass %, their sum <= 100 (+ rounding tolerance)."""
+    total = 0.0
+    for name, value in grades.items():
+        _require(bool(name), "analyte_out_of_range", f"{field} has an unnamed analyte")
+        _require(0.0 <= value <= 100.0, "analyte_out_of_range", f"{field}[{name!r}] = {value} %")
+        total += value
+    _require(
+        total <= 100.0 + ANALYTE_SUM_TOLERANCE_PCT,
+        "analyte_sum",
+        f"{field} sums to {total:.3f} % (> 100 %)",
+    )
+
+
+def _varint(data: bytes, pos: int) -> tuple[int, int]:
+    result = shift = 0
+    while True:
+        byte = data[pos]
+        pos += 1
+        result |= (byte & 0x7F) << shift
+        if byte < 0x80:
+            return result, pos
+        shift += 7
+
+
+def packed_doubles(payload: bytes, *field_numbers: int) -> list[np.ndarray] | None:
+    """Packed ``repeated double`` fields read straight from wire bytes (zero-copy).
+
+    Returns one array per requested field number, or ``None`` when one of them is
+    encoded unpacked (legal but unusual), so the caller can fall back to the decoded
+    message.  The payload must already have parsed successfully.
+    """
+    chunks: dict[int, list[np.ndarray]] = {n: [] for n in field_numbers}
+    pos, end = 0, len(payload)
+    while pos < end:
+        tag, pos = _varint(payload, pos)
+        number, wire_type = tag >> 3, tag & 7
+        if wire_type == 2:
+            length, pos = _varint(payload, pos)
+            if number in chunks:
+                chunks[number].append(np.frombuffer(payload, dtype="<f8", count=length // 8, offset=pos))
+            pos += length
+        elif wire_type == 0:
+            _, pos = _varint(payload, pos)
+        elif wire_type == 1:
+            if number in chunks:
+                return None
+            pos += 8
+        elif wire_type == 5:
+            pos += 4
+        else:  # groups do not occur in proto3
+            return None
+    return [
+        (c[0] if len(c) == 1 else np.concatenate(c) if c else np.empty(0))
+        for c in (chunks[n] for n in field_numbers)
+    ]
+
+
+_LASER_SCAN_RANGES = 6
+_LASER_SCAN_INTENSITIES = 7
+
+
+_STEPS_RAD = tuple(math.radians(step) for step in LMS200_STEPS_DEG)
+
+
+def _check_scan(m, payload: bytes) -> None:
+    n = len(m.ranges)
+    span = m.end_angle - m.start_angle
+    if n < 2:
+        raise InvalidEvent("ranges_angles_mismatch", f"a scan needs at least 2 ranges, got {n}")
+    if not span > 0:
+        raise InvalidEvent("ranges_angles_mismatch", "end_angle must be greater than start_angle")
+    step = span / (n - 1)
+    if all(abs(step - allowed) > _STEP_TOLERANCE_RAD for allowed in _STEPS_RAD):
+        raise InvalidEvent(
+            "ranges_angles_mismatch",
+            f"{n} ranges over {math.degrees(span):.3f} deg give a {math.degrees(step):.5f} deg "
+            f"step, not one of {LMS200_STEPS_DEG}",
+        )
+    n_intensities = len(m.intensities)
+    if n_intensities not in (0, n):
+        raise InvalidEvent("ranges_angles_mismatch", f"{n_intensities} intensities for {n} ranges")
+    arrays = packed_doubles(payload, _LASER_SCAN_RANGES, _LASER_SCAN_INTENSITIES)
+    if arrays is None:
+        arrays = [np.asarray(m.ranges, dtype=np.float64), np.asarray(m.intensities, dtype=np.float64)]
+    for values, name, lowest in zip(arrays, ("ranges", "intensities"), (0.0, -math.inf)):
+        if not len(values):
+            continue
+        # NaN ("no return") is allowed; fmin/fmax ignore it.  All-NaN gives NaN: fine.
+        low, high = np.fmin.reduce(values), np.fmax.reduce(values)
+        if high == math.inf or low == -math.inf:
+            raise InvalidEvent("non_finite", f"{name} holds an infinity")
+        if low < lowest:
+            raise InvalidEvent("out_of_range", f"negative value in {name}")
+
+
+def _check_location_fix(m) -> None:
+    _require(-90.0 <= m.latitude <= 90.0, "out_of_range", f"latitude {m.latitude}")
+    _require(-180.0 <= m.longitude <= 180.0, "out_of_range", f"longitude {m.longitude}")
+    _require(len(m.position_covariance) in (0, 9), "out_of_range",
+             f"position_covariance has {len(m.position_covariance)} values, expected 9")
+
+
+def _check_frame_transform(m) -> None:
+    q = m.rotation
+    norm = math.sqrt(q.x * q.x + q.y * q.y + q.z * q.z + q.w * q.w)
+    _require(abs(norm - 1.0) <= 1e-3, "out_of_range", f"rotation quaternion norm {norm:.6f} != 1")
+
+
+def _check_joint_estimate(m) -> None:
+    for name in ("covariance", "position_covariance_m2"):
+        _require(len(getattr(m, name)) in (0, 9), "out_of_range",
+                 f"{name} has {len(getattr(m, name))} values, expected 9")
+
+
+def _check_site(m) -> None:
+    _require(-90.0 <= m.datum_lat_deg <= 90.0, "out_of_range", f"datum_lat_deg {m.datum_lat_deg}")
+    _require(-180.0 <= m.datum_lon_deg <= 180.0, "out_of_range", f"datum_lon_deg {m.datum_lon_deg}")
+
+
+def _check_pile(m) -> None:
+    _require(m.length_m > 0 and m.width_m > 0, "out_of_range", "length_m and width_m must be > 0")
+    _require(m.cell_m >= 0 and m.voxel_m >= 0, "out_of_range", "cell_m and voxel_m must be >= 0")
+    _require(m.default_bulk_density_t_m3 > 0, "out_of_range",
+             f"default_bulk_density_t_m3 {m.default_bulk_density_t_m3} must be > 0")
+
+
+def _check_machine(m) -> None:
+    for name in ("l2_m", "l3_m", "l4_m", "l5_m", "wheel_radius_m", "cutting_radius_m", "bucket_width_m"):
+        _require(getattr(m, name) >= 0, "out_of_range", f"{name} must be >= 0")
+
+
+def _check_lot(m) -> None:
+    _require(m.planned_tonnes >= 0, "negative_tonnes", f"planned_tonnes {m.planned_tonnes}")
+    check_analytes(m.planned_grade, "planned_grade")
+
+
+def _check_stack_ended(m) -> None:
+    _require(m.tonnes >= 0, "negative_tonnes", f"tonnes {m.tonnes}")
+
+
+def _check_reclaim_cut(m) -> None:
+    _require(m.tonnes >= 0, "negative_tonnes", f"tonnes {m.tonnes}")
+    _require(
+        (m.start_time.seconds, m.start_time.nanos) <= (m.end_time.seconds, m.end_time.nanos),
+        "out_of_range", "start_time is after end_time",
+    )
+
+
+def _check_assay(m) -> None:
+    check_analytes(m.analytes, "analytes")
+    _require(0.0 <= m.moisture_pct <= 100.0, "out_of_range", f"moisture_pct {m.moisture_pct}")
+    _require(m.bulk_density_t_m3 >= 0, "out_of_range", f"bulk_density_t_m3 {m.bulk_density_t_m3}")
+    _require(
+        (m.window_start.seconds, m.window_start.nanos) <= (m.window_end.seconds, m.window_end.nanos),
+        "out_of_range", "window_start is after window_end",
+    )
+    _require(m.supersedes != m.assay_id, "out_of_range", "an assay cannot supersede itself")
+
+
+_TYPE_CHECKS = {
+    "scan": _check_scan,
+    "location_fix": _check_location_fix,
+    "frame_transform": _check_frame_transform,
+    "joint_estimate": _check_joint_estimate,
+    "site_declared": _check_site,
+    "pile_declared": _check_pile,
+    "machine_declared": _check_machine,
+    "lot_declared": _check_lot,
+    "stack_ended": _check_stack_ended,
+    "reclaim_cut": _check_reclaim_cut,
+    "assay": _check_assay,
+}

@@ -1,0 +1,1 @@
+"""Edge services and the ``stockpile`` command line (top of the import chain)."""

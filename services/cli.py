@@ -1,0 +1,3 @@
+"""The ``stockpile`` command (placeholder, replaced below)."""
+def main() -> int:
+    return 0
