@@ -152,7 +152,7 @@ class _BatchPlanner:
             self.state.streams[sid] = existing.copy() if existing else StreamState()
         return self.state.streams[sid]
 
-    def _recorded_ns(self, preserved: int | None) -> int:
+    def _recorded_ns(self, preserved: int | None, clock_event_ns: int | None) -> int:
         last = self.state.last_recorded_ns
         if preserved is not None:
             if last is not None and preserved < last:
@@ -161,7 +161,7 @@ class _BatchPlanner:
                     f"recorded_time_ns {preserved} is before the ledger head's {last}",
                 )
             return preserved
-        now = self.clock.now_ns(self.state.latest_clock_event_ns)
+        now = self.clock.now_ns(clock_event_ns)
         return now if last is None or now > last else last
 
     def _quarantine(self, item: Event | Malformed, code: str, detail: str,
@@ -266,13 +266,17 @@ class _BatchPlanner:
                                  f"{key} is stored as global_seq {prior[0]} with another payload",
                                  existing=prior[0])
             return
+        s = self.state
+        clock_event_ns = s.latest_clock_event_ns
+        if item.type == "clock" and (clock_event_ns is None or item.valid_time_ns > clock_event_ns):
+            clock_event_ns = item.valid_time_ns  # a tick is learned at its own time
         try:
-            recorded = self._recorded_ns(item.recorded_time_ns)
+            recorded = self._recorded_ns(item.recorded_time_ns, clock_event_ns)
         except InvalidEvent as exc:
             self._quarantine(item, exc.code, exc.detail)
             return
+        s.latest_clock_event_ns = clock_event_ns
         flags: tuple[str, ...] = ()
-        s = self.state
         if item.type == "assay" and message.lot_id not in s.known_lots:
             flags = (FLAG_UNKNOWN_LOT,)
         elif item.type == "lot_declared" and message.lot_id not in s.known_lots:
@@ -280,9 +284,6 @@ class _BatchPlanner:
                 s.known_lots = set(s.known_lots)
                 self._lots_copied = True
             s.known_lots.add(message.lot_id)
-        elif item.type == "clock":
-            if s.latest_clock_event_ns is None or item.valid_time_ns > s.latest_clock_event_ns:
-                s.latest_clock_event_ns = item.valid_time_ns
         global_seq = s.head_seq + 1
         chain = chain_hash(s.head_chain, global_seq, item.type, item.source, item.epoch,
                            item.seq, item.valid_time_ns, recorded, digest)

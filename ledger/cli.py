@@ -1,0 +1,246 @@
+"""``stockpile ledger ...``: import, export, verify and stats.
+
+Exit codes: 0 ok, 1 verification failed, 2 bad usage or an error (one line on stderr).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from dataclasses import asdict
+from pathlib import Path
+from typing import IO, Iterable, Iterator, TextIO
+
+from schemas.events import EVENT_TYPES, Event, Malformed
+from schemas.jsonl import decode_line, encode_line
+
+from ledger import open_ledger
+from ledger.clock import CLOCKS, clock_by_name
+from ledger.records import STATUSES, LedgerStats
+from ledger.store import LedgerStore
+from ledger.times import format_time_ns, parse_time_ns
+
+DEFAULT_BATCH = 1_000
+EXIT_OK, EXIT_VERIFY_FAILED, EXIT_USAGE = 0, 1, 2
+
+
+class Progress:
+    """A progress line on stderr every ``every_s`` seconds (long imports and exports)."""
+
+    def __init__(self, what: str, stream: TextIO = sys.stderr, every_s: float = 2.0) -> None:
+        self.what, self.stream, self.every_s = what, stream, every_s
+        self.started = self.last = time.monotonic()
+
+    def update(self, done: int, extra: str = "") -> None:
+        now = time.monotonic()
+        if now - self.last >= self.every_s:
+            self.last = now
+            rate = done / max(now - self.started, 1e-9)
+            print(f"{self.what}: {done:,} ({rate:,.0f}/s){extra}", file=self.stream, flush=True)
+
+
+def _batches(items: Iterable[Event | Malformed], size: int) -> Iterator[list[Event | Malformed]]:
+    batch: list[Event | Malformed] = []
+    for item in items:
+        batch.append(item)
+        if len(batch) >= size:
+            yield batch
+            batch = []
+    if batch:
+        yield batch
+
+
+def import_lines(store: LedgerStore, lines: Iterable[str | bytes], *, name: str = "<input>",
+                 batch_size: int = DEFAULT_BATCH, progress: Progress | None = None) -> dict[str, int]:
+    """Append canonical JSON lines to a store in batches; return counts per status.
+
+    Blank lines are skipped; every other line ends up appended, a duplicate, or in
+    quarantine with its reason.
+    """
+    counts = dict.fromkeys(STATUSES, 0)
+    counts["lines"] = 0
+
+    def events() -> Iterator[Event | Malformed]:
+        for number, line in enumerate(lines, 1):
+            stripped = line.strip()
+            if not stripped:
+                continue
+            counts["lines"] += 1
+            yield decode_line(stripped, where=f"{name}:{number}")
+
+    for batch in _batches(events(), batch_size):
+        result = store.append(batch)
+        for status, n in result.counts.items():
+            counts[status] += n
+        if progress:
+            progress.update(counts["lines"], f" lines, {counts['appended']:,} appended")
+    return counts
+
+
+def export_lines(store: LedgerStore, out: IO[str], *, types: list[str] | None = None,
+                 as_of_valid_ns: int | None = None, as_of_known_ns: int | None = None,
+                 progress: Progress | None = None) -> int:
+    """Write canonical JSON lines (with recorded time) to ``out``; return the count.
+
+    Without as-of bounds, events come in global order (an exact copy: importing the
+    output into an empty ledger and exporting again gives identical lines).  With
+    bounds, events come in (valid time, global seq) order, as the projector reads
+    them; such an export is for reading, not for re-importing.
+    """
+    if as_of_valid_ns is None and as_of_known_ns is None:
+        rows = store.read(types=types)
+    else:
+        far = 2**63 - 1
+        rows = store.as_of(far if as_of_valid_ns is None else as_of_valid_ns,
+                           far if as_of_known_ns is None else as_of_known_ns, types=types)
+    n = 0
+    for row in rows:
+        out.write(encode_line(row.type, row.source, row.epoch, row.seq, row.valid_time_ns,
+                              row.payload, row.recorded_time_ns))
+        out.write("\n")
+        n += 1
+        if progress and n % 10_000 == 0:
+            progress.update(n, " events")
+    return n
+
+
+def format_stats(stats: LedgerStats, path: str) -> str:
+    """Human-readable ``ledger stats``."""
+    lines = [f"ledger {path}",
+             f"  events      {stats.events:,} (head global_seq {stats.head.global_seq}, "
+             f"chain {stats.head.chain_sha256.hex()[:16]}...)"]
+    if stats.valid_time_range_ns:
+        lo, hi = stats.valid_time_range_ns
+        lines.append(f"  valid time  {format_time_ns(lo)} .. {format_time_ns(hi)}")
+    if stats.recorded_time_range_ns:
+        lo, hi = stats.recorded_time_range_ns
+        lines.append(f"  recorded    {format_time_ns(lo)} .. {format_time_ns(hi)}")
+    lines.append("  per type")
+    lines += [f"    {name:<18} {n:>10,}" for name, n in stats.per_type.items()]
+    lines.append("  per source")
+    lines += [f"    {name:<18} {n:>10,}" for name, n in stats.per_source.items()]
+    lines.append(f"  gaps        {stats.open_gaps} open ({stats.missing_events:,} events missing), "
+                 f"{stats.closed_gaps} closed")
+    codes = ", ".join(f"{c} {n}" for c, n in stats.quarantine_by_code.items()) or "-"
+    lines.append(f"  quarantine  {stats.quarantined} ({codes})")
+    flags = ", ".join(f"{f} {n}" for f, n in stats.flagged.items()) or "-"
+    lines.append(f"  flagged     {flags}")
+    return "\n".join(lines)
+
+
+def stats_to_json(stats: LedgerStats) -> dict:
+    data = asdict(stats)
+    data["head"]["chain_sha256"] = stats.head.chain_sha256.hex()
+    return data
+
+
+# -- commands -------------------------------------------------------------------------------
+
+
+def cmd_import(args: argparse.Namespace) -> int:
+    clock = clock_by_name(args.clock)
+    source = sys.stdin if args.file == "-" else None
+    if source is None and not Path(args.file).is_file():
+        raise FileNotFoundError(f"no such file: {args.file}")
+    with open_ledger(args.ledger, clock) as store:
+        handle = source or open(args.file, "rb")
+        try:
+            counts = import_lines(store, handle, name=args.file, batch_size=args.batch_size,
+                                  progress=Progress(f"importing {args.file}"))
+        finally:
+            if source is None:
+                handle.close()
+        head = store.head().global_seq
+    if args.json:
+        print(json.dumps({**counts, "head_global_seq": head}))
+    else:
+        print(f"imported {args.file}: {counts['lines']:,} lines -> "
+              + ", ".join(f"{counts[s]:,} {s}" for s in STATUSES)
+              + f" (ledger {args.ledger}, head global_seq {head})")
+    return EXIT_OK
+
+
+def cmd_export(args: argparse.Namespace) -> int:
+    for name in args.types or ():
+        if name not in EVENT_TYPES:
+            raise ValueError(f"unknown event type {name!r}; known: {', '.join(EVENT_TYPES)}")
+    valid = parse_time_ns(args.as_of_valid) if args.as_of_valid is not None else None
+    known = parse_time_ns(args.as_of_known) if args.as_of_known is not None else None
+    with open_ledger(args.ledger, read_only=True) as store:
+        out = sys.stdout if args.output in (None, "-") else open(args.output, "w")
+        try:
+            n = export_lines(store, out, types=args.types, as_of_valid_ns=valid,
+                             as_of_known_ns=known, progress=Progress("exporting"))
+        finally:
+            if out is not sys.stdout:
+                out.close()
+    if out is not sys.stdout:
+        print(f"exported {n:,} events to {args.output}", file=sys.stderr)
+    return EXIT_OK
+
+
+def cmd_verify(args: argparse.Namespace) -> int:
+    with open_ledger(args.ledger, read_only=True) as store:
+        report = store.verify()
+        head = store.head()
+    if report.ok:
+        print(f"ok: {report.rows_checked:,} rows verified, head global_seq {head.global_seq}, "
+              f"chain {head.chain_sha256.hex()}")
+        return EXIT_OK
+    print(f"FAILED: first bad row global_seq {report.first_bad_seq}: {report.problem} "
+          f"({report.rows_checked:,} rows before it are intact)")
+    return EXIT_VERIFY_FAILED
+
+
+def cmd_stats(args: argparse.Namespace) -> int:
+    with open_ledger(args.ledger, read_only=True) as store:
+        stats = store.stats()
+    if args.json:
+        print(json.dumps(stats_to_json(stats), indent=2))
+    else:
+        print(format_stats(stats, args.ledger))
+    return EXIT_OK
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    """Add ``ledger`` and its subcommands to the ``stockpile`` parser."""
+    ledger = subparsers.add_parser(
+        "ledger", help="import, export, verify and summarise an event ledger",
+        description="Work with an append-only event ledger (a DuckDB file).")
+    sub = ledger.add_subparsers(dest="ledger_command", metavar="COMMAND", required=True)
+
+    p = sub.add_parser("import", help="append canonical JSON lines (creates the ledger if missing)",
+                       description="Append canonical JSON lines to a ledger. Bad lines are "
+                       "quarantined with their reason; the rest is kept.")
+    p.add_argument("file", help="JSON lines file, or - for standard input")
+    p.add_argument("--ledger", required=True, help="ledger file (created if missing)")
+    p.add_argument("--batch-size", type=int, default=DEFAULT_BATCH,
+                   help=f"events per atomic batch (default {DEFAULT_BATCH})")
+    p.add_argument("--clock", choices=sorted(CLOCKS), default="wall",
+                   help="recorded time from the wall clock or from the file's clock events "
+                   "(lines with recorded_time_ns keep theirs)")
+    p.add_argument("--json", action="store_true", help="print the counts as JSON")
+    p.set_defaults(func=cmd_import)
+
+    p = sub.add_parser("export", help="print events as canonical JSON lines",
+                       description="Print events as canonical JSON lines on standard output.")
+    p.add_argument("--ledger", required=True, help="ledger file")
+    p.add_argument("--types", nargs="+", metavar="TYPE", help="only these event types")
+    p.add_argument("--as-of-valid", metavar="T", help="only events with valid time <= T "
+                   "(ISO-8601 or integer ns)")
+    p.add_argument("--as-of-known", metavar="K", help="only events recorded at or before K")
+    p.add_argument("--output", "-o", metavar="FILE", help="write to FILE instead of stdout")
+    p.set_defaults(func=cmd_export)
+
+    p = sub.add_parser("verify", help="recompute the hash chain and name the first bad row",
+                       description="Recompute payload hashes and the hash chain. Exit 1 if a "
+                       "row was changed.")
+    p.add_argument("--ledger", required=True, help="ledger file")
+    p.set_defaults(func=cmd_verify)
+
+    p = sub.add_parser("stats", help="counts per type and source, gaps, quarantine, time ranges")
+    p.add_argument("--ledger", required=True, help="ledger file")
+    p.add_argument("--json", action="store_true", help="print as JSON")
+    p.set_defaults(func=cmd_stats)

@@ -1,0 +1,343 @@
+"""The contract every ledger backend passes (the pattern of eventsourcing's persistence tests).
+
+A backend's test module subclasses :class:`LedgerStoreContract` and implements
+``create_store`` (and, for persistent backends, ``reopen``) plus ``tamper``::
+
+    class TestMemoryStore(LedgerStoreContract):
+        def create_store(self, clock):
+            return MemoryStore(clock)
+        ...
+
+Requires pytest and hypothesis (the ``dev`` extra).
+"""
+
+from __future__ import annotations
+
+import abc
+import random
+import tempfile
+import threading
+from pathlib import Path
+
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from schemas import pb
+from schemas.events import Event, make_event, set_timestamp_ns
+
+from ledger.clock import ManualClock
+from ledger.store import LedgerStore
+
+
+def joint_event(source: str, seq: int, valid_time_ns: int, travel_m: float = 0.0,
+                epoch: int = 1) -> Event:
+    """A small valid event (a joint reading) with the given identity and valid time."""
+    message = pb.JointReading(machine_id="bwr1", travel_m=travel_m)
+    set_timestamp_ns(message.time, valid_time_ns)
+    return make_event(message, source=source, epoch=epoch, seq=seq)
+
+
+@st.composite
+def _histories(draw):
+    """Batches of events with a non-decreasing site clock, late events included."""
+    n_batches = draw(st.integers(1, 6))
+    clock = 0
+    next_seq: dict[str, int] = {}
+    batches = []
+    for _ in range(n_batches):
+        clock += draw(st.integers(0, 50))
+        size = draw(st.integers(0, 6))
+        events = []
+        for _ in range(size):
+            source = draw(st.sampled_from(["a.src", "b.src", "c.src"]))
+            # valid time anywhere up to the clock: most events are "late"
+            valid = draw(st.integers(0, clock + 5))
+            seq = next_seq.get(source, 0)
+            next_seq[source] = seq + 1
+            events.append((source, seq, valid))
+        batches.append((clock, events))
+    queries = draw(st.lists(st.tuples(st.integers(-1, clock + 10), st.integers(-1, clock + 10)),
+                            min_size=1, max_size=8))
+    return batches, queries
+
+
+class LedgerStoreContract(abc.ABC):
+    """Behaviour every :class:`~ledger.store.LedgerStore` backend must show."""
+
+    #: whether the backend keeps data across ``reopen``
+    persistent: bool = False
+
+    @abc.abstractmethod
+    def create_store(self, clock: ManualClock, directory: Path) -> LedgerStore:
+        """A new, empty store in ``directory`` using ``clock``."""
+
+    def reopen(self, store: LedgerStore, clock: ManualClock) -> LedgerStore:
+        """Close ``store`` and open the same ledger again (persistent backends)."""
+        return store
+
+    @abc.abstractmethod
+    def tamper(self, store: LedgerStore, global_seq: int, field: str) -> LedgerStore:
+        """Change ``field`` ("payload" or "recorded_time_ns") of a stored row behind the
+        store's back; return the store to verify (possibly reopened)."""
+
+    # -- helpers ------------------------------------------------------------------------
+
+    def _new(self, tmp_path: Path, start_ns: int = 1_000) -> tuple[LedgerStore, ManualClock]:
+        clock = ManualClock(start_ns)
+        return self.create_store(clock, tmp_path), clock
+
+    # -- the contract -------------------------------------------------------------------
+
+    def test_empty_store(self, tmp_path):
+        store, _ = self._new(tmp_path)
+        assert store.head().global_seq == -1
+        assert list(store.read()) == []
+        assert list(store.as_of(10**18, 10**18)) == []
+        assert store.gaps() == [] and store.quarantine() == []
+        assert store.verify().ok and store.verify().rows_checked == 0
+        store.close()
+
+    def test_append_assigns_dense_global_seq_and_recorded_time(self, tmp_path):
+        store, clock = self._new(tmp_path, 500)
+        result = store.append([joint_event("a.src", i, 100 + i) for i in range(3)])
+        assert [o.status for o in result.outcomes] == ["appended"] * 3
+        assert [o.global_seq for o in result.outcomes] == [0, 1, 2]
+        clock.set_ns(400)  # a clock that steps back never makes recorded time go backwards
+        store.append([joint_event("b.src", 0, 50)])
+        rows = list(store.read())
+        assert [r.global_seq for r in rows] == [0, 1, 2, 3]
+        assert [r.recorded_time_ns for r in rows] == [500, 500, 500, 500]
+        assert store.head().global_seq == 3
+        store.close()
+
+    def test_idempotent_reappend(self, tmp_path):
+        store, clock = self._new(tmp_path)
+        batch = [joint_event("a.src", i, 100 + i, travel_m=i) for i in range(5)]
+        store.append(batch)
+        head = store.head()
+        clock.advance_ns(1_000)
+        again = store.append(batch)
+        assert again.counts == {"appended": 0, "duplicate": 5, "conflict": 0, "rejected": 0}
+        assert [o.global_seq for o in again.outcomes] == [0, 1, 2, 3, 4]
+        assert store.head() == head
+        store = self.reopen(store, clock)
+        assert store.append(batch[2:4]).counts["duplicate"] == 2
+        assert len(list(store.read())) == 5 and store.quarantine() == []
+        store.close()
+
+    def test_duplicate_within_one_batch(self, tmp_path):
+        store, _ = self._new(tmp_path)
+        e = joint_event("a.src", 0, 100)
+        result = store.append([e, e])
+        assert [o.status for o in result.outcomes] == ["appended", "duplicate"]
+        assert result.outcomes[1].global_seq == 0
+        store.close()
+
+    def test_conflict_is_quarantined_never_overwrites(self, tmp_path):
+        store, clock = self._new(tmp_path)
+        original = joint_event("a.src", 0, 100, travel_m=1.0)
+        store.append([original])
+        store = self.reopen(store, clock)
+        rival = joint_event("a.src", 0, 100, travel_m=2.0)
+        result = store.append([rival, joint_event("a.src", 1, 101)])
+        assert [o.status for o in result.outcomes] == ["conflict", "appended"]
+        assert result.outcomes[0].code == "conflict" and result.outcomes[0].global_seq == 0
+        [entry] = store.quarantine()
+        assert entry.code == "conflict" and entry.raw == rival.payload
+        assert entry.existing_global_seq == 0 and (entry.source, entry.epoch, entry.seq) == rival.key
+        stored = list(store.read())
+        assert stored[0].payload == original.payload and len(stored) == 2
+        store.close()
+
+    def test_epochs_are_separate_streams(self, tmp_path):
+        store, _ = self._new(tmp_path)
+        result = store.append([joint_event("a.src", 0, 1, epoch=1, travel_m=1),
+                               joint_event("a.src", 0, 2, epoch=2, travel_m=2)])
+        assert result.counts["appended"] == 2
+        assert {(s.source, s.epoch) for s in store.streams()} == {("a.src", 1), ("a.src", 2)}
+        store.close()
+
+    def test_gaps_are_recorded_and_closed(self, tmp_path):
+        store, clock = self._new(tmp_path, 1_000)
+        store.append([joint_event("a.src", s, s) for s in (0, 1, 5)])
+        [gap] = store.gaps()
+        assert (gap.first_seq, gap.last_seq, gap.is_open, gap.opened_recorded_ns) == (2, 4, True, 1_000)
+        [info] = store.streams()
+        assert (info.highest_contiguous_seq, info.max_seq, info.missing) == (1, 5, 3)
+        store = self.reopen(store, clock)
+        clock.set_ns(2_000)
+        store.append([joint_event("a.src", 3, 3)])
+        gaps = store.gaps()
+        closed = [g for g in gaps if not g.is_open]
+        still_open = sorted((g.first_seq, g.last_seq) for g in gaps if g.is_open)
+        assert [(g.first_seq, g.last_seq, g.closed_recorded_ns) for g in closed] == [(2, 4, 2_000)]
+        assert still_open == [(2, 2), (4, 4)]
+        assert all(g.opened_recorded_ns == 1_000 for g in gaps)
+        store = self.reopen(store, clock)
+        clock.set_ns(3_000)
+        store.append([joint_event("a.src", 4, 4), joint_event("a.src", 2, 2)])
+        assert store.gaps(open_only=True) == []
+        [info] = store.streams()
+        assert (info.highest_contiguous_seq, info.max_seq, info.open_gaps) == (5, 5, 0)
+        # a late arrival of an already-filled seq is a duplicate, not a gap change
+        assert store.append([joint_event("a.src", 3, 3)]).counts["duplicate"] == 1
+        store.close()
+
+    def test_first_event_not_at_zero_opens_a_gap(self, tmp_path):
+        store, _ = self._new(tmp_path)
+        store.append([joint_event("a.src", 3, 3)])
+        assert [(g.first_seq, g.last_seq) for g in store.gaps(open_only=True)] == [(0, 2)]
+        store.close()
+
+    def test_gap_opened_and_filled_inside_one_batch_leaves_no_gap(self, tmp_path):
+        store, _ = self._new(tmp_path)
+        store.append([joint_event("a.src", s, s) for s in (0, 2, 1)])
+        assert store.gaps() == []
+        store.close()
+
+    def test_concurrent_appenders_get_a_dense_global_sequence(self, tmp_path):
+        store, _ = self._new(tmp_path)
+        n_threads, n_batches, size = 4, 25, 8
+        errors: list[BaseException] = []
+        start = threading.Barrier(n_threads)
+
+        def worker(t: int) -> None:
+            try:
+                start.wait()
+                for b in range(n_batches):
+                    store.append([joint_event(f"t{t}.src", b * size + i, b * size + i)
+                                  for i in range(size)])
+            except BaseException as exc:  # pragma: no cover - reported below
+                errors.append(exc)
+
+        threads = [threading.Thread(target=worker, args=(t,)) for t in range(n_threads)]
+        for thread in threads:
+            thread.start()
+        for thread in threads:
+            thread.join()
+        assert errors == []
+        rows = list(store.read())
+        total = n_threads * n_batches * size
+        assert [r.global_seq for r in rows] == list(range(total))
+        for t in range(n_threads):
+            seqs = [r.seq for r in rows if r.source == f"t{t}.src"]
+            assert seqs == list(range(n_batches * size))  # each thread's batches stay in order
+        assert store.gaps() == [] and store.verify().ok
+        store.close()
+
+    def test_read_range_and_filters(self, tmp_path):
+        store, _ = self._new(tmp_path)
+        store.append([joint_event("a.src", i, i) for i in range(5)]
+                     + [joint_event("b.src", i, i) for i in range(5)])
+        assert [r.global_seq for r in store.read(3, 6)] == [3, 4, 5]
+        assert [r.global_seq for r in store.read(8)] == [8, 9]
+        assert [r.seq for r in store.read(sources=["b.src"])] == list(range(5))
+        assert list(store.read(types=["assay"])) == []
+        assert len(list(store.read(types=["joint_reading"]))) == 10
+        store.close()
+
+    def test_as_of_excludes_events_recorded_after_known_time(self, tmp_path):
+        store, clock = self._new(tmp_path, 100)
+        store.append([joint_event("a.src", 0, 90)])
+        clock.set_ns(200)
+        store.append([joint_event("a.src", 1, 50)])  # late: happened at 50, learned at 200
+        assert [r.seq for r in store.as_of(100, 150)] == [0]
+        assert [r.seq for r in store.as_of(100, 200)] == [1, 0]  # ordered by valid time
+        assert [r.seq for r in store.as_of(60, 200)] == [1]
+        store.close()
+
+    # each backend subclass runs this same method: that is the point of a contract
+    @settings(max_examples=40, deadline=None,
+              suppress_health_check=[HealthCheck.differing_executors])
+    @given(_histories())
+    def test_as_of_matches_brute_force(self, history):
+        batches, queries = history
+        with tempfile.TemporaryDirectory() as directory:
+            clock = ManualClock(0)
+            store = self.create_store(clock, Path(directory))
+            expected_rows = []  # (global_seq, valid, recorded) computed from the input alone
+            for batch_clock, events in batches:
+                clock.set_ns(batch_clock)
+                store.append([joint_event(s, q, v) for s, q, v in events])
+                for s, q, v in events:
+                    expected_rows.append((len(expected_rows), v, batch_clock))
+            for valid, known in queries:
+                want = [g for g, v, r in sorted(expected_rows, key=lambda x: (x[1], x[0]))
+                        if v <= valid and r <= known]
+                got = [r.global_seq for r in store.as_of(valid, known)]
+                assert got == want, (valid, known)
+            store.close()
+
+    def test_preserved_recorded_time_is_kept(self, tmp_path):
+        store, _ = self._new(tmp_path, 10**9)
+        e = joint_event("a.src", 0, 5)
+        preserved = Event(e.type, e.source, e.epoch, e.seq, e.valid_time_ns, e.payload, 77)
+        store.append([preserved])
+        assert [r.recorded_time_ns for r in store.read()] == [77]
+        assert store.verify().ok
+        store.close()
+
+    def test_event_clock_follows_clock_events(self, tmp_path):
+        from ledger.clock import EventClock
+
+        def clock_event(seq: int, t: int) -> Event:
+            m = pb.Clock()
+            set_timestamp_ns(m.time, t)
+            return make_event(m, source="sim.clock", epoch=1, seq=seq)
+
+        with tempfile.TemporaryDirectory() as directory:
+            store = self.create_store(EventClock(), Path(directory))
+            store.append([clock_event(0, 1_000), joint_event("a.src", 0, 990),
+                          clock_event(1, 2_000), joint_event("a.src", 1, 1_500)])
+            assert [r.recorded_time_ns for r in store.read()] == [1_000, 1_000, 2_000, 2_000]
+            store.close()
+
+    def test_verify_detects_a_modified_payload(self, tmp_path):
+        store, clock = self._new(tmp_path)
+        store.append([joint_event("a.src", i, i, travel_m=i) for i in range(6)])
+        assert store.verify().ok
+        store = self.tamper(store, 3, "payload")
+        report = store.verify()
+        assert not report.ok and report.first_bad_seq == 3, report
+        store.close()
+
+    def test_verify_detects_a_modified_recorded_time(self, tmp_path):
+        store, clock = self._new(tmp_path)
+        store.append([joint_event("a.src", i, i) for i in range(6)])
+        store = self.tamper(store, 4, "recorded_time_ns")
+        report = store.verify()
+        assert not report.ok and report.first_bad_seq == 4, report
+        store.close()
+
+    def test_randomised_batches_keep_every_invariant(self, tmp_path):
+        seed = random.randrange(2**32)
+        print(f"seed={seed}")
+        rng = random.Random(seed)
+        store, clock = self._new(tmp_path)
+        sent: dict[tuple[str, int, int], bytes] = {}
+        for _ in range(20):
+            clock.advance_ns(rng.randrange(0, 1_000))
+            batch = []
+            for _ in range(rng.randrange(0, 20)):
+                source = rng.choice(["a.src", "b.src"])
+                seq = rng.randrange(0, 60)
+                e = joint_event(source, seq, rng.randrange(0, 10_000), travel_m=rng.choice([0.0, 1.0]))
+                batch.append(e)
+            result = store.append(batch)
+            for e, outcome in zip(batch, result.outcomes):
+                first = sent.setdefault(e.key, e.payload)
+                expected = ("appended", "duplicate") if first == e.payload else ("conflict",)
+                assert outcome.status in expected, (seed, e.key, outcome)
+        rows = list(store.read())
+        assert [r.global_seq for r in rows] == list(range(len(sent)))
+        assert {r.key: r.payload for r in rows} == sent
+        for info in store.streams():
+            stored = {r.seq for r in rows if (r.source, r.epoch) == (info.source, info.epoch)}
+            missing = set(range(info.max_seq + 1)) - stored
+            assert info.missing == len(missing), seed
+            open_gap_seqs = {s for g in store.gaps(open_only=True)
+                             if (g.source, g.epoch) == (info.source, info.epoch)
+                             for s in range(g.first_seq, g.last_seq + 1)}
+            assert open_gap_seqs == missing, seed
+        assert store.verify().ok
+        store.close()
