@@ -412,7 +412,8 @@ def fmt_rate(value: float | None) -> str:
 def fmt_ratio(ours: float | None, theirs: float | None) -> str:
     if ours is None or theirs is None or theirs == 0:
         return "n/a"
-    return f"{ours / theirs:.2f}x"
+    ratio = ours / theirs
+    return f"{ratio:.2f}x" if ratio >= 0.1 else f"{ratio:.2g}x"
 
 
 def best_of(runs: int, fn: Callable[[], tuple[float, int]]) -> tuple[float, int]:
@@ -504,7 +505,7 @@ def run(args: argparse.Namespace) -> int:
     stored = {name: es_stored(w) for name, w in workloads.items()}
     log(f"  built in {time.perf_counter() - t:.1f} s")
     gc.collect()
-    gc.freeze()
+    gc.freeze()  # the pre-built inputs are not what we measure: keep the GC off them
 
     tmp = tempfile.TemporaryDirectory(prefix="bench-ledger-", dir=args.tmpdir)
     results: dict[tuple[str, int], tuple[float, float]] = {}
@@ -621,17 +622,21 @@ def run(args: argparse.Namespace) -> int:
         store = open_ledger(path_1m, ManualClock(last_arrival + NS_PER_S), read_only=True)
         stats = store.stats()
         t_end = last_arrival + LATENCY_NS
-        mid = T0_NS + (t_end - T0_NS) // 2
+        span = t_end - T0_NS
+        mid, early = T0_NS + span // 2, T0_NS + span // 10
         points = [
-            ("now, as known now", t_end, t_end),
-            ("mid-stream, as known now", mid, t_end),
+            ("end, as known at end", t_end, t_end),
+            ("mid-stream, as known at end", mid, t_end),
             ("mid-stream, as known then", mid, mid + LATENCY_NS),
-            ("mid-stream, known 4h later", mid, min(t_end, mid + 4 * NS_PER_H)),
+            ("10% in, as known at end", early, t_end),
         ]
         atable = Table([("as-of query (V, K)", 30, "<"), ("types", 6, "<"), ("rows", 9, ">"),
                         ("ours_ms", 9, ">"), ("eventsourcing_ms", 16, ">")])
-        out(f"4. As-of query time on {stats.events:,} events (ms, best of 3; "
-            f"{stats.per_type.get('assay', 0):,} assays, late by 4 h)")
+        hours = span / NS_PER_H
+        out(f"4. As-of query time on {stats.events:,} events ({hours:.1f} h of yard time; "
+            f"{stats.per_type.get('assay', 0):,} assays, each recorded 4 h after its valid time), "
+            "ms, best of 3 (all: best of 2)")
+        out("   assay: list(store.as_of(V, K, types=['assay']));  all: sum(1 for _ in store.as_of(V, K))")
         out(f"   ledger built with store.append at batch 10,000: append {append_s:.1f} s "
             f"= {fmt_rate(rate(n_1m, append_s))} events/s (plus {build_s - append_s:.1f} s "
             "building protobufs)")
@@ -655,6 +660,7 @@ def run(args: argparse.Namespace) -> int:
         out("   eventsourcing has no bitemporal (valid time x recorded time) query: n/a")
         out()
     finally:
+        gc.unfreeze()
         tmp.cleanup()
 
     # targets -----------------------------------------------------------------------------

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import abc
 import bisect
+import dataclasses
 import threading
 from collections import Counter
 from dataclasses import dataclass, field
@@ -25,7 +26,7 @@ from typing import Iterable, Iterator, Sequence
 
 from schemas.events import Event, Malformed
 from schemas.jsonl import body_json
-from schemas.validate import REASON_CODES, InvalidEvent, check_event
+from schemas.validate import REASON_CODES, InvalidEvent, check_event, is_time_ns
 
 from ledger.chain import GENESIS, chain_hash, payload_hash
 from ledger.clock import SiteClock, WallClock
@@ -114,6 +115,10 @@ class BatchPlan:
     state: WriterState | None = None  # the writer state after the batch
 
 
+def _int64_or_none(value: object) -> int | None:
+    return value if is_time_ns(value) else None
+
+
 def _split_reason(reason: str) -> tuple[str, str]:
     code, sep, detail = reason.partition(": ")
     if sep and code in REASON_CODES:
@@ -174,9 +179,7 @@ class _BatchPlanner:
             raw, epoch, seq, valid = item.raw, item.epoch, item.seq, item.valid_time_ns
         else:
             raw = bytes(item.payload) if isinstance(item.payload, (bytes, bytearray, memoryview)) else b""
-            epoch = item.epoch if isinstance(item.epoch, int) else None
-            seq = item.seq if isinstance(item.seq, int) else None
-            valid = item.valid_time_ns if isinstance(item.valid_time_ns, int) else None
+            epoch, seq, valid = item.epoch, item.seq, item.valid_time_ns
         entry = QuarantineEntry(
             quarantine_id=s.next_quarantine_id,
             recorded_time_ns=recorded,
@@ -190,6 +193,9 @@ class _BatchPlanner:
             raw=raw,
             existing_global_seq=existing,
         )
+        # identity numbers that do not fit the store are kept only in the raw bytes
+        entry = dataclasses.replace(entry, epoch=_int64_or_none(epoch), seq=_int64_or_none(seq),
+                                    valid_time_ns=_int64_or_none(valid))
         s.next_quarantine_id += 1
         self.plan.quarantine.append(entry)
         status = "conflict" if code == "conflict" else "rejected"

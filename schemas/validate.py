@@ -52,8 +52,15 @@ ANALYTE_SUM_TOLERANCE_PCT = 0.1
 LMS200_STEPS_DEG: tuple[float, ...] = (0.25, 0.5, 1.0)
 _STEP_TOLERANCE_RAD = 1e-6
 
-_MIN_TIMESTAMP_S = -62135596800  # 0001-01-01T00:00:00Z
-_MAX_TIMESTAMP_S = 253402300799  # 9999-12-31T23:59:59Z
+#: Times are stored as signed 64-bit UTC nanoseconds: 1677-09-21 .. 2262-04-11.
+MIN_TIME_NS = -(2**63)
+MAX_TIME_NS = 2**63 - 1
+
+
+def is_time_ns(value: object) -> bool:
+    """Whether ``value`` is an integer time that fits in signed 64-bit nanoseconds."""
+    return (isinstance(value, int) and not isinstance(value, bool)
+            and MIN_TIME_NS <= value <= MAX_TIME_NS)
 
 #: Identifiers that must not be empty, per event type.
 REQUIRED_IDS: dict[str, tuple[str, ...]] = {
@@ -112,8 +119,12 @@ def check_identity(event: Event) -> None:
         value = getattr(event, name)
         if not isinstance(value, int) or isinstance(value, bool) or not 0 <= value <= MAX_COUNTER:
             raise InvalidEvent("bad_identity", f"{name} {value!r} is not in [0, 2^63)")
-    if not isinstance(event.valid_time_ns, int) or isinstance(event.valid_time_ns, bool):
-        raise InvalidEvent("bad_identity", f"valid_time_ns {event.valid_time_ns!r} is not an integer")
+    if not is_time_ns(event.valid_time_ns):
+        raise InvalidEvent("bad_identity",
+                           f"valid_time_ns {event.valid_time_ns!r} is not a signed 64-bit integer")
+    if event.recorded_time_ns is not None and not is_time_ns(event.recorded_time_ns):
+        raise InvalidEvent("bad_identity",
+                           f"recorded_time_ns {event.recorded_time_ns!r} is not a signed 64-bit integer")
     if not isinstance(event.payload, (bytes, bytearray, memoryview)):
         raise InvalidEvent("undecodable", "payload is not bytes")
 
@@ -186,10 +197,11 @@ def _field_plan(descriptor: Descriptor) -> tuple[tuple[FieldDescriptor, ...], ..
 def _check_fields(message: Message, path: str) -> None:
     descriptor = message.DESCRIPTOR
     if descriptor.full_name == "google.protobuf.Timestamp":
-        if not 0 <= message.nanos < 1_000_000_000 or not (
-            _MIN_TIMESTAMP_S <= message.seconds <= _MAX_TIMESTAMP_S
+        if not 0 <= message.nanos < 1_000_000_000 or not is_time_ns(
+            message.seconds * 1_000_000_000 + message.nanos
         ):
-            raise InvalidEvent("out_of_range", f"{path} is not a valid timestamp")
+            raise InvalidEvent("out_of_range",
+                               f"{path} is not a timestamp between 1677-09-21 and 2262-04-11")
         return
     doubles, repeated_doubles, enums, messages, double_maps = _field_plan(descriptor)
     for field in doubles:
