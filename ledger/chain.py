@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import hashlib
 import struct
+from functools import lru_cache
 
 GENESIS = bytes(32)
 
@@ -21,6 +22,13 @@ _LEN = struct.Struct("<H")
 def payload_hash(payload: bytes) -> bytes:
     """sha256 of the payload bytes (32 bytes)."""
     return hashlib.sha256(payload).digest()
+
+
+@lru_cache(maxsize=4096)
+def _names(type_name: str, source: str) -> bytes:
+    t = type_name.encode()
+    s = source.encode()
+    return _LEN.pack(len(t)) + t + _LEN.pack(len(s)) + s
 
 
 def chain_hash(
@@ -35,10 +43,9 @@ def chain_hash(
     payload_sha256: bytes,
 ) -> bytes:
     """The chain value of one row given the previous row's (32 bytes)."""
-    t = type_name.encode()
-    s = source.encode()
-    h = hashlib.sha256(previous)
-    h.update(_INTS.pack(global_seq, epoch, seq, valid_time_ns, recorded_time_ns))
-    h.update(_LEN.pack(len(t)) + t + _LEN.pack(len(s)) + s)
-    h.update(payload_sha256)
-    return h.digest()
+    return hashlib.sha256(b"".join((
+        previous,
+        _INTS.pack(global_seq, epoch, seq, valid_time_ns, recorded_time_ns),
+        _names(type_name, source),
+        payload_sha256,
+    ))).digest()

@@ -1,10 +1,10 @@
-"""Frozen record types the ledger returns.  All times are UTC nanoseconds."""
+"""Immutable record types the ledger returns.  All times are UTC nanoseconds."""
 
 from __future__ import annotations
 
 from collections import Counter
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import Literal, NamedTuple
 
 from schemas.events import Event
 
@@ -15,9 +15,12 @@ STATUSES: tuple[Status, ...] = ("appended", "duplicate", "conflict", "rejected")
 FLAG_UNKNOWN_LOT = "unknown_lot"
 
 
-@dataclass(frozen=True, slots=True)
-class RecordedEvent:
-    """An event as stored: its identity and payload plus what the ledger added."""
+class RecordedEvent(NamedTuple):
+    """An event as stored: its identity and payload plus what the ledger added.
+
+    An immutable record (a NamedTuple: the ledger builds and reads millions of these,
+    and a tuple is four times cheaper to make than a frozen dataclass).
+    """
 
     global_seq: int
     type: str
@@ -42,9 +45,8 @@ class RecordedEvent:
                      self.payload, self.recorded_time_ns if keep_recorded_time else None)
 
 
-@dataclass(frozen=True, slots=True)
-class AppendOutcome:
-    """What happened to one event of a batch.
+class AppendOutcome(NamedTuple):
+    """What happened to one event of a batch (an immutable record).
 
     ``global_seq`` is the event's position for ``appended``, the stored event's for
     ``duplicate`` and ``conflict``, and ``None`` for ``rejected``.  ``code`` and

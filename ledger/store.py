@@ -19,6 +19,7 @@ from __future__ import annotations
 import abc
 import bisect
 import dataclasses
+from hashlib import sha256
 import threading
 from collections import Counter
 from dataclasses import dataclass, field
@@ -145,7 +146,6 @@ class _BatchPlanner:
         self._touched: set[tuple[str, int]] = set()
         self._lots_copied = False
         self.plan = BatchPlan()
-        self._batch_keys: dict[Key, RecordedEvent] = {}
 
     # -- state helpers --------------------------------------------------------------
 
@@ -203,6 +203,9 @@ class _BatchPlanner:
 
     def _track_sequence(self, source: str, epoch: int, seq: int, recorded_ns: int) -> None:
         stream = self._stream(source, epoch)
+        if seq == stream.max_seq + 1:  # the common case: the next one in order
+            stream.max_seq = seq
+            return
         s = self.state
         if seq > stream.max_seq:
             if seq > stream.max_seq + 1:
@@ -242,29 +245,28 @@ class _BatchPlanner:
         return self.plan
 
     def _one(self, item: Event | Malformed, stored: dict[Key, tuple[int, bytes]]) -> None:
-        if isinstance(item, Malformed):
-            self._quarantine(item, *_split_reason(item.reason))
-            return
-        if not isinstance(item, Event):
-            raise InterfaceError(f"append takes Event or Malformed, not {type(item).__name__}")
+        # the hot path of the ledger: keep it flat (every event of every batch runs it)
+        if type(item) is not Event:
+            if isinstance(item, Malformed):
+                self._quarantine(item, *_split_reason(item.reason))
+                return
+            if not isinstance(item, Event):
+                raise InterfaceError(f"append takes Event or Malformed, not {type(item).__name__}")
         try:
             message = check_event(item)
         except InvalidEvent as exc:
             self._quarantine(item, exc.code, exc.detail)
             return
-        payload = bytes(item.payload)
-        digest = payload_hash(payload)
-        key = (item.source, item.epoch, item.seq)
-        previous = self._batch_keys.get(key)
-        if previous is not None:
-            prior = (previous.global_seq, previous.payload_sha256)
-        elif self._stream_view(item.source, item.epoch).is_stored(item.seq):
-            prior = stored.get(key)
+        type_name, source, epoch, seq = item.type, item.source, item.epoch, item.seq
+        payload = item.payload if type(item.payload) is bytes else bytes(item.payload)
+        digest = sha256(payload).digest()
+        s = self.state
+        stream = s.streams.get((source, epoch))
+        if stream is not None and stream.is_stored(seq):
+            key = (source, epoch, seq)
+            prior = stored.get(key) or self._appended_in_batch(key)
             if prior is None:  # pragma: no cover - would mean state and rows disagree
                 raise LedgerError(f"stored event {key} not found; the writer state is stale")
-        else:
-            prior = None
-        if prior is not None:
             if prior[1] == digest:
                 self.plan.outcomes.append(AppendOutcome("duplicate", prior[0]))
             else:
@@ -272,9 +274,8 @@ class _BatchPlanner:
                                  f"{key} is stored as global_seq {prior[0]} with another payload",
                                  existing=prior[0])
             return
-        s = self.state
         clock_event_ns = s.latest_clock_event_ns
-        if item.type == "clock" and (clock_event_ns is None or item.valid_time_ns > clock_event_ns):
+        if type_name == "clock" and (clock_event_ns is None or item.valid_time_ns > clock_event_ns):
             clock_event_ns = item.valid_time_ns  # a tick is learned at its own time
         try:
             recorded = self._recorded_ns(item.recorded_time_ns, clock_event_ns)
@@ -283,27 +284,34 @@ class _BatchPlanner:
             return
         s.latest_clock_event_ns = clock_event_ns
         flags: tuple[str, ...] = ()
-        if item.type == "assay" and message.lot_id not in s.known_lots:
-            flags = (FLAG_UNKNOWN_LOT,)
-        elif item.type == "lot_declared" and message.lot_id not in s.known_lots:
-            if not self._lots_copied:
-                s.known_lots = set(s.known_lots)
-                self._lots_copied = True
-            s.known_lots.add(message.lot_id)
+        body = None
+        if type_name in BODY_TYPES:
+            body = body_json(message)
+            if type_name == "assay" and message.lot_id not in s.known_lots:
+                flags = (FLAG_UNKNOWN_LOT,)
+            elif type_name == "lot_declared" and message.lot_id not in s.known_lots:
+                if not self._lots_copied:
+                    s.known_lots = set(s.known_lots)
+                    self._lots_copied = True
+                s.known_lots.add(message.lot_id)
         global_seq = s.head_seq + 1
-        chain = chain_hash(s.head_chain, global_seq, item.type, item.source, item.epoch,
-                           item.seq, item.valid_time_ns, recorded, digest)
-        row = RecordedEvent(global_seq, item.type, item.source, item.epoch, item.seq,
-                            item.valid_time_ns, recorded, payload, digest, chain, flags)
+        valid = item.valid_time_ns
+        chain = chain_hash(s.head_chain, global_seq, type_name, source, epoch, seq, valid,
+                           recorded, digest)
         s.head_seq, s.head_chain, s.last_recorded_ns = global_seq, chain, recorded
-        self._track_sequence(item.source, item.epoch, item.seq, recorded)
-        self._batch_keys[key] = row
-        self.plan.rows.append(row)
-        self.plan.bodies.append(body_json(message) if item.type in BODY_TYPES else None)
-        self.plan.outcomes.append(AppendOutcome("appended", global_seq, flags=flags))
+        self._track_sequence(source, epoch, seq, recorded)
+        plan = self.plan
+        plan.rows.append(RecordedEvent(global_seq, type_name, source, epoch, seq, valid,
+                                       recorded, payload, digest, chain, flags))
+        plan.bodies.append(body)
+        plan.outcomes.append(AppendOutcome("appended", global_seq, None, None, flags))
 
-    def _stream_view(self, source: str, epoch: int) -> StreamState:
-        return self.state.streams.get((source, epoch)) or StreamState()
+    def _appended_in_batch(self, key: Key) -> tuple[int, bytes] | None:
+        """(global_seq, payload hash) of ``key`` if this batch appended it (rare path)."""
+        for row in reversed(self.plan.rows):
+            if (row.source, row.epoch, row.seq) == key:
+                return row.global_seq, row.payload_sha256
+        return None
 
 
 def keys_to_look_up(state: WriterState, batch: Iterable[Event | Malformed]) -> list[Key]:

@@ -9,6 +9,8 @@ that need ledger state (duplicates, conflicts, unknown lots) live in the ledger.
 from __future__ import annotations
 
 import math
+import operator
+import struct
 from functools import lru_cache
 
 import numpy as np
@@ -109,19 +111,28 @@ class InvalidEvent(ValueError):
         self.detail = detail
 
 
+_KNOWN_SOURCES: set[str] = set()  # sources already seen valid (bounded cache)
+
+
 def check_identity(event: Event) -> None:
     """Raise :class:`InvalidEvent` unless type, source, epoch and seq are well formed."""
     if event.type not in EVENT_TYPES:
         raise InvalidEvent("unknown_type", f"unknown event type {event.type!r}")
-    if not isinstance(event.source, str) or not is_valid_source(event.source):
-        raise InvalidEvent("bad_identity", f"bad source {event.source!r}")
-    for name in ("epoch", "seq"):
-        value = getattr(event, name)
-        if not isinstance(value, int) or isinstance(value, bool) or not 0 <= value <= MAX_COUNTER:
-            raise InvalidEvent("bad_identity", f"{name} {value!r} is not in [0, 2^63)")
-    if not is_time_ns(event.valid_time_ns):
+    source = event.source
+    if source not in _KNOWN_SOURCES:
+        if type(source) is not str or not is_valid_source(source):
+            raise InvalidEvent("bad_identity", f"bad source {source!r}")
+        if len(_KNOWN_SOURCES) < 100_000:
+            _KNOWN_SOURCES.add(source)
+    epoch, seq = event.epoch, event.seq
+    if type(epoch) is not int or not 0 <= epoch <= MAX_COUNTER:
+        raise InvalidEvent("bad_identity", f"epoch {epoch!r} is not in [0, 2^63)")
+    if type(seq) is not int or not 0 <= seq <= MAX_COUNTER:
+        raise InvalidEvent("bad_identity", f"seq {seq!r} is not in [0, 2^63)")
+    valid = event.valid_time_ns
+    if type(valid) is not int or not MIN_TIME_NS <= valid <= MAX_TIME_NS:
         raise InvalidEvent("bad_identity",
-                           f"valid_time_ns {event.valid_time_ns!r} is not a signed 64-bit integer")
+                           f"valid_time_ns {valid!r} is not a signed 64-bit integer")
     if event.recorded_time_ns is not None and not is_time_ns(event.recorded_time_ns):
         raise InvalidEvent("bad_identity",
                            f"recorded_time_ns {event.recorded_time_ns!r} is not a signed 64-bit integer")
@@ -148,7 +159,7 @@ def check_event(event: Event) -> Message:
             "undecodable",
             f"payload has fields unknown to {cls.DESCRIPTOR.full_name} (wrong type or schema?)",
         )
-    _check_fields(message, message.DESCRIPTOR.full_name)
+    _compiled(cls.DESCRIPTOR).check(message)
     payload_time = payload_valid_time_ns(event.type, message)
     if payload_time != event.valid_time_ns:
         raise InvalidEvent(
@@ -169,61 +180,95 @@ def check_event(event: Event) -> Message:
     return message
 
 
-# --- generic walk over a message: finiteness, enums, timestamps -----------------------
+# --- per-type compiled checks: finiteness, enums, timestamps ---------------------------
+#
+# For each message type the fields to check are found once from its descriptor,
+# following singular sub-messages (so ``rotation.w`` of a FrameTransform is one dotted
+# path), and read with one ``operator.attrgetter`` call.  The fast path for doubles
+# is one ``sum``: it is finite exactly when no value is NaN or infinite (barring an
+# overflow of the sum, which the exact per-field pass then clears).
+
+
+def _tuple_getter(paths: list[str]):
+    if not paths:
+        return lambda message: ()
+    getter = operator.attrgetter(*paths)
+    if len(paths) == 1:
+        return lambda message: (getter(message),)
+    return getter
+
+
+class _CompiledChecks:
+    """Everything the generic checks read from one message type, as dotted paths."""
+
+    def __init__(self, descriptor: Descriptor) -> None:
+        self.name = descriptor.full_name
+        doubles: list[str] = []
+        repeated: list[str] = []
+        maps: list[str] = []
+        enums: list[tuple[str, frozenset[int], str]] = []
+        timestamps: list[str] = []
+        self._collect(descriptor, "", doubles, repeated, maps, enums, timestamps, depth=0)
+        self.double_paths, self.repeated_paths, self.map_paths = doubles, repeated, maps
+        self.enum_paths, self.timestamp_paths = enums, timestamps
+        self.get_doubles = _tuple_getter(doubles)
+        self.get_repeated = _tuple_getter(repeated)
+        self.get_maps = _tuple_getter(maps)
+        self.get_enums = _tuple_getter([e[0] for e in enums])
+        self.get_timestamps = _tuple_getter(timestamps)
+
+    def _collect(self, descriptor, prefix, doubles, repeated, maps, enums, timestamps, depth):
+        if depth > 8:
+            raise ValueError(f"{descriptor.full_name} nests too deeply to validate")
+        for field in descriptor.fields:
+            path = prefix + field.name
+            if (descriptor.full_name, field.name) in NAN_ALLOWED:
+                continue  # checked by the type's own check
+            if field.type in (FieldDescriptor.TYPE_DOUBLE, FieldDescriptor.TYPE_FLOAT):
+                (repeated if field.is_repeated else doubles).append(path)
+            elif field.type == FieldDescriptor.TYPE_ENUM and not field.is_repeated:
+                values = frozenset(field.enum_type.values_by_number)
+                enums.append((path, values, field.enum_type.full_name))
+            elif field.type == FieldDescriptor.TYPE_MESSAGE and not field.is_repeated:
+                sub = field.message_type
+                if sub.full_name == "google.protobuf.Timestamp":
+                    timestamps.append(path)
+                else:
+                    self._collect(sub, path + ".", doubles, repeated, maps, enums, timestamps,
+                                  depth + 1)
+            elif field.type == FieldDescriptor.TYPE_MESSAGE and field.message_type.GetOptions().map_entry:
+                if field.message_type.fields_by_name["value"].type == FieldDescriptor.TYPE_DOUBLE:
+                    maps.append(path)
+
+    def check(self, message: Message) -> None:
+        values = self.get_doubles(message)
+        if values and not math.isfinite(sum(values)):
+            for path, value in zip(self.double_paths, values):
+                if not math.isfinite(value):
+                    raise InvalidEvent("non_finite", f"{self.name}.{path} is not finite")
+        for path, items in zip(self.repeated_paths, self.get_repeated(message)):
+            if items and not math.isfinite(sum(items)):
+                for index, value in enumerate(items):
+                    if not math.isfinite(value):
+                        raise InvalidEvent("non_finite", f"{self.name}.{path}[{index}] is not finite")
+        for path, mapping in zip(self.map_paths, self.get_maps(message)):
+            for key, value in mapping.items():
+                if not math.isfinite(value):
+                    raise InvalidEvent("non_finite", f"{self.name}.{path}[{key!r}] is not finite")
+        for (path, allowed, enum_name), value in zip(self.enum_paths, self.get_enums(message)):
+            if value not in allowed:
+                raise InvalidEvent("unknown_enum", f"{self.name}.{path} = {value} is not a {enum_name}")
+        for path, ts in zip(self.timestamp_paths, self.get_timestamps(message)):
+            nanos = ts.nanos
+            if not 0 <= nanos < 1_000_000_000 or not is_time_ns(ts.seconds * 1_000_000_000 + nanos):
+                raise InvalidEvent(
+                    "out_of_range",
+                    f"{self.name}.{path} is not a timestamp between 1677-09-21 and 2262-04-11")
 
 
 @lru_cache(maxsize=None)
-def _field_plan(descriptor: Descriptor) -> tuple[tuple[FieldDescriptor, ...], ...]:
-    """(scalar doubles, repeated doubles, enums, singular messages, maps of doubles)."""
-    doubles, repeated_doubles, enums, messages, double_maps = [], [], [], [], []
-    for field in descriptor.fields:
-        is_repeated = field.is_repeated
-        if (descriptor.full_name, field.name) in NAN_ALLOWED:
-            continue  # checked by the type's own check
-        if field.type in (FieldDescriptor.TYPE_DOUBLE, FieldDescriptor.TYPE_FLOAT):
-            (repeated_doubles if is_repeated else doubles).append(field)
-        elif field.type == FieldDescriptor.TYPE_ENUM:
-            enums.append(field)
-        elif field.type == FieldDescriptor.TYPE_MESSAGE:
-            entry = field.message_type
-            if entry.GetOptions().map_entry:
-                if entry.fields_by_name["value"].type == FieldDescriptor.TYPE_DOUBLE:
-                    double_maps.append(field)
-            elif not is_repeated:
-                messages.append(field)
-    return tuple(doubles), tuple(repeated_doubles), tuple(enums), tuple(messages), tuple(double_maps)
-
-
-def _check_fields(message: Message, path: str) -> None:
-    descriptor = message.DESCRIPTOR
-    if descriptor.full_name == "google.protobuf.Timestamp":
-        if not 0 <= message.nanos < 1_000_000_000 or not is_time_ns(
-            message.seconds * 1_000_000_000 + message.nanos
-        ):
-            raise InvalidEvent("out_of_range",
-                               f"{path} is not a timestamp between 1677-09-21 and 2262-04-11")
-        return
-    doubles, repeated_doubles, enums, messages, double_maps = _field_plan(descriptor)
-    for field in doubles:
-        if not math.isfinite(getattr(message, field.name)):
-            raise InvalidEvent("non_finite", f"{path}.{field.name} is not finite")
-    for field in repeated_doubles:
-        for index, value in enumerate(getattr(message, field.name)):
-            if not math.isfinite(value):
-                raise InvalidEvent("non_finite", f"{path}.{field.name}[{index}] is not finite")
-    for field in double_maps:
-        for key, value in getattr(message, field.name).items():
-            if not math.isfinite(value):
-                raise InvalidEvent("non_finite", f"{path}.{field.name}[{key!r}] is not finite")
-    for field in enums:
-        value = getattr(message, field.name)
-        if value not in field.enum_type.values_by_number:
-            raise InvalidEvent(
-                "unknown_enum", f"{path}.{field.name} = {value} is not a {field.enum_type.full_name}"
-            )
-    for field in messages:
-        if message.HasField(field.name):
-            _check_fields(getattr(message, field.name), f"{path}.{field.name}")
+def _compiled(descriptor: Descriptor) -> _CompiledChecks:
+    return _CompiledChecks(descriptor)
 
 
 # --- per-type semantic checks ----------------------------------------------------------
@@ -292,6 +337,51 @@ def packed_doubles(payload: bytes, *field_numbers: int) -> list[np.ndarray] | No
     ]
 
 
+def _varint_bytes(value: int) -> bytes:
+    out = bytearray()
+    while True:
+        byte = value & 0x7F
+        value >>= 7
+        if value:
+            out.append(byte | 0x80)
+        else:
+            out.append(byte)
+            return bytes(out)
+
+
+@lru_cache(maxsize=256)
+def _packed_header(field_number: int, count: int) -> bytes:
+    return _varint_bytes((field_number << 3) | 2) + _varint_bytes(8 * count)
+
+
+_DOUBLE = struct.Struct("<d")
+_F8 = np.dtype("<f8")
+
+
+def _packed_tail(payload: bytes, field_number: int, count: int, decoded) -> np.ndarray | None:
+    """Fast path of :func:`packed_doubles` for one packed field written as one chunk.
+
+    Finds the field's tag and length with one ``find`` (fields are written in field
+    number order, so a scan's ranges come right after its header) and confirms the find against
+    the decoded message's first and last values (bit for bit); returns ``None`` when
+    unsure, so the caller falls back to the full wire walk.
+    """
+    header = _packed_header(field_number, count)
+    start = payload.find(header)
+    offset = start + len(header)
+    if start < 0 or offset + 8 * count > len(payload):
+        return None
+    first = _DOUBLE.unpack_from(payload, offset)[0]
+    last = _DOUBLE.unpack_from(payload, offset + 8 * (count - 1))[0]
+    if not (_same(first, decoded[0]) and _same(last, decoded[count - 1])):
+        return None
+    return np.frombuffer(payload, dtype=_F8, count=count, offset=offset)
+
+
+def _same(a: float, b: float) -> bool:
+    return a == b or (a != a and b != b)
+
+
 _LASER_SCAN_RANGES = 6
 _LASER_SCAN_INTENSITIES = 7
 
@@ -316,7 +406,13 @@ def _check_scan(m, payload: bytes) -> None:
     n_intensities = len(m.intensities)
     if n_intensities not in (0, n):
         raise InvalidEvent("ranges_angles_mismatch", f"{n_intensities} intensities for {n} ranges")
-    arrays = packed_doubles(payload, _LASER_SCAN_RANGES, _LASER_SCAN_INTENSITIES)
+    arrays = None
+    if not n_intensities:
+        ranges = _packed_tail(payload, _LASER_SCAN_RANGES, n, m.ranges)
+        if ranges is not None:
+            arrays = [ranges, np.empty(0)]
+    if arrays is None:
+        arrays = packed_doubles(payload, _LASER_SCAN_RANGES, _LASER_SCAN_INTENSITIES)
     if arrays is None:
         arrays = [np.asarray(m.ranges, dtype=np.float64), np.asarray(m.intensities, dtype=np.float64)]
     for values, name, lowest in zip(arrays, ("ranges", "intensities"), (0.0, -math.inf)):

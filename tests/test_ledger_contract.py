@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
-
 import duckdb
 
 from ledger.clock import ManualClock
@@ -21,9 +19,9 @@ class TestMemoryStore(LedgerStoreContract):
     def tamper(self, store, global_seq, field):
         row = store._rows[global_seq]
         if field == "payload":
-            changed = dataclasses.replace(row, payload=row.payload + b"\x00")
+            changed = row._replace(payload=row.payload + b"\x00")
         else:
-            changed = dataclasses.replace(row, recorded_time_ns=row.recorded_time_ns + 1)
+            changed = row._replace(recorded_time_ns=row.recorded_time_ns + 1)
         store._rows[global_seq] = changed
         return store
 
