@@ -25,6 +25,7 @@ class _Parser(argparse.ArgumentParser):
 def build_parser() -> argparse.ArgumentParser:
     from ledger import cli as ledger_cli
     from services import demo
+    from services.sim import cli as sim_cli
 
     parser = _Parser(
         prog="stockpile",
@@ -35,6 +36,7 @@ def build_parser() -> argparse.ArgumentParser:
                                 parser_class=_Parser)
     demo.register(sub)
     ledger_cli.register(sub)
+    sim_cli.register(sub)
     return parser
 
 

@@ -1,0 +1,83 @@
+"""``stockpile sim``: run a simulated yard and its emulated hardware."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from services.sim.scenario import SCENARIOS, scenario_by_name
+
+
+def run_sim(args: argparse.Namespace) -> int:
+    from services.sim.runner import Simulation
+
+    scenario = scenario_by_name(args.scenario)
+    out = Path(args.out or f"sim-out/{args.scenario}-seed{args.seed}")
+    sinks: list = []
+    ptys: dict[str, object] = {}
+    session = None
+    if args.pty:
+        from services.sim.pty import PtyDevice
+
+        ptys = {"scanner": PtyDevice(), "gnss": PtyDevice()}
+        print(f"LMS200 scanner on {ptys['scanner'].path}", flush=True)
+        print(f"GNSS receiver  on {ptys['gnss'].path}", flush=True)
+    if args.zenoh:
+        import zenoh
+
+        from services.sim.publish import ZenohSink
+        from services.zenoh_config import config_from_args
+
+        session = zenoh.open(config_from_args(args))
+        sinks.append(ZenohSink(session, scenario.site_id))
+        endpoints = args.listen or ([args._listen_default] if args._listen_default else [])
+        print(f"publishing stockpile/{scenario.site_id}/@v1/** on zenoh "
+              f"(listen {', '.join(endpoints) or '-'}; connect {', '.join(args.connect) or '-'})",
+              flush=True)
+    print(f"simulating scenario {scenario.name!r}, seed {args.seed} -> {out}", flush=True)
+    try:
+        sim = Simulation(scenario, args.seed, out, sinks=sinks, scanner_pty=ptys.get("scanner"),
+                         gnss_pty=ptys.get("gnss"))
+        stats = sim.run(duration_h=args.duration, speed=args.speed)
+    finally:
+        for pty in ptys.values():
+            pty.close()
+        if session is not None:
+            session.close()
+    truth = json.loads((out / "truth.json").read_text())
+    world = truth["world"]
+    print(f"done: {stats.site_s / 3600:.2f} site h in {stats.wall_s:.1f} s wall "
+          f"({stats.events:,} events = {stats.events / max(stats.wall_s, 1e-9):,.0f}/s; "
+          f"{stats.scans:,} scans, {stats.gga:,} GGA sentences)")
+    print(f"  stacked {sum(p['true_tonnes'] for p in truth['passes']):,.0f} t in {stats.passes} passes; "
+          f"reclaimed {sum(c['true_tonnes'] for c in truth['cuts']):,.0f} t in {stats.cuts} cuts; "
+          f"{stats.assays} assays")
+    print(f"  pile now {world['tonnes']:,.0f} t, {world['volume_m3']:,.0f} m3, "
+          f"max height {world['max_height_m']:.2f} m, repose {world['repose_angle_estimate_deg']:.1f} deg")
+    print(f"  files: events.jsonl, lms200.bin, gnss.nmea, truth.json, truth.npz in {out}")
+    return 0
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    from services.zenoh_config import DEFAULT_LISTEN, add_zenoh_arguments
+
+    p = subparsers.add_parser("sim", help="run the yard simulator (ground truth + emulated hardware)",
+                              description="Run a simulated stockyard: stacking, reclaiming, "
+                              "the laboratory, and the LMS200 scanner, GNSS receiver and encoders "
+                              "with their errors. Writes events, raw device streams and truth.")
+    p.add_argument("--scenario", choices=sorted(SCENARIOS), default="demo", help="default demo")
+    p.add_argument("--seed", type=int, default=1, help="random seed (default 1)")
+    p.add_argument("--duration", type=float, metavar="SITE_HOURS",
+                   help="stop after this many hours of site time (default: until the last assay)")
+    p.add_argument("--speed", type=float, default=0.0,
+                   help="site seconds per wall second (default 0 = as fast as possible)")
+    p.add_argument("--out", metavar="DIR", help="output folder (default sim-out/SCENARIO-seedN)")
+    p.add_argument("--pty", action="store_true",
+                   help="also write the scanner and GNSS streams to pseudo-terminals (paths printed)")
+    p.add_argument("--zenoh", action="store_true", help="also publish the events on zenoh")
+    add_zenoh_arguments(p, listen_default=DEFAULT_LISTEN)
+    p.set_defaults(func=run_sim)
+
+

@@ -1,0 +1,551 @@
+"""Runs a scenario: the world, its machines, emulated hardware and the laboratory in site time.
+
+Output of one run (all deterministic for a given scenario and seed):
+
+``events.jsonl``
+    every event the yard publishes on Zenoh (declarations, clock, joint readings,
+    stacking and reclaim events, lots, assays), as canonical JSON lines;
+``lms200.bin``
+    the byte stream of the LMS200 scanner (0xB0 telegrams), as written to its
+    pseudo-terminal;
+``gnss.nmea``
+    the GNSS receiver's GGA sentences, as written to its pseudo-terminal;
+``truth.json`` / ``truth.npz``
+    ground truth: the pile (surface, layer tops, parcels), every pass and cut, the
+    true joints, scanner poses and antenna positions over time.
+
+Time is site time (UTC ns).  The site clock is published as ``clock`` events every
+``clock_period_s``; at ``speed`` > 0 the run is paced against the wall clock
+(``speed`` site seconds per wall second), at 0 it runs as fast as it can.
+"""
+
+from __future__ import annotations
+
+import heapq
+import json
+import math
+import time
+import zlib
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from schemas import pb
+from schemas.events import set_timestamp_ns
+from services.protocols import lms200
+from services.protocols.nmea import format_gga
+from services.sim import sensors
+from services.sim.grades import ANALYTES, NS_PER_S, BeltGrade, LabModel, LabResult
+from services.sim.kinematics import boom_radius_m, envelope_floor_z, wheel_centre
+from services.sim.publish import JsonlSink, Producer, Sink
+from services.sim.scenario import Scenario
+from services.sim.world import Grid, World
+
+#: Rotation of the scanner frame in the wheel frame: looking straight down, scan plane
+#: containing the boom (scanner x = down, y = along the boom, z = x cross y).
+SCANNER_IN_WHEEL = np.array([[0.0, 1.0, 0.0],
+                             [0.0, 0.0, -1.0],
+                             [-1.0, 0.0, 0.0]])
+
+CHUNK_S = 30.0           # stacking is released in chunks of this much site time
+CUT_SUBSWEEPS = 8        # a cut removes material in this many steps of its slew
+MOVE_SPEED_M_S = 0.5     # travel speed between cuts and while patrolling
+SLEW_STEP_RAD = math.radians(0.5)
+
+
+def _rng(seed: int, name: str) -> np.random.Generator:
+    return np.random.default_rng([seed, zlib.crc32(name.encode())])
+
+
+def wheel_rotation(slew_rad: float) -> np.ndarray:
+    """Rotation of the wheel frame in the site frame: x along the boom (horizontal), z up."""
+    c, s = math.sin(slew_rad), math.cos(slew_rad)  # boom direction (sin slew, cos slew, 0)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+@dataclass
+class Motion:
+    """Linear joint motion between two times (travel m, slew rad, luff rad)."""
+
+    t0_ns: int
+    t1_ns: int
+    start: tuple[float, float, float]
+    end: tuple[float, float, float]
+
+    def at(self, t_ns: int) -> tuple[float, float, float]:
+        if self.t1_ns <= self.t0_ns:
+            return self.end
+        w = min(max((t_ns - self.t0_ns) / (self.t1_ns - self.t0_ns), 0.0), 1.0)
+        return tuple(a + (b - a) * w for a, b in zip(self.start, self.end))  # type: ignore[return-value]
+
+
+@dataclass
+class RunStats:
+    events: int = 0
+    scans: int = 0
+    gga: int = 0
+    lms200_bytes: int = 0
+    gnss_bytes: int = 0
+    cuts: int = 0
+    passes: int = 0
+    assays: int = 0
+    wall_s: float = 0.0
+    site_s: float = 0.0
+    dropped_pty_bytes: int = 0
+
+
+@dataclass
+class Simulation:
+    """One run of a scenario.  ``run()`` does everything; see the module docstring."""
+
+    scenario: Scenario
+    seed: int
+    out_dir: Path
+    sinks: list[Sink] = field(default_factory=list)
+    scanner_pty: object | None = None
+    gnss_pty: object | None = None
+    progress: Callable[[str], None] | None = None
+
+    def __post_init__(self) -> None:
+        sc = self.scenario
+        self.out_dir = Path(self.out_dir)
+        self.out_dir.mkdir(parents=True, exist_ok=True)
+        self.jsonl = JsonlSink(self.out_dir / "events.jsonl")
+        all_sinks = [self.jsonl, *self.sinks]
+        epoch = sc.start_ns // NS_PER_S
+        self.producers = {name: Producer(source, epoch, all_sinks) for name, source in (
+            ("config", "yard.config"), ("clock", "sim.clock"),
+            ("encoders", f"{sc.machine_id}.encoders"), ("stacker", f"{sc.stacker_id}.plc"),
+            ("reclaimer", f"{sc.machine_id}.plc"), ("lims", "lims"), ("lab", "lab1"))}
+        margin = max(sc.pile_width_m * 0.25, 4 * sc.deposition_cell_m)
+        self.grid = Grid.covering(sc.pile_origin_x_m - margin, sc.pile_origin_x_m + sc.pile_width_m + margin,
+                                  sc.pile_origin_y_m - margin, sc.pile_origin_y_m + sc.pile_length_m + margin,
+                                  sc.deposition_cell_m, ground_z_m=sc.ground_z_m)
+        self.world = World(self.grid, sc.repose_deg)
+        self.machine = sc.machine
+        self.encoders = sensors.EncoderModel(rng=_rng(self.seed, "encoders"))
+        self.gnss = sensors.GnssModel(sc.datum_lat_deg, sc.datum_lon_deg, sc.datum_alt_m,
+                                      rng=_rng(self.seed, "gnss"))
+        self.unit_mm = sc.pile_width_m < 5.0  # mm mode reaches 8 m: the laboratory pile
+        self.scanner = sensors.ScannerModel(fov_deg=sc.scan_fov_deg, step_deg=sc.scan_step_deg,
+                                            max_range_m=8.0 if self.unit_mm else 80.0,
+                                            unit_mm=self.unit_mm, rng=_rng(self.seed, "scanner"))
+        self.rng_belt = _rng(self.seed, "belt")
+        self.rng_stack = _rng(self.seed, "stacking")
+        self.lms_file = (self.out_dir / "lms200.bin").open("wb")
+        self.gnss_file = (self.out_dir / "gnss.nmea").open("wb")
+        self.stats = RunStats()
+        self.truth_joints: list[tuple[int, float, float, float]] = []
+        self.truth_scans: list[tuple] = []
+        self.truth_antenna: list[tuple] = []
+        self.passes: list[dict] = []
+        self.cuts: list[dict] = []
+        self.lab_results: list[LabResult] = []
+        self.motion = Motion(sc.start_ns, sc.start_ns, *([self._patrol_pose(sc.pile_origin_y_m)] * 2))
+
+    # -- geometry of the machines ---------------------------------------------------------
+
+    def _expected_crest_m(self) -> float:
+        sc = self.scenario
+        volume = sc.lot_count * sc.passes_per_lot * sc.tonnes_per_pass / sc.bulk_density_t_m3
+        tan = math.tan(math.radians(sc.repose_deg))
+        h = math.sqrt(volume / sc.pile_length_m * tan)
+        return sc.ground_z_m + min(h, sc.pile_width_m / 2 * tan)
+
+    def _patrol_pose(self, travel_m: float) -> tuple[float, float, float]:
+        """Joints that hold the wheel above the pile's centre line, clear of the crest."""
+        sc, m = self.scenario, self.machine
+        clearance = max(0.5 * self._expected_crest_m(), 3 * m.cutting_radius_m)
+        z = self._expected_crest_m() + clearance
+        sin_luff = (z - m.rail_z_m - m.pivot_height_m) / m.l5_m
+        luff = math.asin(min(max(sin_luff, -0.95), 0.95))
+        rho = float(boom_radius_m(m, luff))
+        x_c = sc.pile_origin_x_m + sc.pile_width_m / 2
+        slew = math.asin(min(max((x_c - m.rail_x_m) / rho, -1.0), 1.0))
+        return (travel_m - rho * math.cos(slew), slew, luff)
+
+    def _scanner_pose(self, joints) -> tuple[np.ndarray, np.ndarray]:
+        centre = wheel_centre(self.machine, *joints)
+        r_wheel = wheel_rotation(joints[1])
+        position = centre + r_wheel @ np.asarray(self.scenario.scanner_offset_m)
+        return position, r_wheel @ SCANNER_IN_WHEEL
+
+    # -- declarations -----------------------------------------------------------------------
+
+    def _declare(self, t: int) -> None:
+        sc, m = self.scenario, self.machine
+        emit = self.producers["config"].emit
+        site = pb.SiteDeclared(site_id=sc.site_id, datum_lat_deg=sc.datum_lat_deg,
+                               datum_lon_deg=sc.datum_lon_deg, datum_alt_m=sc.datum_alt_m)
+        emit(_stamp(site, "time", t))
+        pile = pb.PileDeclared(pile_id=sc.pile_id, origin_x_m=sc.pile_origin_x_m,
+                               origin_y_m=sc.pile_origin_y_m, length_m=sc.pile_length_m,
+                               width_m=sc.pile_width_m, ground_z_m=sc.ground_z_m,
+                               cell_m=sc.surface_cell_m, voxel_m=sc.voxel_m,
+                               default_bulk_density_t_m3=sc.bulk_density_t_m3)
+        emit(_stamp(pile, "time", t))
+        quat = Rotation.from_matrix(SCANNER_IN_WHEEL).as_quat()  # x, y, z, w
+        for machine_id, kind in ((sc.machine_id, pb.BUCKET_WHEEL_RECLAIMER), (sc.stacker_id, pb.STACKER)):
+            msg = pb.MachineDeclared(
+                machine_id=machine_id, kind=kind, rail_x_m=m.rail_x_m, rail_z_m=m.rail_z_m,
+                l2_m=m.l2_m, l3_m=m.l3_m, l4_m=m.l4_m, l5_m=m.l5_m, wheel_radius_m=m.wheel_radius_m,
+                cutting_radius_m=m.cutting_radius_m, wheel_tilt_rad=m.wheel_tilt_rad,
+                bucket_width_m=m.bucket_width_m, fall_angle_rad=m.fall_angle_rad)
+            if machine_id == sc.machine_id:
+                msg.scanner.parent_frame_id = f"{machine_id}/wheel"
+                msg.scanner.child_frame_id = f"{machine_id}/scanner"
+                msg.scanner.translation.x, msg.scanner.translation.y, msg.scanner.translation.z = sc.scanner_offset_m
+                (msg.scanner.rotation.x, msg.scanner.rotation.y, msg.scanner.rotation.z,
+                 msg.scanner.rotation.w) = (float(v) for v in quat)
+            emit(_stamp(msg, "time", t))
+
+    # -- the timetable ----------------------------------------------------------------------
+
+    def _stacking_plan(self) -> list[dict]:
+        sc = self.scenario
+        t = sc.start_ns + 300 * NS_PER_S
+        plan = []
+        n = 0
+        for lot_index, lot in enumerate(sc.lots):
+            for p in range(sc.passes_per_lot):
+                t0, t1 = t, t + int(sc.pass_duration_s * NS_PER_S)
+                forward = n % 2 == 0
+                plan.append({"pass_id": f"{lot.lot_id}-P{p + 1}", "lot": lot, "lot_index": lot_index,
+                             "t0": t0, "t1": t1, "deposit": n,
+                             "y0": sc.pile_origin_y_m + (0.1 if forward else 0.9) * sc.pile_length_m,
+                             "y1": sc.pile_origin_y_m + (0.9 if forward else 0.1) * sc.pile_length_m})
+                t = t1 + int(sc.pass_gap_s * NS_PER_S)
+                n += 1
+        return plan
+
+    def run(self, *, duration_h: float | None = None, speed: float = 0.0) -> RunStats:
+        sc = self.scenario
+        wall0 = time.monotonic()
+        t0 = sc.start_ns
+        self._declare(t0)
+        plan = self._stacking_plan()
+        belts = {}
+        counter = [0]
+        lab = LabModel(window_s=sc.assay_window_s, delay_h=sc.assay_delay_h)
+        for lot_index, lot in enumerate(sc.lots):
+            spans = [p for p in plan if p["lot_index"] == lot_index]
+            belt = BeltGrade(lot, spans[0]["t0"], spans[-1]["t1"], self.rng_belt)
+            belts[lot.lot_id] = belt
+            for p in spans:
+                self.lab_results += lab.assays(belt, p["t0"], p["t1"], self.rng_belt, counter)
+        self.lab_results.sort(key=lambda r: (r.reported_ns, r.assay_id))
+        reclaim_start = plan[-1]["t1"] + int(600 * NS_PER_S)
+        end_ns = (max(r.reported_ns for r in self.lab_results) if self.lab_results else reclaim_start)
+        end_ns += 60 * NS_PER_S
+        if duration_h is not None:
+            end_ns = t0 + int(duration_h * 3600 * NS_PER_S)
+
+        # the queue of things to do, in site time: (t_ns, order, kind, payload)
+        queue: list[tuple[int, int, str, object]] = []
+        order = [0]
+
+        def at(t_ns: int, kind: str, payload: object = None) -> None:
+            order[0] += 1
+            heapq.heappush(queue, (int(t_ns), order[0], kind, payload))
+
+        for p in plan:
+            first_of_lot = p is next(q for q in plan if q["lot_index"] == p["lot_index"])
+            if first_of_lot:
+                at(p["t0"] - 60 * NS_PER_S, "lot", p["lot"])
+            at(p["t0"], "pass_start", p)
+            n_chunks = max(1, round(sc.pass_duration_s / CHUNK_S))
+            for k in range(n_chunks):
+                at(p["t0"] + (p["t1"] - p["t0"]) * (k + 1) // n_chunks, "chunk", (p, k, n_chunks))
+            at(p["t1"], "pass_end", p)
+        for r in self.lab_results:
+            at(r.reported_ns, "assay", r)
+        at(reclaim_start, "reclaim", (0, 0, None))
+        at(t0, "clock", int(sc.clock_period_s * NS_PER_S))
+        at(t0, "encoder", None)
+        at(t0, "gnss", None)
+        at(t0, "scan", None)
+        self.stacking_until = plan[-1]["t1"]
+        self.reclaiming = False
+        self.belts = belts
+
+        while queue:
+            t, _, kind, payload = heapq.heappop(queue)
+            if t > end_ns:
+                break
+            if speed > 0:
+                lag = (t - t0) / NS_PER_S / speed - (time.monotonic() - wall0)
+                if lag > 0:
+                    time.sleep(lag)  # pacing site time against the wall clock
+            getattr(self, f"_on_{kind}")(t, payload, at)
+        self.stats.site_s = (end_ns - t0) / NS_PER_S
+        self.stats.wall_s = time.monotonic() - wall0
+        self._finish()
+        return self.stats
+
+    # -- handlers -------------------------------------------------------------------------------
+
+    def _joints(self, t: int) -> tuple[float, float, float]:
+        return self.motion.at(t)
+
+    def _on_clock(self, t: int, period: int, at) -> None:
+        self.producers["clock"].emit(_stamp(pb.Clock(), "time", t))
+        at(t + period, "clock", period)
+
+    def _busy(self, t: int) -> bool:
+        """Whether a machine works (full sensor rates) or the yard waits for assays."""
+        return self.reclaiming or t < self.stacking_until
+
+    def _period_ns(self, t: int, hz: float) -> int:
+        return int(NS_PER_S / (hz if self._busy(t) else min(hz, self.scenario.idle_hz)))
+
+    def _on_encoder(self, t: int, period: int, at) -> None:
+        joints = self._joints(t)
+        self.truth_joints.append((t, *joints))
+        travel, slew, luff = self.encoders.read(t, *joints)
+        msg = pb.JointReading(machine_id=self.scenario.machine_id, travel_m=float(travel),
+                              slew_rad=float(slew), luff_rad=float(luff))
+        self.producers["encoders"].emit(_stamp(msg, "time", t))
+        at(t + self._period_ns(t, self.scenario.encoder_hz), "encoder", None)
+
+    def _on_gnss(self, t: int, period: int, at) -> None:
+        joints = np.asarray(self._joints(t))
+        true = self.gnss.antenna_position(self.machine, joints)
+        fix = self.gnss.fix(t, true)
+        self.truth_antenna.append((t, *np.asarray(true, float).reshape(3)))
+        sentence = format_gga(t, float(np.ravel(fix.lat_deg)[0]), float(np.ravel(fix.lon_deg)[0]),
+                              int(np.ravel(fix.quality)[0]), int(np.ravel(fix.satellites)[0]),
+                              float(np.ravel(fix.hdop)[0]), float(np.ravel(fix.alt_m)[0]))
+        data = sentence.encode("ascii")
+        self._write(self.gnss_file, self.gnss_pty, data)
+        self.stats.gga += 1
+        self.stats.gnss_bytes += len(data)
+        at(t + self._period_ns(t, self.scenario.gnss_hz), "gnss", None)
+
+    def _on_scan(self, t: int, _payload, at) -> None:
+        sc = self.scenario
+        joints = self._joints(t)
+        position, rotation = self._scanner_pose(joints)
+        g = self.grid
+        ranges, status = self.scanner.scan_with_status(self.world.surface_z(), g.origin_x_m,
+                                                       g.origin_y_m, g.cell_m, position, rotation)
+        values = lms200.ranges_to_values(ranges, unit_mm=self.unit_mm)
+        values[status == sensors.BEAM_ERROR_CODE] = lms200.DAZZLE
+        data = lms200.encode_measurement(values, unit_mm=self.unit_mm)
+        self._write(self.lms_file, self.scanner_pty, data)
+        self.truth_scans.append((t, *position, *rotation.ravel()))
+        self.stats.scans += 1
+        self.stats.lms200_bytes += len(data)
+        at(t + self._period_ns(t, sc.scan_hz), "scan", None)
+
+    def _on_lot(self, t: int, lot, at) -> None:
+        msg = pb.LotDeclared(lot_id=lot.lot_id, origin=lot.origin,
+                             planned_tonnes=self.scenario.passes_per_lot * self.scenario.tonnes_per_pass)
+        msg.planned_grade.update(lot.planned_grade())
+        self.producers["lims"].emit(_stamp(msg, "time", t))
+
+    def _on_pass_start(self, t: int, p: dict, at) -> None:
+        sc = self.scenario
+        msg = pb.StackStarted(pile_id=sc.pile_id, pass_id=p["pass_id"], lot_id=p["lot"].lot_id,
+                              machine_id=sc.stacker_id, pattern=getattr(pb, sc.pattern),
+                              start_y_m=p["y0"], end_y_m=p["y1"])
+        self.producers["stacker"].emit(_stamp(msg, "time", t))
+        # the reclaimer patrols along the pile with the scanner while the stacker works
+        y_a, y_b = sorted((sc.pile_origin_y_m, sc.pile_origin_y_m + sc.pile_length_m))
+        current = self.motion.at(t)
+        target_y = y_b if (self.stats.passes % 2 == 0) else y_a
+        end = self._patrol_pose(target_y)
+        self.motion = Motion(t, p["t1"], current, end)
+
+    def _on_chunk(self, t: int, payload, at) -> None:
+        p, k, n = payload
+        sc = self.scenario
+        t_a = p["t0"] + (p["t1"] - p["t0"]) * k // n
+        y_a = p["y0"] + (p["y1"] - p["y0"]) * k / n
+        y_b = p["y0"] + (p["y1"] - p["y0"]) * (k + 1) / n
+        x_c = sc.pile_origin_x_m + sc.pile_width_m / 2
+        belt = self.belts[p["lot"].lot_id]
+        self.world.stack_pass(sc.pattern.lower(), y_a, y_b, x_c, sc.tonnes_per_pass / n, int(t_a), int(t),
+                              p["deposit"], p["lot"].lot_id, lambda tt: belt.at(tt),
+                              sc.bulk_density_t_m3, rng=self.rng_stack,
+                              jitter_m=0.02 * sc.pile_width_m, rate_cv=0.05)
+
+    def _on_pass_end(self, t: int, p: dict, at) -> None:
+        sc = self.scenario
+        belt_tonnes = sc.tonnes_per_pass * (1.0 + self.rng_belt.normal(0.0, sc.belt_scale_error_frac))
+        msg = pb.StackEnded(pile_id=sc.pile_id, pass_id=p["pass_id"], tonnes=round(belt_tonnes, 1))
+        self.producers["stacker"].emit(_stamp(msg, "time", t))
+        self.passes.append({"pass_id": p["pass_id"], "lot_id": p["lot"].lot_id, "t0_ns": p["t0"],
+                            "t1_ns": p["t1"], "true_tonnes": sc.tonnes_per_pass,
+                            "belt_tonnes": belt_tonnes, "deposit": p["deposit"]})
+        self.stats.passes += 1
+
+    def _on_assay(self, t: int, r: LabResult, at) -> None:
+        msg = pb.Assay(assay_id=r.assay_id, lot_id=r.lot_id, moisture_pct=r.moisture_pct,
+                       bulk_density_t_m3=r.bulk_density_t_m3, status=getattr(pb, r.status),
+                       supersedes=r.supersedes, lab_id=r.lab_id)
+        msg.analytes.update(r.analytes_pct)
+        _stamp(msg, "window_start", r.window_start_ns)
+        _stamp(msg, "window_end", r.window_end_ns)
+        _stamp(msg, "reported_time", r.reported_ns)
+        self.producers["lab"].emit(msg)
+        self.stats.assays += 1
+
+    # -- reclaiming -----------------------------------------------------------------------------
+
+    def _bench_luff(self, bench: int) -> float:
+        sc, m = self.scenario, self.machine
+        crest = float(np.max(self.world.surface_z()))
+        z = crest - sc.first_bench_below_crest_m - bench * sc.bench_step_m
+        z = max(z, sc.ground_z_m + m.cutting_radius_m * 0.98)
+        return math.asin((z - m.rail_z_m - m.pivot_height_m) / m.l5_m)
+
+    def _slew_range(self, travel: float, luff: float) -> tuple[float, float] | None:
+        """Slew angles (0.5 deg steps) where the envelope meets material at this travel."""
+        m, g = self.machine, self.grid
+        x, y = np.meshgrid(g.x_centres, g.y_centres)
+        floor = envelope_floor_z(m, x, y, travel, luff, 0.0, math.pi)
+        surface = self.world.surface_z()
+        material = self.world.thickness() > 0.01 * m.cutting_radius_m  # not bare ground
+        hit = material & np.isfinite(floor) & (surface > floor + 0.01 * m.cutting_radius_m)
+        if not hit.any():
+            return None
+        theta = np.arctan2(x[hit] - m.rail_x_m, y[hit] - travel)
+        lo = math.floor(theta.min() / SLEW_STEP_RAD) * SLEW_STEP_RAD
+        hi = math.ceil(theta.max() / SLEW_STEP_RAD) * SLEW_STEP_RAD
+        return lo, hi
+
+    def _on_reclaim(self, t: int, state, at) -> None:
+        """Plan and start the next cut (state = bench, cut index, travel of the last cut)."""
+        sc, m = self.scenario, self.machine
+        bench, cut, travel = state
+        if bench >= sc.benches:
+            self.reclaiming = False
+            return
+        self.reclaiming = True
+        luff = self._bench_luff(bench)
+        rho = float(boom_radius_m(m, luff))
+        if travel is None:  # landing: approach from the low-y end until the wheel meets the pile
+            travel = sc.pile_origin_y_m - rho - m.cutting_radius_m
+            limit = sc.pile_origin_y_m + sc.pile_length_m
+            while travel < limit and self._slew_range(travel, luff) is None:
+                travel += m.cut_depth_m
+        else:
+            travel += m.cut_depth_m
+        slews = self._slew_range(travel, luff)
+        if slews is None or cut >= sc.cuts_per_bench:
+            at(t + int(120 * NS_PER_S), "reclaim", (bench + 1, 0, None))
+            return
+        lo, hi = slews if cut % 2 == 0 else slews[::-1]
+        current = self.motion.at(t)
+        move_s = abs(travel - current[0]) / MOVE_SPEED_M_S + 20.0
+        t_start = t + int(move_s * NS_PER_S)
+        self.motion = Motion(t, t_start, current, (travel, lo, luff))
+        at(t_start, "cut_start", {"bench": bench, "cut": cut, "travel": travel, "luff": luff,
+                                  "slew_start": lo, "slew_end": hi, "t0": t_start,
+                                  "t1": t_start + int(sc.cut_duration_s * NS_PER_S), "parts": []})
+
+    def _on_cut_start(self, t: int, c: dict, at) -> None:
+        self.motion = Motion(c["t0"], c["t1"], (c["travel"], c["slew_start"], c["luff"]),
+                             (c["travel"], c["slew_end"], c["luff"]))
+        for k in range(CUT_SUBSWEEPS):
+            at(c["t0"] + (c["t1"] - c["t0"]) * (k + 1) // CUT_SUBSWEEPS, "cut_part", (c, k))
+
+    def _on_cut_part(self, t: int, payload, at) -> None:
+        c, k = payload
+        a = c["slew_start"] + (c["slew_end"] - c["slew_start"]) * k / CUT_SUBSWEEPS
+        b = c["slew_start"] + (c["slew_end"] - c["slew_start"]) * (k + 1) / CUT_SUBSWEEPS
+        truth = self.world.reclaim_cut(self.machine, c["travel"], c["luff"], a, b, int(t))
+        c["parts"].append(truth)
+        if k == CUT_SUBSWEEPS - 1:
+            self._finish_cut(t, c, at)
+
+    def _finish_cut(self, t: int, c: dict, at) -> None:
+        sc = self.scenario
+        tonnes = sum(p.tonnes for p in c["parts"])
+        grade = {}
+        for a in ANALYTES:
+            mass = sum(p.tonnes * p.grade[a] for p in c["parts"] if p.tonnes > 0)
+            grade[a] = mass / tonnes if tonnes > 0 else float("nan")
+        by_lot: dict[str, float] = {}
+        for p in c["parts"]:
+            for lot, tn in p.tonnes_by_lot.items():
+                by_lot[str(lot)] = by_lot.get(str(lot), 0.0) + tn
+        belt = tonnes * (1.0 + self.rng_belt.normal(0.0, sc.belt_scale_error_frac)) if tonnes > 0 else 0.0
+        cut_id = f"B{c['bench'] + 1}-C{c['cut'] + 1:02d}"
+        msg = pb.ReclaimCut(pile_id=sc.pile_id, cut_id=cut_id, bench_id=f"B{c['bench'] + 1}",
+                            machine_id=sc.machine_id, travel_m=c["travel"], luff_rad=c["luff"],
+                            slew_start_rad=c["slew_start"], slew_end_rad=c["slew_end"],
+                            tonnes=round(belt, 1))
+        _stamp(msg, "start_time", c["t0"])
+        _stamp(msg, "end_time", c["t1"])
+        self.producers["reclaimer"].emit(msg)
+        self.cuts.append({"cut_id": cut_id, "t0_ns": c["t0"], "t1_ns": c["t1"], "travel_m": c["travel"],
+                          "luff_rad": c["luff"], "slew_start_rad": c["slew_start"],
+                          "slew_end_rad": c["slew_end"], "true_tonnes": tonnes, "belt_tonnes": belt,
+                          "grade": grade, "tonnes_by_lot": by_lot})
+        self.stats.cuts += 1
+        at(t + int(30 * NS_PER_S), "reclaim", (c["bench"], c["cut"] + 1, c["travel"]))
+
+    # -- output -----------------------------------------------------------------------------
+
+    def _write(self, file, pty, data: bytes) -> None:
+        file.write(data)
+        if pty is not None:
+            pty.write(data)
+
+    def _finish(self) -> None:
+        self.jsonl.close()
+        for sink in self.sinks:
+            sink.close()
+        self.lms_file.close()
+        self.gnss_file.close()
+        for pty in (self.scanner_pty, self.gnss_pty):
+            if pty is not None:
+                self.stats.dropped_pty_bytes += getattr(pty, "dropped_bytes", 0)
+        self.stats.events = self.jsonl.count
+        world = self.world
+        truth = {
+            "scenario": {k: (v if isinstance(v, (int, float, str, bool, type(None))) else str(v))
+                         for k, v in asdict(self.scenario).items() if k not in ("lots", "machine")},
+            "machine": asdict(self.machine),
+            "seed": self.seed,
+            "stats": asdict(self.stats),
+            "passes": self.passes,
+            "cuts": self.cuts,
+            "assays": [asdict(r) for r in self.lab_results],
+            "world": world.summary(),
+        }
+        truth["world"].pop("cuts", None)  # per sub-sweep; the per-cut totals are in "cuts"
+        (self.out_dir / "truth.json").write_text(json.dumps(_clean(truth), indent=1, sort_keys=True))
+        arrays = {"surface_z": world.surface_z(), "layer_tops": world.layer_surfaces(),
+                  "x_centres": world.grid.x_centres, "y_centres": world.grid.y_centres,
+                  "joints": np.asarray(self.truth_joints, dtype=np.float64).reshape(-1, 4),
+                  "scanner_poses": np.asarray(self.truth_scans, dtype=np.float64).reshape(-1, 13),
+                  "antenna_enu": np.asarray(self.truth_antenna, dtype=np.float64).reshape(-1, 4)}
+        parcels = world.parcels()
+        arrays.update(thickness=parcels["thickness"], time_ns=parcels["time_ns"],
+                      grade=parcels["grade"], density_t_m3=parcels["density_t_m3"])
+        np.savez_compressed(self.out_dir / "truth.npz", **arrays)
+
+
+def _stamp(message, field_name: str, t_ns: int):
+    set_timestamp_ns(getattr(message, field_name), int(t_ns))
+    return message
+
+
+def _clean(value):
+    """NaN/inf -> None, numpy scalars -> Python, recursively (strict JSON)."""
+    if isinstance(value, dict):
+        return {str(k): _clean(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_clean(v) for v in value]
+    if isinstance(value, (np.floating, float)):
+        return float(value) if math.isfinite(value) else None
+    if isinstance(value, np.integer):
+        return int(value)
+    if isinstance(value, np.ndarray):
+        return _clean(value.tolist())
+    return value

@@ -1,0 +1,56 @@
+"""Zenoh options every service shares: ``--connect``, ``--listen``, ``--mode``, ``--config``.
+
+Defaults suit one machine: peer mode, multicast scouting off, so processes find each
+other only through the endpoints they are given (``--listen`` on one side,
+``--connect`` on the other).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from typing import Sequence
+
+import zenoh
+
+DEFAULT_LISTEN = "tcp/127.0.0.1:7447"
+
+
+def add_zenoh_arguments(parser: argparse.ArgumentParser, *, listen_default: str | None = None) -> None:
+    """Add the shared Zenoh options to a command's parser."""
+    group = parser.add_argument_group("zenoh")
+    group.add_argument("--mode", choices=("peer", "client", "router"), default="peer",
+                       help="zenoh session mode (default peer)")
+    group.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
+                       help="endpoint to connect to, e.g. tcp/127.0.0.1:7447 (repeatable)")
+    group.add_argument("--listen", action="append", default=None, metavar="ENDPOINT",
+                       help="endpoint to listen on (repeatable)"
+                       + (f"; default {listen_default}" if listen_default else ""))
+    group.add_argument("--config", dest="zenoh_config", metavar="FILE",
+                       help="a zenoh JSON5 configuration file (the options above override it)")
+    group.add_argument("--scouting", action="store_true",
+                       help="enable multicast scouting (off by default)")
+    parser.set_defaults(_listen_default=listen_default)
+
+
+def zenoh_config(*, mode: str = "peer", connect: Sequence[str] = (), listen: Sequence[str] = (),
+                 config_file: str | None = None, scouting: bool = False) -> zenoh.Config:
+    """A zenoh.Config from the shared options."""
+    config = zenoh.Config.from_file(config_file) if config_file else zenoh.Config()
+    config.insert_json5("mode", json.dumps(mode))
+    if connect:
+        config.insert_json5("connect/endpoints", json.dumps(list(connect)))
+    if listen:
+        config.insert_json5("listen/endpoints", json.dumps(list(listen)))
+    config.insert_json5("scouting/multicast/enabled", json.dumps(bool(scouting)))
+    return config
+
+
+def config_from_args(args: argparse.Namespace) -> zenoh.Config:
+    """A zenoh.Config from parsed shared options."""
+    listen = args.listen
+    if listen is None:
+        default = getattr(args, "_listen_default", None)
+        listen = [default] if default else []
+    return zenoh_config(mode=args.mode, connect=args.connect, listen=listen,
+                        config_file=args.zenoh_config, scouting=args.scouting)
