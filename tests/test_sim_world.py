@@ -372,6 +372,8 @@ def test_summary_and_npz(tmp_path, chevron):
     text = json.dumps(s)  # JSON-serialisable
     assert json.loads(text)["mass_balance"]["stacked_tonnes"] == pytest.approx(6_000.0)
     assert len(s["cuts"]) == 1 and len(s["slots"]) == 6 and len(s["passes"]) == 6
+    assert [d["deposit_id"] for d in s["deposits"]] == [100 + i for i in range(6)]
+    assert sum(d["tonnes"] for d in s["deposits"]) == pytest.approx(6_000.0)
     path = tmp_path / "truth.npz"
     w.to_npz(path)
     with np.load(path) as z:
@@ -440,3 +442,17 @@ def test_losses_at_the_border_are_accounted(mode):
     assert abs(w.mass_balance()["relative_residual"]) < 1e-9
     assert all(abs(v) < 1e-9 for v in w.grade_balance().values())
     assert not w.unstable_columns().any()
+
+
+def test_envelope_floor_handles_a_slew_range_across_pi():
+    """A range written as [3.0, 3.4] and as [3.0 - 2 pi, 3.4 - 2 pi] is the same footprint."""
+    from services.sim.kinematics import FULL_SCALE, envelope_floor_z, wheel_centre
+
+    x, y = np.meshgrid(np.linspace(-70, 70, 141), np.linspace(-70, 70, 141))
+    a = envelope_floor_z(FULL_SCALE, x, y, 0.0, -0.1, 3.0, 3.4)
+    b = envelope_floor_z(FULL_SCALE, x, y, 0.0, -0.1, 3.0 - 2 * np.pi, 3.4 - 2 * np.pi)
+    assert np.isfinite(a).sum() > 50
+    assert np.array_equal(np.isfinite(a), np.isfinite(b))
+    # the wheel centre at slew pi (pointing to -y) is inside the footprint
+    c = wheel_centre(FULL_SCALE, 0.0, np.pi, -0.1)
+    assert np.isfinite(envelope_floor_z(FULL_SCALE, c[0], c[1], 0.0, -0.1, 3.0, 3.4))

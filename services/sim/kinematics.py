@@ -145,7 +145,9 @@ def envelope_floor_z(machine: Machine, x, y, travel_m: float, luff_rad: float,
     theta = np.arctan2(dx, dy)  # from +y toward +x, like the slew
     lo, hi = min(slew_start_rad, slew_end_rad), max(slew_start_rad, slew_end_rad)
     u = (r - rho) / half_width
-    inside = (np.abs(u) < 1) & (theta >= lo) & (theta <= hi)
+    # azimuth measured from the range's start, wrapped: a range may cross +-pi
+    in_range = np.mod(theta - lo, 2 * np.pi) <= (hi - lo)
+    inside = (np.abs(u) < 1) & in_range
     floor = np.full(x.shape, np.nan)
     floor[inside] = c_z - machine.cutting_radius_m * np.sqrt(1 - u[inside] ** 2)
     return floor

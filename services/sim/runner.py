@@ -108,6 +108,8 @@ class Simulation:
     scanner_pty: object | None = None
     gnss_pty: object | None = None
     progress: Callable[[str], None] | None = None
+    #: keep every scan's cast ranges and beam status (tests; memory grows with the run)
+    record_scans: bool = False
 
     def __post_init__(self) -> None:
         sc = self.scenario
@@ -144,6 +146,7 @@ class Simulation:
         self.passes: list[dict] = []
         self.cuts: list[dict] = []
         self.lab_results: list[LabResult] = []
+        self.cast_scans: list[tuple[np.ndarray, np.ndarray]] = []
         self.motion = Motion(sc.start_ns, sc.start_ns, *([self._patrol_pose(sc.pile_origin_y_m)] * 2))
 
     # -- geometry of the machines ---------------------------------------------------------
@@ -331,6 +334,8 @@ class Simulation:
         g = self.grid
         ranges, status = self.scanner.scan_with_status(self.world.surface_z(), g.origin_x_m,
                                                        g.origin_y_m, g.cell_m, position, rotation)
+        if self.record_scans:
+            self.cast_scans.append((ranges.copy(), status.copy()))
         values = lms200.ranges_to_values(ranges, unit_mm=self.unit_mm)
         values[status == sensors.BEAM_ERROR_CODE] = lms200.DAZZLE
         data = lms200.encode_measurement(values, unit_mm=self.unit_mm)
@@ -432,6 +437,7 @@ class Simulation:
             limit = sc.pile_origin_y_m + sc.pile_length_m
             while travel < limit and self._slew_range(travel, luff) is None:
                 travel += m.cut_depth_m
+            travel += 0.5 * m.cutting_radius_m  # land into the bank, not on its toe
         else:
             travel += m.cut_depth_m
         slews = self._slew_range(travel, luff)
@@ -457,7 +463,9 @@ class Simulation:
         c, k = payload
         a = c["slew_start"] + (c["slew_end"] - c["slew_start"]) * k / CUT_SUBSWEEPS
         b = c["slew_start"] + (c["slew_end"] - c["slew_start"]) * (k + 1) / CUT_SUBSWEEPS
-        truth = self.world.reclaim_cut(self.machine, c["travel"], c["luff"], a, b, int(t))
+        # the walls of the cut slump once the wheel has passed (after the last step)
+        truth = self.world.reclaim_cut(self.machine, c["travel"], c["luff"], a, b, int(t),
+                                       relax=k == CUT_SUBSWEEPS - 1)
         c["parts"].append(truth)
         if k == CUT_SUBSWEEPS - 1:
             self._finish_cut(t, c, at)

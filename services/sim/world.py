@@ -67,6 +67,11 @@ is kept: if older material slides onto a column whose top is a newer deposit, it
 recorded under it (mass and grade exact, vertical position approximate, only inside the
 slump zone).
 
+Performance (2 cores, numpy): a full-scale chevron pile (0.25 m cells, 307,200 columns,
+20 passes x 10,000 t, 1,800 releases) builds in about 11 s in the quasi-static mode; a cut
+with its slump relaxation takes about 0.2-1 s. The avalanche mode needs minutes per pass at
+that scale.
+
 Mass accounting
 ---------------
 ``stacked == in pile + reclaimed + lost`` to floating-point rounding (lost = material that
@@ -993,7 +998,12 @@ class World:
             vv.append(-fk[sy, sx])
         amat = sparse.csc_matrix((np.concatenate(vv), (np.concatenate(ri), np.concatenate(ci))),
                                  shape=(nn, nn))
-        conc = sparse_linalg.splu(amat).solve(rhs) if ns else rhs
+        conc = rhs
+        if ns:
+            lu = sparse_linalg.splu(amat)
+            # one right-hand side at a time: SuperLU's 2-D solve is ~10x slower here
+            conc = np.column_stack([lu.solve(np.ascontiguousarray(rhs[:, j]))
+                                    for j in range(rhs.shape[1])])
         dep_n = dep[node]
         add = conc * dep_n[:, None]  # per node: deposited volume(-weighted) components
         # exact per-slot conservation: scale deposits to the eroded volumes
@@ -1196,6 +1206,29 @@ class World:
         """Every release (time, path, tonnes, grade, lost) in order."""
         return [dict(r) for r in self._releases]
 
+    def deposits(self) -> list[dict]:
+        """What was stacked per deposit id (from the release log): tonnes, first and last
+        release time, lots and the tonnage-weighted belt grade, in order of first release."""
+        out: dict = {}
+        for r in self._releases:
+            d = out.setdefault(r["deposit_id"], {"deposit_id": r["deposit_id"], "tonnes": 0.0,
+                                                 "lost_tonnes": 0.0, "t_first_ns": r["time_ns"],
+                                                 "t_last_ns": r["time_ns"], "lots": [],
+                                                 "_tg": np.zeros(len(self.analytes))})
+            d["tonnes"] += r["tonnes"]
+            d["lost_tonnes"] += r["lost_tonnes"]
+            d["t_last_ns"] = r["time_ns"]
+            if r["lot"] not in d["lots"]:
+                d["lots"].append(r["lot"])
+            d["_tg"] += r["tonnes"] * np.array([r["grade"][a] for a in self.analytes])
+        res = []
+        for d in out.values():
+            tg = d.pop("_tg")
+            d["grade"] = {a: (float(v / d["tonnes"]) if d["tonnes"] > 0 else None)
+                          for a, v in zip(self.analytes, tg)}
+            res.append(d)
+        return res
+
     def summary(self) -> dict:
         """JSON-serialisable truth summary (for truth.json)."""
         mb = self.mass_balance()
@@ -1218,6 +1251,8 @@ class World:
             "border_contacts": self.border_contacts,
             "slots": [{**s, "deposit_id": _jsonable(s["deposit_id"]), "lot": _jsonable(s["lot"])}
                       for s in self.slots()],
+            "deposits": [{**d, "deposit_id": _jsonable(d["deposit_id"]),
+                          "lots": [_jsonable(x) for x in d["lots"]]} for d in self.deposits()],
             "passes": [{**p, "deposit_id": _jsonable(p["deposit_id"]), "lot": _jsonable(p["lot"])}
                        for p in self._passes],
             "cuts": [c.to_dict() for c in self.cuts],
@@ -1277,7 +1312,8 @@ def _solve_fill_level(k: np.ndarray, v_thk: float, a_up: float) -> tuple[float, 
     return float(a_n[j]), True
 
 
-def _split_run(x: float, y0: float, y1: float, step: float) -> list[tuple[float, float, float, float]]:
+def _split_run(x: float, y0: float, y1: float,
+               step: float) -> list[tuple[float, float, float, float]]:
     """Split a run along y at fixed x into segments of at most ``step`` (at least one)."""
     length = abs(y1 - y0)
     n = max(1, int(math.ceil(length / step - 1e-9)))
