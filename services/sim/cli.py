@@ -31,15 +31,21 @@ def run_sim(args: argparse.Namespace) -> int:
         from services.zenoh_config import config_from_args
 
         session = zenoh.open(config_from_args(args))
-        sinks.append(ZenohSink(session, scenario.site_id))
+        sink = ZenohSink(session, scenario.site_id)
+        sinks.append(sink)
         endpoints = args.listen or ([args._listen_default] if args._listen_default else [])
         print(f"publishing stockpile/{scenario.site_id}/@v1/** on zenoh "
               f"(listen {', '.join(endpoints) or '-'}; connect {', '.join(args.connect) or '-'})",
               flush=True)
+        if args.wait_subscriber:
+            print(f"waiting up to {args.wait_subscriber:g} s for a subscriber ...", flush=True)
+            if not sink.wait_for_subscriber("clock", "sim.clock", args.wait_subscriber):
+                raise OSError("no zenoh subscriber matched the site's events in time")
     print(f"simulating scenario {scenario.name!r}, seed {args.seed} -> {out}", flush=True)
     try:
         sim = Simulation(scenario, args.seed, out, sinks=sinks, scanner_pty=ptys.get("scanner"),
-                         gnss_pty=ptys.get("gnss"))
+                         gnss_pty=ptys.get("gnss"),
+                         progress=lambda line: print(f"  {line}", file=sys.stderr, flush=True))
         stats = sim.run(duration_h=args.duration, speed=args.speed)
     finally:
         for pty in ptys.values():
@@ -51,11 +57,13 @@ def run_sim(args: argparse.Namespace) -> int:
     print(f"done: {stats.site_s / 3600:.2f} site h in {stats.wall_s:.1f} s wall "
           f"({stats.events:,} events = {stats.events / max(stats.wall_s, 1e-9):,.0f}/s; "
           f"{stats.scans:,} scans, {stats.gga:,} GGA sentences)")
-    print(f"  stacked {sum(p['true_tonnes'] for p in truth['passes']):,.0f} t in {stats.passes} passes; "
-          f"reclaimed {sum(c['true_tonnes'] for c in truth['cuts']):,.0f} t in {stats.cuts} cuts; "
+    print(f"  stacked {sum(p['true_tonnes'] for p in truth['passes']):,.3f} t in {stats.passes} passes; "
+          f"reclaimed {sum(c['true_tonnes'] for c in truth['cuts']):,.3f} t in {stats.cuts} cuts; "
           f"{stats.assays} assays")
-    print(f"  pile now {world['tonnes']:,.0f} t, {world['volume_m3']:,.0f} m3, "
-          f"max height {world['max_height_m']:.2f} m, repose {world['repose_angle_estimate_deg']:.1f} deg")
+    repose = world.get("repose_angle_estimate_deg")
+    print(f"  pile now {world['tonnes']:,.3f} t, {world['volume_m3']:,.3f} m3, "
+          f"max height {world['max_height_m']:.3f} m, repose "
+          + (f"{repose:.1f} deg" if repose is not None else "- (no pile yet)"))
     print(f"  files: events.jsonl, lms200.bin, gnss.nmea, truth.json, truth.npz in {out}")
     return 0
 
@@ -77,6 +85,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--pty", action="store_true",
                    help="also write the scanner and GNSS streams to pseudo-terminals (paths printed)")
     p.add_argument("--zenoh", action="store_true", help="also publish the events on zenoh")
+    p.add_argument("--wait-subscriber", type=float, default=0.0, metavar="SECONDS",
+                   help="with --zenoh: start only once a subscriber listens (give up after SECONDS)")
     add_zenoh_arguments(p, listen_default=DEFAULT_LISTEN)
     p.set_defaults(func=run_sim)
 

@@ -95,6 +95,33 @@ class ZenohSink:
                       attachment=encode_attachment(event.epoch, event.seq, event.valid_time_ns))
         self.count += 1
 
+    def wait_for_subscriber(self, type_name: str, source: str, timeout_s: float) -> bool:
+        """Block until a subscriber matches ``type``/``source`` (or ``timeout_s`` passes).
+
+        Lets a run start only once its consumer listens, so nothing is published into
+        the void.  Returns whether one matched.
+        """
+        import threading
+
+        key = (type_name, source)
+        if key not in self._publishers:
+            self._publishers[key] = self.session.declare_publisher(
+                key_expr(self.site, type_name, source), congestion_control=self._block)
+        publisher = self._publishers[key]
+        matched = threading.Event()
+
+        def on_status(status) -> None:
+            if status.matching:
+                matched.set()
+
+        listener = publisher.declare_matching_listener(on_status)
+        try:
+            if publisher.matching_status.matching:
+                return True
+            return matched.wait(timeout_s)
+        finally:
+            listener.undeclare()
+
     def close(self) -> None:
         for publisher in self._publishers.values():
             publisher.undeclare()

@@ -274,10 +274,16 @@ class Simulation:
         self.reclaiming = False
         self.belts = belts
 
+        next_report = time.monotonic() + 10.0
         while queue:
             t, _, kind, payload = heapq.heappop(queue)
             if t > end_ns:
                 break
+            if self.progress is not None and time.monotonic() >= next_report:
+                next_report = time.monotonic() + 10.0
+                self.progress(f"site time {(t - t0) / 3.6e12:6.2f} of {(end_ns - t0) / 3.6e12:.2f} h: "
+                              f"{self.jsonl.count:,} events, {self.stats.scans:,} scans, "
+                              f"{self.stats.passes} passes, {self.stats.cuts} cuts")
             if speed > 0:
                 lag = (t - t0) / NS_PER_S / speed - (time.monotonic() - wall0)
                 if lag > 0:
@@ -404,6 +410,8 @@ class Simulation:
         sc, m = self.scenario, self.machine
         crest = float(np.max(self.world.surface_z()))
         z = crest - sc.first_bench_below_crest_m - bench * sc.bench_step_m
+        if sc.bench_heights_m is not None:
+            z = sc.ground_z_m + sc.bench_heights_m[bench]
         z = max(z, sc.ground_z_m + m.cutting_radius_m * 0.98)
         return math.asin((z - m.rail_z_m - m.pivot_height_m) / m.l5_m)
 
@@ -441,7 +449,7 @@ class Simulation:
         else:
             travel += m.cut_depth_m
         slews = self._slew_range(travel, luff)
-        if slews is None or cut >= sc.cuts_per_bench:
+        if slews is None or cut >= sc.cuts_per_bench[bench]:
             at(t + int(120 * NS_PER_S), "reclaim", (bench + 1, 0, None))
             return
         lo, hi = slews if cut % 2 == 0 else slews[::-1]

@@ -65,8 +65,8 @@ class Scenario:
     belt_scale_error_frac: float = 0.007
 
     # reclaiming
-    benches: int = 1
-    cuts_per_bench: int = 10
+    cuts_per_bench: tuple[int, ...] = (10,)   # one entry per bench
+    bench_heights_m: tuple[float, ...] | None = None  # wheel-centre heights; None: from crest
     cut_duration_s: float = 120.0
     first_bench_below_crest_m: float = 3.0  # wheel centre height below the pile's crest
     bench_step_m: float = 4.0
@@ -83,6 +83,10 @@ class Scenario:
     encoder_hz: float = 10.0
     clock_period_s: float = 10.0
     idle_hz: float = 0.1   # every sensor's rate cap while no machine moves (late assays)
+
+    @property
+    def benches(self) -> int:
+        return len(self.cuts_per_bench)
 
     @property
     def lot_count(self) -> int:
@@ -110,20 +114,22 @@ def full_scale() -> Scenario:
     return Scenario(
         name="full-scale", pile_length_m=220.0, pile_width_m=70.0, pile_origin_x_m=10.0,
         lots=lots, passes_per_lot=3, tonnes_per_pass=22_000.0, pass_duration_s=1_800.0,
-        pass_gap_s=300.0, benches=3, cuts_per_bench=12, cut_duration_s=240.0,
+        pass_gap_s=300.0, cuts_per_bench=(12, 12, 12), cut_duration_s=240.0,
         first_bench_below_crest_m=4.0, bench_step_m=6.0, deposition_cell_m=0.5,
         scan_hz=2.0, encoder_hz=2.0)
 
 
 def bench_scale() -> Scenario:
-    # the thesis' laboratory pile (Table 4.1): about 1.2 m long, 0.25 m high, in metres
+    # the thesis' laboratory pile (Table 4.1): about 1.2 m long, 0.25 m high, in metres;
+    # two reclaims of 10 and 5 cuts at the bench heights of §5.3.4
     lots = tuple(table_5_4_lots("LAYER")[:4])
     return Scenario(
         name="bench-scale", pile_length_m=1.2, pile_width_m=0.8, pile_origin_x_m=0.0,
         pile_origin_y_m=0.0, surface_cell_m=0.005, voxel_m=0.02, deposition_cell_m=0.005,
-        machine=replace(BENCH_SCALE, rail_x_m=-0.25), scanner_offset_m=(0.0, 0.0, 0.03),
+        machine=replace(BENCH_SCALE, rail_x_m=0.0), scanner_offset_m=(0.0, 0.0, 0.03),
         lots=lots, passes_per_lot=1, tonnes_per_pass=0.03, pass_duration_s=300.0,
-        pass_gap_s=60.0, benches=2, cuts_per_bench=10, cut_duration_s=60.0,
+        pass_gap_s=60.0, cuts_per_bench=(10, 5), bench_heights_m=(0.15297, 0.08929),
+        cut_duration_s=60.0,
         first_bench_below_crest_m=0.02, bench_step_m=0.06, bulk_density_t_m3=1.65,
         scan_hz=5.0, assay_window_s=150.0)
 
