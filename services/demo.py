@@ -35,6 +35,39 @@ def _fresh(path: Path) -> Path:
     return path
 
 
+def show_late_assay(store) -> None:
+    """Print the latest-arriving assay and what was known of assays then and now."""
+    print("\n== a late assay, as known then and as known now")
+    assays = list(store.read(types=["assay"]))
+    late = max(assays, key=lambda r: r.recorded_time_ns - r.valid_time_ns)
+    body = decode_payload("assay", late.payload)
+    hours = (late.recorded_time_ns - late.valid_time_ns) / 3.6e12
+    print(f"   {body.assay_id} (lot {body.lot_id}, Fe {body.analytes['Fe']:.2f} %): window ends "
+          f"{format_time_ns(late.valid_time_ns)}, recorded {format_time_ns(late.recorded_time_ns)} "
+          f"({hours:.1f} h late)")
+    v = late.valid_time_ns
+    then = sum(1 for _ in store.as_of(v, v, types=["assay"]))
+    now = sum(1 for _ in store.as_of(v, store.head().recorded_time_ns, types=["assay"]))
+    print(f"   assays for belt flow up to that moment: known then {then}, known now {now}")
+    for r in assays:
+        if r.flags:
+            print(f"   flagged {','.join(r.flags)}: {decode_payload('assay', r.payload).assay_id}")
+
+
+def show_round_trip(store, out_dir: Path) -> bool:
+    """Export, import into an empty ledger, export again; print and return whether identical."""
+    print("\n== export -> import into an empty ledger -> export")
+    first = io.StringIO()
+    export_lines(store, first)
+    with open_ledger(_fresh(out_dir / "copy.duckdb")) as copy:
+        import_lines(copy, first.getvalue().splitlines(), name="export")
+        second = io.StringIO()
+        export_lines(copy, second)
+    same = first.getvalue() == second.getvalue()
+    print(f"   {first.getvalue().count(chr(10)):,} lines, identical: {same}")
+    return same
+
+
 def run_demo(out_dir: Path, seed: int = 7) -> int:
     out_dir.mkdir(parents=True, exist_ok=True)
     started = time.monotonic()
@@ -65,32 +98,8 @@ def run_demo(out_dir: Path, seed: int = 7) -> int:
         print(f"   {again['appended']} appended, {again['duplicate']:,} duplicate "
               f"(conflicts and bad lines are quarantined again: {again['conflict']} + {again['rejected']})")
 
-        print("\n== a late assay, as known then and as known now")
-        assays = list(store.read(types=["assay"]))
-        late = max(assays, key=lambda r: r.recorded_time_ns - r.valid_time_ns)
-        body = decode_payload("assay", late.payload)
-        hours = (late.recorded_time_ns - late.valid_time_ns) / 3.6e12
-        print(f"   {body.assay_id} (lot {body.lot_id}, Fe {body.analytes['Fe']:.2f} %): sampled "
-              f"{format_time_ns(late.valid_time_ns)}, recorded {format_time_ns(late.recorded_time_ns)} "
-              f"({hours:.1f} h late)")
-        v = late.valid_time_ns
-        then = sum(1 for _ in store.as_of(v, v, types=["assay"]))
-        now = sum(1 for _ in store.as_of(v, store.head().recorded_time_ns, types=["assay"]))
-        print(f"   assays with valid time <= its window end: known then {then}, known now {now}")
-        flagged = [r for r in assays if r.flags]
-        for r in flagged:
-            print(f"   flagged {','.join(r.flags)}: {decode_payload('assay', r.payload).assay_id}")
-
-        print("\n== export -> import into an empty ledger -> export")
-        first = io.StringIO()
-        export_lines(store, first)
-        copy_path = _fresh(out_dir / "copy.duckdb")
-        with open_ledger(copy_path) as copy:
-            import_lines(copy, first.getvalue().splitlines(), name="export")
-            second = io.StringIO()
-            export_lines(copy, second)
-        same = first.getvalue() == second.getvalue()
-        print(f"   {first.getvalue().count(chr(10)):,} lines, identical: {same}")
+        show_late_assay(store)
+        same = show_round_trip(store, out_dir)
 
         report = store.verify()
         print(f"\n== verify: {'ok' if report.ok else 'FAILED'} ({report.rows_checked:,} rows)")
@@ -129,28 +138,8 @@ def run_sim_demo(out_dir: Path, seed: int = 1) -> int:
             again = import_lines(store, handle, name=str(events))
         print(f"   importing again: {again['appended']} appended, {again['duplicate']:,} duplicate")
 
-        print("\n== a late assay, as known then and as known now")
-        assays = list(store.read(types=["assay"]))
-        late = max(assays, key=lambda r: r.recorded_time_ns - r.valid_time_ns)
-        body = decode_payload("assay", late.payload)
-        hours = (late.recorded_time_ns - late.valid_time_ns) / 3.6e12
-        print(f"   {body.assay_id} ({body.lot_id}, Fe {body.analytes['Fe']:.2f} %): window ends "
-              f"{format_time_ns(late.valid_time_ns)}, recorded {format_time_ns(late.recorded_time_ns)} "
-              f"({hours:.1f} h late)")
-        v = late.valid_time_ns
-        then = sum(1 for _ in store.as_of(v, v, types=["assay"]))
-        now = sum(1 for _ in store.as_of(v, store.head().recorded_time_ns, types=["assay"]))
-        print(f"   assays for belt flow up to that moment: known then {then}, known now {now}")
-
-        print("\n== export -> import into an empty ledger -> export")
-        first = io.StringIO()
-        export_lines(store, first)
-        with open_ledger(_fresh(out_dir / "copy.duckdb")) as copy:
-            import_lines(copy, first.getvalue().splitlines(), name="export")
-            second = io.StringIO()
-            export_lines(copy, second)
-        same = first.getvalue() == second.getvalue()
-        print(f"   {first.getvalue().count(chr(10)):,} lines, identical: {same}")
+        show_late_assay(store)
+        same = show_round_trip(store, out_dir)
         report = store.verify()
         print(f"\n== verify: {'ok' if report.ok else 'FAILED'} ({report.rows_checked:,} rows)")
 

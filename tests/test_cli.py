@@ -147,3 +147,10 @@ def test_a_second_process_cannot_write_while_the_writer_runs(tmp_path):
     finally:
         holder.stdin.close()
         holder.wait(timeout=30)
+
+
+def test_sample_demo_runs_and_checks_itself(tmp_path):
+    out = run("demo", "--sample", "--out", str(tmp_path))
+    assert out.returncode == 0, out.stderr
+    assert "identical: True" in out.stdout and "verify: ok" in out.stdout
+    assert "quarantined:" in out.stdout and "gap:" in out.stdout
