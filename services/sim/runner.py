@@ -443,7 +443,11 @@ class Simulation:
         if travel is None:  # landing: approach from the low-y end until the wheel meets the pile
             travel = sc.pile_origin_y_m - rho - m.cutting_radius_m
             limit = sc.pile_origin_y_m + sc.pile_length_m
-            while travel < limit and self._slew_range(travel, luff) is None:
+            min_face = math.radians(sc.landing_min_slew_deg)
+            while travel < limit:
+                slews = self._slew_range(travel, luff)
+                if slews is not None and slews[1] - slews[0] >= min_face:
+                    break
                 travel += m.cut_depth_m
             travel += 0.5 * m.cutting_radius_m  # land into the bank, not on its toe
         else:

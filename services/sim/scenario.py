@@ -68,6 +68,7 @@ class Scenario:
     cuts_per_bench: tuple[int, ...] = (10,)   # one entry per bench
     bench_heights_m: tuple[float, ...] | None = None  # wheel-centre heights; None: from crest
     cut_duration_s: float = 120.0
+    landing_min_slew_deg: float = 0.0  # land where the cut meets a face this wide in slew
     first_bench_below_crest_m: float = 3.0  # wheel centre height below the pile's crest
     bench_step_m: float = 4.0
 
@@ -115,6 +116,7 @@ def full_scale() -> Scenario:
         name="full-scale", pile_length_m=220.0, pile_width_m=70.0, pile_origin_x_m=10.0,
         lots=lots, passes_per_lot=3, tonnes_per_pass=22_000.0, pass_duration_s=1_800.0,
         pass_gap_s=300.0, cuts_per_bench=(12, 12, 12), cut_duration_s=240.0,
+        landing_min_slew_deg=30.0,
         first_bench_below_crest_m=4.0, bench_step_m=6.0, deposition_cell_m=0.5,
         scan_hz=2.0, encoder_hz=2.0)
 
