@@ -25,6 +25,7 @@ class _Parser(argparse.ArgumentParser):
 def build_parser() -> argparse.ArgumentParser:
     from ledger import cli as ledger_cli
     from services import demo
+    from services import run_config, service_cli
     from services.sim import cli as sim_cli
 
     parser = _Parser(
@@ -37,6 +38,8 @@ def build_parser() -> argparse.ArgumentParser:
     demo.register(sub)
     ledger_cli.register(sub)
     sim_cli.register(sub)
+    service_cli.register(sub)
+    run_config.register(sub)
     return parser
 
 

@@ -1,15 +1,20 @@
 """``stockpile demo``: the main job on the embedded default.
 
-The demo runs the yard simulator's ``demo`` scenario (:mod:`services.sim`), ledgers
-every event it published with the site clock following its ``clock`` events, and
-shows what the ledger knows next to the simulator's truth: idempotent re-import, a
-late assay seen "as known then" and "as known now", an exact export/import round
-trip, the chain, and belt-scale tonnes against true tonnes.  (The edge services that
-will turn the scanner and GNSS streams into events are a later issue.)
+The demo runs the whole yard as separate processes wired through emulated serial
+ports and Zenoh (:mod:`services.orchestrate`): a loopback Zenoh router, the ledger
+service, the localizer, the simulator (``demo`` scenario) writing LMS200 telegrams
+and NMEA GGA to pseudo-terminals and publishing its machine, PLC, lab and clock
+events, and the scanner and GNSS services reading those ports.  When the scenario
+ends it stops everything in order (producers first, the ledger last) and prints a
+summary: events per type, exactly-once per source (published vs ledgered), gaps,
+quarantine, the pile by belt scales and assays as known at the end, the localizer's
+wheel-centre RMSE against the simulator's truth, and the scans' timing error.
 
-``--sample`` runs the ledger on the generated sample session (:mod:`ledger.sample`)
-instead, which plants bad input (malformed lines, an infinite range, a conflicting
-retransmission, a dropped sequence number) to show the quarantine and gaps.
+``--in-process`` runs the simulator alone and imports its events file into the
+ledger (no services: fast, for a first look).  ``--sample`` runs the ledger on the
+generated sample session (:mod:`ledger.sample`) instead, which plants bad input
+(malformed lines, an infinite range, a conflicting retransmission, a dropped
+sequence number) to show the quarantine and gaps.
 """
 
 from __future__ import annotations
@@ -164,7 +169,12 @@ def run_sim_demo(out_dir: Path, seed: int = 1) -> int:
 def cmd_demo(args: argparse.Namespace) -> int:
     if args.sample:
         return run_demo(Path(args.out), args.seed)
-    return run_sim_demo(Path(args.out), args.seed)
+    if args.in_process:
+        return run_sim_demo(Path(args.out), args.seed)
+    from services.yard_demo import run_yard_demo
+
+    return run_yard_demo(Path(args.out), seed=args.seed, speed=args.speed,
+                         idle_speed=args.idle_speed, duration_h=args.duration)
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -172,6 +182,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                               description=__doc__.split("\n\n")[1] if __doc__ else None)
     p.add_argument("--out", default="demo-out", help="output folder (default demo-out)")
     p.add_argument("--seed", type=int, default=1, help="random seed (default 1)")
+    p.add_argument("--speed", type=float, default=40.0,
+                   help="site seconds per wall second while machines work (default 40)")
+    p.add_argument("--idle-speed", type=float, default=2000.0,
+                   help="site seconds per wall second while the yard waits for assays "
+                   "(default 2000)")
+    p.add_argument("--duration", type=float, metavar="SITE_HOURS",
+                   help="stop the scenario after this many site hours (default: to the end)")
+    p.add_argument("--in-process", action="store_true",
+                   help="simulate and import the events file, without the services")
     p.add_argument("--sample", action="store_true",
                    help="run the ledger on the generated sample with planted bad input instead")
     p.set_defaults(func=cmd_demo)

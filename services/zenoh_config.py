@@ -40,7 +40,7 @@ def zenoh_config(*, mode: str = "peer", connect: Sequence[str] = (), listen: Seq
     config.insert_json5("mode", json.dumps(mode))
     if connect:
         config.insert_json5("connect/endpoints", json.dumps(list(connect)))
-    if listen:
+    if listen and mode != "client":  # a client does not listen
         config.insert_json5("listen/endpoints", json.dumps(list(listen)))
     config.insert_json5("scouting/multicast/enabled", json.dumps(bool(scouting)))
     return config

@@ -10,6 +10,17 @@ from pathlib import Path
 from services.sim.scenario import SCENARIOS, scenario_by_name
 
 
+def _wait_liveliness(session, key: str, timeout_s: float) -> bool:
+    import threading
+
+    seen = threading.Event()
+    sub = session.liveliness().declare_subscriber(key, lambda _s: seen.set(), history=True)
+    try:
+        return seen.wait(timeout_s)
+    finally:
+        sub.undeclare()
+
+
 def run_sim(args: argparse.Namespace) -> int:
     from services.sim.runner import Simulation
 
@@ -41,22 +52,51 @@ def run_sim(args: argparse.Namespace) -> int:
             print(f"waiting up to {args.wait_subscriber:g} s for a subscriber ...", flush=True)
             if not sink.wait_for_subscriber("clock", "sim.clock", args.wait_subscriber):
                 raise OSError("no zenoh subscriber matched the site's events in time")
+        for key in args.wait_live:
+            print(f"waiting up to {args.wait_live_timeout:g} s for {key} ...", flush=True)
+            if not _wait_liveliness(session, key, args.wait_live_timeout):
+                raise OSError(f"no liveliness token {key} appeared in time")
     print(f"simulating scenario {scenario.name!r}, seed {args.seed} -> {out}", flush=True)
     try:
         sim = Simulation(scenario, args.seed, out, sinks=sinks, scanner_pty=ptys.get("scanner"),
                          gnss_pty=ptys.get("gnss"),
                          progress=lambda line: print(f"  {line}", file=sys.stderr, flush=True))
-        stats = sim.run(duration_h=args.duration, speed=args.speed)
+        stats = sim.run(duration_h=args.duration, speed=args.speed, idle_speed=args.idle_speed)
+        for pty in ptys.values():  # the devices go quiet: their readers see the end
+            pty.close()
+        if session is not None:
+            from services.service import log
+
+            for producer in sim.producers.values():  # logged before the done line
+                log("sim", "published", source=producer.source, epoch=producer.epoch,
+                    count=producer.seq)
+        _print_summary(stats, out)
+        if session is not None:
+            from services.service import Stopper
+
+            if args.linger > 0:
+                # keep the publishers' caches up until told to stop, so a ledger that
+                # missed something can still recover it
+                Stopper().wait(args.linger)
     finally:
         for pty in ptys.values():
             pty.close()
         if session is not None:
             session.close()
+    return 0
+
+
+def _print_summary(stats, out: Path) -> None:
+    """The run's summary on stdout (flushed: a supervisor waits for the ``done:`` line)."""
     truth = json.loads((out / "truth.json").read_text())
     world = truth["world"]
     print(f"done: {stats.site_s / 3600:.2f} site h in {stats.wall_s:.1f} s wall "
           f"({stats.events:,} events = {stats.events / max(stats.wall_s, 1e-9):,.0f}/s; "
           f"{stats.scans:,} scans, {stats.gga:,} GGA sentences)")
+    if stats.late_events:
+        print(f"  pacing: {stats.late_events:,} events handled > 5 ms behind schedule "
+              f"(largest lag {stats.max_lag_s:.2f} s real); device bytes and clock events "
+              "were late with them")
     print(f"  stacked {sum(p['true_tonnes'] for p in truth['passes']):,.3f} t in {stats.passes} passes; "
           f"reclaimed {sum(c['true_tonnes'] for c in truth['cuts']):,.3f} t in {stats.cuts} cuts; "
           f"{stats.assays} assays")
@@ -65,7 +105,7 @@ def run_sim(args: argparse.Namespace) -> int:
           f"max height {world['max_height_m']:.3f} m, repose "
           + (f"{repose:.1f} deg" if repose is not None else "- (no pile yet)"))
     print(f"  files: events.jsonl, lms200.bin, gnss.nmea, truth.json, truth.npz in {out}")
-    return 0
+    sys.stdout.flush()
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -79,6 +119,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=int, default=1, help="random seed (default 1)")
     p.add_argument("--duration", type=float, metavar="SITE_HOURS",
                    help="stop after this many hours of site time (default: until the last assay)")
+    p.add_argument("--idle-speed", type=float, default=0.0, metavar="X",
+                   help="with --speed: site seconds per wall second while no machine moves "
+                   "(waiting for late assays); default: the same as --speed")
     p.add_argument("--speed", type=float, default=0.0,
                    help="site seconds per wall second (default 0 = as fast as possible)")
     p.add_argument("--out", metavar="DIR", help="output folder (default sim-out/SCENARIO-seedN)")
@@ -87,6 +130,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--zenoh", action="store_true", help="also publish the events on zenoh")
     p.add_argument("--wait-subscriber", type=float, default=0.0, metavar="SECONDS",
                    help="with --zenoh: start only once a subscriber listens (give up after SECONDS)")
+    p.add_argument("--wait-live", action="append", default=[], metavar="KEY",
+                   help="with --zenoh: start only once a liveliness token matching KEY exists "
+                   "(e.g. stockpile/demo/@live/scanner/**; repeatable)")
+    p.add_argument("--wait-live-timeout", type=float, default=60.0, metavar="S",
+                   help="how long --wait-live waits, seconds (default 60)")
+    p.add_argument("--linger", type=float, default=0.0, metavar="S",
+                   help="with --zenoh: after the run keep publishing caches up for S seconds or "
+                   "until SIGTERM (a ledger can still recover missed events)")
     add_zenoh_arguments(p, listen_default=DEFAULT_LISTEN)
     p.set_defaults(func=run_sim)
 

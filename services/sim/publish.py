@@ -74,7 +74,11 @@ class MemorySink:
 
 
 class ZenohSink:
-    """Publishes events on Zenoh, reliably (congestion control BLOCK: never drops)."""
+    """Publishes events on Zenoh as the yard's ledger-bound producers do.
+
+    Each key gets an AdvancedPublisher (:func:`services.service.declare_ledger_publisher`):
+    congestion control BLOCK (never drops) and a cache a restarted ledger recovers from.
+    """
 
     def __init__(self, session, site: str) -> None:
         import zenoh
@@ -84,13 +88,19 @@ class ZenohSink:
         self._block = zenoh.CongestionControl.BLOCK
         self.count = 0
 
-    def emit(self, event: Event) -> None:
-        key = (event.type, event.source)
+    def _publisher(self, type_name: str, source: str):
+        from services.service import declare_ledger_publisher
+
+        key = (type_name, source)
         publisher = self._publishers.get(key)
         if publisher is None:
-            publisher = self.session.declare_publisher(
-                key_expr(self.site, event.type, event.source), congestion_control=self._block)
+            publisher = declare_ledger_publisher(self.session,
+                                                 key_expr(self.site, type_name, source))
             self._publishers[key] = publisher
+        return publisher
+
+    def emit(self, event: Event) -> None:
+        publisher = self._publisher(event.type, event.source)
         publisher.put(event.payload,
                       attachment=encode_attachment(event.epoch, event.seq, event.valid_time_ns))
         self.count += 1
@@ -103,24 +113,24 @@ class ZenohSink:
         """
         import threading
 
-        key = (type_name, source)
-        if key not in self._publishers:
-            self._publishers[key] = self.session.declare_publisher(
-                key_expr(self.site, type_name, source), congestion_control=self._block)
-        publisher = self._publishers[key]
+        self._publisher(type_name, source)
+        # an AdvancedPublisher has no matching listener: watch a plain one on the same key
+        probe = self.session.declare_publisher(key_expr(self.site, type_name, source),
+                                               congestion_control=self._block)
         matched = threading.Event()
 
         def on_status(status) -> None:
             if status.matching:
                 matched.set()
 
-        listener = publisher.declare_matching_listener(on_status)
+        listener = probe.declare_matching_listener(on_status)
         try:
-            if publisher.matching_status.matching:
+            if probe.matching_status.matching:
                 return True
             return matched.wait(timeout_s)
         finally:
             listener.undeclare()
+            probe.undeclare()
 
     def close(self) -> None:
         for publisher in self._publishers.values():

@@ -82,6 +82,10 @@ class Motion:
         return tuple(a + (b - a) * w for a, b in zip(self.start, self.end))  # type: ignore[return-value]
 
 
+#: a paced event handled this much (real seconds) behind schedule counts as late
+LATE_S = 0.005
+
+
 @dataclass
 class RunStats:
     events: int = 0
@@ -95,6 +99,10 @@ class RunStats:
     wall_s: float = 0.0
     site_s: float = 0.0
     dropped_pty_bytes: int = 0
+    #: paced runs: events handled more than LATE_S (real time) behind their schedule,
+    #: and the largest lag, real seconds (a slow step, then a burst to catch up)
+    late_events: int = 0
+    max_lag_s: float = 0.0
 
 
 @dataclass
@@ -224,7 +232,8 @@ class Simulation:
                 n += 1
         return plan
 
-    def run(self, *, duration_h: float | None = None, speed: float = 0.0) -> RunStats:
+    def run(self, *, duration_h: float | None = None, speed: float = 0.0,
+            idle_speed: float = 0.0) -> RunStats:
         sc = self.scenario
         wall0 = time.monotonic()
         t0 = sc.start_ns
@@ -275,9 +284,14 @@ class Simulation:
         self.belts = belts
 
         next_report = time.monotonic() + 10.0
+        t_prev, wall_due = t0, 0.0
         while queue:
             t, _, kind, payload = heapq.heappop(queue)
             if t > end_ns:
+                # telegrams of scans taken before the end are still on the wire: send them
+                for t_late, _o, kind_late, data in sorted(queue + [(t, _, kind, payload)]):
+                    if kind_late == "telegram":
+                        self._on_telegram(t_late, data, at)
                 break
             if self.progress is not None and time.monotonic() >= next_report:
                 next_report = time.monotonic() + 10.0
@@ -285,9 +299,17 @@ class Simulation:
                               f"{self.jsonl.count:,} events, {self.stats.scans:,} scans, "
                               f"{self.stats.passes} passes, {self.stats.cuts} cuts")
             if speed > 0:
-                lag = (t - t0) / NS_PER_S / speed - (time.monotonic() - wall0)
+                # pacing site time against the wall clock; idle stretches (no machine
+                # moves, only late assays to wait for) run at idle_speed
+                rate = idle_speed if (idle_speed and not self._busy(t_prev)) else speed
+                wall_due += (t - t_prev) / NS_PER_S / rate
+                t_prev = t
+                lag = wall_due - (time.monotonic() - wall0)
                 if lag > 0:
-                    time.sleep(lag)  # pacing site time against the wall clock
+                    time.sleep(lag)
+                elif -lag > LATE_S:
+                    self.stats.late_events += 1
+                    self.stats.max_lag_s = max(self.stats.max_lag_s, -lag)
             getattr(self, f"_on_{kind}")(t, payload, at)
         self.stats.site_s = (end_ns - t0) / NS_PER_S
         self.stats.wall_s = time.monotonic() - wall0
@@ -345,11 +367,16 @@ class Simulation:
         values = lms200.ranges_to_values(ranges, unit_mm=self.unit_mm)
         values[status == sensors.BEAM_ERROR_CODE] = lms200.DAZZLE
         data = lms200.encode_measurement(values, unit_mm=self.unit_mm)
-        self._write(self.lms_file, self.scanner_pty, data)
+        # the telegram's last byte leaves the scanner its serial transfer time later
+        transfer_ns = len(data) * 10 * NS_PER_S // sc.scanner_baud
+        at(t + transfer_ns, "telegram", data)
         self.truth_scans.append((t, *position, *rotation.ravel()))
         self.stats.scans += 1
         self.stats.lms200_bytes += len(data)
         at(t + self._period_ns(t, sc.scan_hz), "scan", None)
+
+    def _on_telegram(self, t: int, data: bytes, at) -> None:
+        self._write(self.lms_file, self.scanner_pty, data)
 
     def _on_lot(self, t: int, lot, at) -> None:
         msg = pb.LotDeclared(lot_id=lot.lot_id, origin=lot.origin,

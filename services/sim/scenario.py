@@ -80,6 +80,7 @@ class Scenario:
     scan_hz: float = 5.0
     scan_fov_deg: float = 100.0
     scan_step_deg: float = 0.5
+    scanner_baud: int = 500_000  # RS-422; a telegram reaches the pty its transfer time after the scan
     gnss_hz: float = 1.0
     encoder_hz: float = 10.0
     clock_period_s: float = 10.0

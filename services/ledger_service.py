@@ -1,0 +1,513 @@
+"""``stockpile service ledger``: the single writer of the ledger.
+
+Data flow::
+
+    zenoh  stockpile/<site>/@v1/**  --AdvancedSubscriber callback-->  bounded queue
+        --writer thread: batches (size or time bound, whichever first)-->  LedgerStore.append
+        --> put  stockpile/<site>/@ledger/head   (JSON: global_seq, recorded_time_ns, chain)
+
+    zenoh get stockpile/<site>/@ledger/q/<what>  --queryable-->  reader thread --> replies
+
+- **Subscribing and recovery.** One ``zenoh.ext`` AdvancedSubscriber on the site's
+  events with history (``detect_late_publishers``): a (re)started ledger asks every
+  publisher's cache for what it published before, so a ledger killed mid-run loses
+  nothing its publishers still cache.  Any event that does not arrive shows up as a
+  jump in its source's sequence, which the store records in its gap table with the
+  exact range (:mod:`ledger.store`), and the service logs a ``gap opened`` line.
+  Then :class:`GapRepair` asks that source's publisher cache again (a short-lived
+  history subscriber whose samples are kept only if they fall in an open gap); what
+  comes back closes the gap, what the cache no longer holds stays an open gap,
+  reported.  (Zenoh's own heartbeat recovery is not used: in zenoh 1.x enabling it
+  makes the late-joiner history skip samples older than the first live one.)
+  Duplicates (history replayed after a restart, a retransmission) are no-ops.
+- **Backpressure.** The callback only queues the raw sample; when the queue is full
+  it blocks, which backs up Zenoh's transport and, through congestion control BLOCK,
+  the publishers: nothing is dropped.
+- **Reads** over queryables (other processes never open the DuckDB file while the
+  service runs); :class:`services.ledger_client.LedgerClient` is the client:
+
+  ===============  ==========================================  ====================
+  key              query payload (JSON)                         reply
+  ===============  ==========================================  ====================
+  ``q/events``     ``start``, ``stop``, ``types``, ``sources``  record chunks
+  ``q/as_of``      ``valid_time_ns``, ``known_time_ns``,        record chunks
+                   ``types``
+  ``q/stats``      (none)                                       JSON
+  ``q/head``       (none)                                       JSON
+  ``q/gaps``       ``open_only``                                JSON list
+  ===============  ==========================================  ====================
+
+  Record chunks are :mod:`ledger.wire` bytes of up to ``chunk_bytes``; each reply's
+  attachment is ``u32 chunk index | u8 last | u64 total records`` so a client can
+  check it got every chunk.  An error is one ``reply_err`` with a message.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import queue
+import struct
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from schemas.events import Malformed, event_from_sample
+
+from ledger import clock_by_name, open_ledger
+from ledger.cli import stats_to_json
+from ledger.errors import LedgerError
+from ledger.store import LedgerStore
+from ledger.wire import encode_records
+from services.service import (
+    ServiceRuntime,
+    Stopper,
+    ZenohOptions,
+    log,
+)
+
+SERVICE = "ledger"
+DEFAULT_BATCH_SIZE = 2_000
+DEFAULT_BATCH_INTERVAL_S = 0.05
+DEFAULT_QUEUE_SIZE = 200_000
+DEFAULT_CHUNK_BYTES = 1 << 20
+
+#: attachment of every record-chunk reply: chunk index, last flag, total records
+CHUNK_ATTACHMENT = struct.Struct("<IBQ")
+
+
+def head_key(site: str) -> str:
+    """Where the committed head is published after each batch."""
+    return f"stockpile/{site}/@ledger/head"
+
+
+def query_key(site: str, what: str) -> str:
+    """The queryable serving ``what`` (events, as_of, stats, head, gaps)."""
+    return f"stockpile/{site}/@ledger/q/{what}"
+
+
+@dataclass(frozen=True)
+class Config:
+    """Options of the ledger service.
+
+    Attributes
+    ----------
+    ledger_path : str
+        The DuckDB file (created if missing), or ``:memory:``.
+    clock : str
+        Recorded time: ``wall`` (a real yard) or ``events`` (the simulated yard's
+        ``clock`` events).
+    batch_size : int
+        Most events per append (one transaction).
+    batch_interval_s : float
+        Longest time the first event of a batch waits for more, seconds.
+    queue_size : int
+        Samples held between Zenoh and the writer; a full queue blocks Zenoh.
+    history : bool
+        Ask publishers' caches for what was published before this start.
+    chunk_bytes : int
+        Target size of one reply chunk of records, bytes.
+    """
+
+    site: str
+    zenoh: ZenohOptions
+    ledger_path: str
+    status_period_s: float = 5.0
+    clock: str = "wall"
+    batch_size: int = DEFAULT_BATCH_SIZE
+    batch_interval_s: float = DEFAULT_BATCH_INTERVAL_S
+    queue_size: int = DEFAULT_QUEUE_SIZE
+    history: bool = True
+    chunk_bytes: int = DEFAULT_CHUNK_BYTES
+
+    def __post_init__(self) -> None:
+        if self.batch_size < 1:
+            raise ValueError(f"batch size must be >= 1, got {self.batch_size}")
+        if not self.batch_interval_s > 0:
+            raise ValueError(f"batch interval must be > 0 s, got {self.batch_interval_s}")
+        if self.queue_size < 1:
+            raise ValueError(f"queue size must be >= 1, got {self.queue_size}")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--ledger", required=True, metavar="PATH",
+                        help="the ledger's DuckDB file (created if missing)")
+    parser.add_argument("--clock", choices=("wall", "events"), default="wall",
+                        help="recorded time from the wall clock (default) or the site's "
+                        "clock events (simulated yard)")
+    parser.add_argument("--batch-size", type=int, default=DEFAULT_BATCH_SIZE,
+                        help=f"most events per append (default {DEFAULT_BATCH_SIZE})")
+    parser.add_argument("--batch-interval", type=float, default=DEFAULT_BATCH_INTERVAL_S,
+                        metavar="S", help="longest wait for a batch to fill, seconds "
+                        f"(default {DEFAULT_BATCH_INTERVAL_S})")
+    parser.add_argument("--queue-size", type=int, default=DEFAULT_QUEUE_SIZE,
+                        help=f"samples buffered before Zenoh is backed up (default {DEFAULT_QUEUE_SIZE})")
+    parser.add_argument("--no-history", action="store_true",
+                        help="do not ask publishers' caches for earlier events on start")
+
+
+def config_from_args(args: argparse.Namespace) -> Config:
+    return Config(site=args.site, zenoh=ZenohOptions.from_args(args), ledger_path=args.ledger,
+                  status_period_s=args.status_period, clock=args.clock,
+                  batch_size=args.batch_size, batch_interval_s=args.batch_interval,
+                  queue_size=args.queue_size, history=not args.no_history)
+
+
+# -- writing ------------------------------------------------------------------------------
+
+_STOP = object()
+
+
+class Writer:
+    """Drains the sample queue into the store in batches; publishes the head after each.
+
+    Runs on its own thread (:meth:`run`).  ``on_committed(head_json)`` is called after
+    every batch that changed the ledger.
+    """
+
+    def __init__(self, store: LedgerStore, samples: queue.Queue, runtime: ServiceRuntime,
+                 config: Config, on_committed, on_gaps=None) -> None:
+        self.store, self.samples, self.runtime, self.config = store, samples, runtime, config
+        self.on_committed = on_committed
+        self.on_gaps = on_gaps
+        self._missing = 0
+        self.failed: BaseException | None = None
+        self.batches = 0
+
+    def _take_batch(self) -> tuple[list, bool]:
+        """Block for the first sample, then gather until size or time bound."""
+        first = self.samples.get()
+        if first is _STOP:
+            return [], True
+        batch = [first]
+        deadline = time.monotonic() + self.config.batch_interval_s
+        stop = False
+        while len(batch) < self.config.batch_size:
+            remaining = deadline - time.monotonic()
+            try:
+                item = self.samples.get(timeout=remaining) if remaining > 0 \
+                    else self.samples.get_nowait()
+            except queue.Empty:
+                break
+            if item is _STOP:
+                stop = True
+                break
+            batch.append(item)
+        return batch, stop
+
+    def run(self) -> None:
+        status = self.runtime.status
+        assert status is not None
+        try:
+            while True:
+                raw, stop = self._take_batch()
+                if raw:
+                    self._append(raw)
+                if stop:
+                    return
+        except BaseException as exc:  # noqa: BLE001 - reported by the main thread
+            self.failed = exc
+            log(SERVICE, "writer failed", level="error", error=f"{type(exc).__name__}: {exc}")
+            self.runtime.stopper and self.runtime.stopper.set()
+
+    def _append(self, raw: list) -> None:
+        status = self.runtime.status
+        assert status is not None
+        items = [event_from_sample(key, payload, attachment)
+                 for key, payload, attachment, _t in raw]
+        result = self.store.append(items)
+        counts = result.counts
+        status.add("received", len(items))
+        for name in ("appended", "duplicate", "conflict", "rejected"):
+            if counts[name]:
+                status.add(name, counts[name])
+        malformed = sum(1 for item in items if isinstance(item, Malformed))
+        if malformed:
+            status.add("malformed", malformed)
+        if counts["rejected"] or counts["conflict"]:
+            for item, outcome in zip(items, result.outcomes):
+                if outcome.status in ("rejected", "conflict"):
+                    log(SERVICE, "quarantined", level="warning",
+                        source=getattr(item, "source", ""), seq=getattr(item, "seq", ""),
+                        reason=outcome.reason)
+        now = time.monotonic()
+        latency_ms = max((now - t) * 1e3 for *_x, t in raw)
+        status.add("batches")
+        self.batches += 1
+        self.last_latency_ms = latency_ms
+        if counts["appended"] or counts["rejected"] or counts["conflict"]:
+            self.on_committed()
+        missing = sum(st.missing for st in self.store.streams())
+        if missing != self._missing:
+            self._missing = missing
+            if self.on_gaps is not None:
+                self.on_gaps()
+
+
+class GapRepair:
+    """Asks a source's publisher cache again when its stream has open gaps.
+
+    :meth:`check` (called by the writer when the number of missing events changes)
+    logs every newly opened gap with its exact range and, for each source with
+    missing events, declares a short-lived history subscriber on that source's keys
+    (at most one per source at a time, for ``window_s``).  Its samples are queued
+    only when their sequence lies in an open gap, so a cache replay costs almost
+    nothing.
+    """
+
+    def __init__(self, session, site: str, store: LedgerStore, samples: queue.Queue,
+                 runtime: ServiceRuntime, *, window_s: float = 10.0) -> None:
+        self.session, self.site, self.store, self.samples = session, site, store, samples
+        self.runtime = runtime
+        self.window_s = window_s
+        self._reported: set[int] = set()
+        self._active: dict[str, tuple[object, float]] = {}
+        self._open: dict[tuple[str, int], list[tuple[int, int]]] = {}
+        self._lock = threading.Lock()
+        self._closed = False
+
+    def check(self) -> None:
+        status = self.runtime.status
+        gaps = self.store.gaps(open_only=True)
+        open_ranges: dict[tuple[str, int], list[tuple[int, int]]] = {}
+        for gap in gaps:
+            open_ranges.setdefault((gap.source, gap.epoch), []).append((gap.first_seq, gap.last_seq))
+            if gap.gap_id not in self._reported:
+                self._reported.add(gap.gap_id)
+                if status is not None:
+                    status.add("gaps_opened")
+                log(SERVICE, "gap opened", level="warning", source=gap.source, epoch=gap.epoch,
+                    first_seq=gap.first_seq, last_seq=gap.last_seq, missing=gap.size)
+        now = time.monotonic()
+        with self._lock:
+            if self._closed:
+                return
+            self._open = open_ranges
+            for source, (sub, since) in list(self._active.items()):
+                if now - since > self.window_s or not any(k[0] == source for k in open_ranges):
+                    sub.undeclare()
+                    del self._active[source]
+            for source in {k[0] for k in open_ranges}:
+                if source not in self._active:
+                    self._active[source] = (self._ask(source), now)
+                    if status is not None:
+                        status.add("repairs_asked")
+
+    def _wanted(self, source: str, epoch: int, seq: int) -> bool:
+        with self._lock:
+            return any(first <= seq <= last for first, last in self._open.get((source, epoch), ()))
+
+    def _ask(self, source: str):
+        import zenoh.ext as zext
+
+        from schemas.events import decode_attachment
+
+        def on_sample(sample) -> None:
+            attachment = sample.attachment
+            if attachment is None:
+                return
+            try:
+                epoch, seq, _valid = decode_attachment(attachment.to_bytes())
+            except ValueError:
+                return
+            if self._wanted(source, epoch, seq):
+                self.samples.put((str(sample.key_expr), sample.payload.to_bytes(),
+                                  attachment.to_bytes(), time.monotonic()))
+
+        return zext.declare_advanced_subscriber(
+            self.session, f"stockpile/{self.site}/@v1/*/{source}", on_sample,
+            history=zext.HistoryConfig(detect_late_publishers=False))
+
+    def close(self) -> None:
+        with self._lock:
+            self._closed = True
+            for sub, _since in self._active.values():
+                sub.undeclare()
+            self._active.clear()
+
+
+# -- reading ------------------------------------------------------------------------------
+
+
+class Reader:
+    """Serves queries from a queue on its own thread, so Zenoh's threads never wait on reads."""
+
+    def __init__(self, store: LedgerStore, site: str, chunk_bytes: int) -> None:
+        self.store, self.site, self.chunk_bytes = store, site, chunk_bytes
+        self.queries: queue.Queue = queue.Queue()
+        self.served = 0
+        self.errors = 0
+
+    def run(self) -> None:
+        while True:
+            item = self.queries.get()
+            if item is _STOP:
+                return
+            what, query = item
+            with query:
+                try:
+                    self._serve(what, query)
+                    self.served += 1
+                except (LedgerError, ValueError, KeyError, TypeError) as exc:
+                    self.errors += 1
+                    query.reply_err(f"{type(exc).__name__}: {exc}".encode())
+
+    def _params(self, query) -> dict[str, Any]:
+        payload = query.payload
+        if payload is None:
+            return {}
+        text = payload.to_bytes()
+        if not text:
+            return {}
+        params = json.loads(text)
+        if not isinstance(params, dict):
+            raise ValueError("query payload must be a JSON object")
+        return params
+
+    def _serve(self, what: str, query) -> None:
+        params = self._params(query)
+        key = query_key(self.site, what)
+        if what == "events":
+            rows = self.store.read(int(params.get("start", 0)), _opt_int(params.get("stop")),
+                                   types=params.get("types"), sources=params.get("sources"))
+            self._reply_records(query, key, rows)
+        elif what == "as_of":
+            rows = self.store.as_of(int(params["valid_time_ns"]), int(params["known_time_ns"]),
+                                    types=params.get("types"))
+            self._reply_records(query, key, rows)
+        elif what == "stats":
+            query.reply(key, json.dumps(stats_to_json(self.store.stats())).encode())
+        elif what == "head":
+            query.reply(key, json.dumps(head_json(self.store)).encode())
+        elif what == "gaps":
+            gaps = self.store.gaps(open_only=bool(params.get("open_only", False)))
+            query.reply(key, json.dumps([_gap_json(g) for g in gaps]).encode())
+        else:  # pragma: no cover - only declared keys arrive
+            raise ValueError(f"unknown query {what!r}")
+
+    def _reply_records(self, query, key: str, rows) -> None:
+        index, total, pending, size = 0, 0, [], 0
+        for row in rows:
+            pending.append(row)
+            size += len(row.payload) + 128
+            if size >= self.chunk_bytes:
+                total += len(pending)
+                query.reply(key, encode_records(pending),
+                            attachment=CHUNK_ATTACHMENT.pack(index, 0, total))
+                index, pending, size = index + 1, [], 0
+        total += len(pending)
+        query.reply(key, encode_records(pending), attachment=CHUNK_ATTACHMENT.pack(index, 1, total))
+
+
+def _opt_int(value: object) -> int | None:
+    return None if value is None else int(value)  # type: ignore[arg-type]
+
+
+def _gap_json(gap) -> dict[str, Any]:
+    return {"gap_id": gap.gap_id, "source": gap.source, "epoch": gap.epoch,
+            "first_seq": gap.first_seq, "last_seq": gap.last_seq,
+            "opened_recorded_ns": gap.opened_recorded_ns,
+            "closed_recorded_ns": gap.closed_recorded_ns}
+
+
+def head_json(store: LedgerStore) -> dict[str, Any]:
+    head = store.head()
+    return {"global_seq": head.global_seq, "recorded_time_ns": head.recorded_time_ns,
+            "chain_sha256": head.chain_sha256.hex()}
+
+
+# -- main ---------------------------------------------------------------------------------
+
+
+def main(config: Config, *, stopper: Stopper | None = None) -> int:
+    """Run the ledger service until SIGINT/SIGTERM (or ``stopper``); return an exit code."""
+    import zenoh
+    import zenoh.ext as zext
+
+    try:
+        if config.ledger_path != ":memory:":
+            Path(config.ledger_path).parent.mkdir(parents=True, exist_ok=True)
+        store = open_ledger(config.ledger_path, clock_by_name(config.clock))
+    except (LedgerError, OSError, ValueError) as exc:
+        log(SERVICE, "cannot open the ledger", level="error", ledger=config.ledger_path,
+            error=str(exc).splitlines()[0])
+        return 2
+    samples: queue.Queue = queue.Queue(maxsize=config.queue_size)
+    runtime = ServiceRuntime(SERVICE, config.site, config.zenoh, name="writer",
+                             status_period_s=config.status_period_s, stopper=stopper)
+    error_keys = ("rejected", "conflict", "malformed", "misses_reported", "writer_errors")
+    with store:
+        runtime.open(rate_of="appended", backlog=samples.qsize, error_keys=error_keys,
+                     announce=False)
+        try:
+            return _serve(config, store, samples, runtime, zenoh, zext)
+        finally:
+            runtime.close()
+
+
+def _serve(config: Config, store: LedgerStore, samples: queue.Queue, runtime: ServiceRuntime,
+           zenoh, zext) -> int:
+    session = runtime.session
+    status = runtime.status
+    assert status is not None and runtime.stopper is not None
+    head_publisher = session.declare_publisher(head_key(config.site),
+                                               congestion_control=zenoh.CongestionControl.BLOCK)
+
+    def publish_head() -> None:
+        head_publisher.put(json.dumps(head_json(store)).encode())
+
+    repair = GapRepair(session, config.site, store, samples, runtime)
+    writer = Writer(store, samples, runtime, config, publish_head, on_gaps=repair.check)
+    reader = Reader(store, config.site, config.chunk_bytes)
+    threads = [threading.Thread(target=writer.run, name="ledger-writer", daemon=True),
+               threading.Thread(target=reader.run, name="ledger-reader", daemon=True)]
+    for thread in threads:
+        thread.start()
+
+    queryables = [
+        session.declare_queryable(query_key(config.site, what),
+                                  lambda q, what=what: reader.queries.put((what, q)))
+        for what in ("events", "as_of", "stats", "head", "gaps")
+    ]
+
+    def on_sample(sample) -> None:
+        attachment = sample.attachment
+        samples.put((str(sample.key_expr), sample.payload.to_bytes(),
+                     None if attachment is None else attachment.to_bytes(), time.monotonic()))
+
+    def on_miss(miss) -> None:
+        status.add("misses_reported", miss.nb)
+        log(SERVICE, "samples missed", level="warning", publisher=str(miss.source), nb=miss.nb,
+            note="recorded as a gap when the source's next event arrives")
+
+    history = zext.HistoryConfig(detect_late_publishers=True) if config.history else None
+    subscriber = zext.declare_advanced_subscriber(
+        session, f"stockpile/{config.site}/@v1/**", on_sample, history=history,
+        subscriber_detection=True)
+    miss_listener = subscriber.sample_miss_listener(on_miss)
+    runtime.log("serving", ledger=config.ledger_path, head=store.head().global_seq,
+                subscribe=f"stockpile/{config.site}/@v1/**",
+                queries=query_key(config.site, "*"), head_key=head_key(config.site))
+    publish_head()
+    runtime.announce()
+
+    runtime.stopper.wait()
+    # clean stop: no new samples, drain what was queued, then stop the threads
+    miss_listener.undeclare()
+    subscriber.undeclare()
+    repair.close()
+    samples.put(_STOP)
+    threads[0].join()
+    for q in queryables:
+        q.undeclare()
+    reader.queries.put(_STOP)
+    threads[1].join(timeout=5.0)
+    head_publisher.undeclare()
+    if writer.failed is not None:
+        runtime.log("stopping after a writer failure", level="error",
+                    error=f"{type(writer.failed).__name__}: {writer.failed}")
+        return 2
+    runtime.log("committed", head=store.head().global_seq, batches=writer.batches)
+    return 0

@@ -1,0 +1,589 @@
+"""``stockpile service scanner``: read a SICK LMS200 from a serial port, publish scans.
+
+The service opens the scanner's serial port with pyserial (a real RS-232/RS-422 line, or the
+simulator's pseudo-terminal), feeds every byte into the resynchronising
+:class:`services.protocols.lms200.TelegramReader` and publishes each intact 0xB0 (measured
+values) telegram as one ``scan`` event (``foxglove.LaserScan``) on
+``stockpile/<site>/@v1/scan/<source>``, through the shared :class:`~services.service.EventPublisher`
+(one epoch, dense sequence, cached ``AdvancedPublisher``, congestion control BLOCK).
+
+Bad bytes never stop it.  Everything that is not published is counted in the status
+counters (the periodic ``status`` line and the final ``stopped`` line):
+
+=====================  ==========================================================  =======
+counter                meaning                                                     error?
+=====================  ==========================================================  =======
+``telegrams``          CRC-valid telegrams of any kind                             no
+``published``          scans published                                             no
+``crc_errors``         corruption events (the reader's count; see its docs)        yes
+``garbage_bytes``      bytes discarded while resynchronising (a byte count)        no [1]_
+``other_telegrams``    CRC-valid telegrams that are not 0xB0 from the scanner      yes
+                       (e.g. the acknowledgement of ``--send-start``, or host
+                       commands seen by a read-only tap)
+``bad_telegrams``      0xB0 telegrams whose contents do not decode                 yes
+``partial_scans``      0xB0 telegrams with a partial-scan index other than 0       yes
+                       (interlaced output is not supported; dropped)
+``field_mismatch``     value counts that do not fit ``--fov-deg`` /                yes
+                       ``--resolution-deg`` (or any LMS200 field, without them)
+``waiting_for_clock``  scans dropped in ``--clock site`` mode before the first     no
+                       ``clock`` event (their valid time is unknown)
+=====================  ==========================================================  =======
+
+.. [1] ``garbage_bytes`` is reported but not summed into the status line's ``errors``,
+   which counts events: one corrupted telegram is one CRC error but hundreds of bytes.
+
+Scan geometry (matches :mod:`services.sim.sensors`, the Foxglove ``LaserScan`` / ROS
+convention): beam ``k`` has bearing ``-fov/2 + k * step`` about the scanner's +z axis from
++x, so ``start_angle = -fov/2`` and ``end_angle = -fov/2 + (n - 1) * step`` (= ``+fov/2``
+for every LMS200 field), radians.  The field of view and step come from the value count of
+each telegram (401 -> 100 deg / 0.25 deg, 361 -> 180 / 0.5, 181 -> 180 / 1,
+201 -> 100 / 0.5, 101 -> 100 / 1) unless ``--fov-deg`` / ``--resolution-deg`` fix them.
+Ranges are metres; no-return and error codes are NaN; intensities are empty.
+
+Valid time (:func:`scan_valid_time_ns`): the moment the telegram's last byte arrived minus
+its serial transfer time (``bytes * 10 bits / baud``).  The arrival is
+``time.monotonic()`` right after the read that completed the telegram, mapped to site time
+through :class:`~services.service.SiteTime`.  When one read returns more than the
+telegram (the service fell behind and several telegrams, or trailing bytes, arrived
+together), the bytes behind it are taken to have followed it at line rate, so their
+transfer time is subtracted too, but never back past the previous read (those bytes were
+not there yet).  That is exact on a real, busy serial line.  A pseudo-terminal delivers
+each write at once, faster than any line rate, so when the service falls behind the
+simulator the scans of one burst get estimated times, off by up to the burst's line
+time; they stay in order while the telegrams have one size (one field; a longer telegram
+behind a shorter one in the same burst can get the earlier time).  When the service keeps
+up (one telegram per read) the time is exact.  Line time is subtracted as site time,
+after the mapping, so a simulator that writes each telegram at scan time + transfer time
+(site time) gets its scan time back at any speed.
+
+``--clock site``: until the first ``clock`` event arrives, scans cannot be given a site
+time; they are dropped and counted as ``waiting_for_clock`` (a short blind spell at
+start-up rather than scans with invented times).  The service logs ``site clock ready``
+once the clock is known.
+
+The service stops on SIGINT/SIGTERM (exit 0), when the device goes away (the pty master
+closed, a USB adapter unplugged: logged as ``device closed``, exit 0), and exits 2 with one
+``cannot open device`` line when the port cannot be opened.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import serial
+from foxglove_schemas_protobuf.LaserScan_pb2 import LaserScan
+
+from schemas.events import is_valid_source, set_timestamp_ns
+from services.protocols import lms200
+from services.service import (
+    DEFAULT_SITE,
+    DEFAULT_STATUS_PERIOD_S,
+    ServiceRuntime,
+    SiteTime,
+    Stopper,
+    ZenohOptions,
+    log,
+)
+
+__all__ = [
+    "SERVICE", "DEFAULT_BAUD", "DEFAULT_SOURCE", "BITS_PER_BYTE", "READ_TIMEOUT_S", "ERROR_KEYS",
+    "Config", "ScanField", "default_frame_id", "scan_field", "transfer_time_ns",
+    "telegram_end_offsets", "scan_valid_time_ns", "scan_message", "add_arguments",
+    "config_from_args", "main",
+]
+
+SERVICE = "scanner"
+#: LMS200 default line rate for continuous output, baud (bits per second).
+DEFAULT_BAUD = 500_000
+DEFAULT_SOURCE = "bwr1.scanner"
+#: Bits on the line per byte: start bit, 8 data bits, stop bit (8N1).
+BITS_PER_BYTE = 10
+#: Longest wait of one serial read, seconds.  A read that times out with nothing means an
+#: idle line: a pending partial candidate is then given up (``TelegramReader.flush``).
+READ_TIMEOUT_S = 0.1
+#: Status counters summed into the status line's ``errors``.
+ERROR_KEYS = ("crc_errors", "other_telegrams", "bad_telegrams", "partial_scans",
+              "field_mismatch")
+
+_NS_PER_S = 1_000_000_000
+#: tolerance when checking that a field of view is a whole number of steps, degrees
+_FIELD_TOLERANCE_DEG = 1e-6
+
+
+# -- configuration ------------------------------------------------------------------------
+
+
+def default_frame_id(source: str) -> str:
+    """The frame id for a source: its first ``.`` becomes ``/``.
+
+    ``bwr1.scanner`` -> ``bwr1/scanner``.
+    """
+    return source.replace(".", "/", 1)
+
+
+@dataclass(frozen=True)
+class Config:
+    """Options of one scanner service.
+
+    Attributes
+    ----------
+    device : str
+        Serial port, e.g. ``/dev/ttyUSB0`` or a simulator pty.
+    site : str
+        Site id: keys are ``stockpile/<site>/@v1/...``.
+    zenoh : ZenohOptions
+        Session options.
+    status_period_s : float
+        Seconds between status lines (0: none).
+    baud : int
+        Line rate, baud (bits per second); also sets the transfer time subtracted from the
+        arrival time.
+    source : str
+        Event source, e.g. ``bwr1.scanner``.
+    frame_id : str
+        ``LaserScan.frame_id``; empty: :func:`default_frame_id` of the source.
+    fov_deg, resolution_deg : float or None
+        Field of view and angular step, degrees; None: from each telegram's value count.
+    send_start : bool
+        Send the start-continuous-output command once after opening the port (never waits
+        for an answer).
+    clock : str
+        ``"wall"`` (the machine's UTC clock) or ``"site"`` (follow the ``clock`` events).
+    read_timeout_s : float
+        Longest wait of one serial read, seconds (also the idle-line threshold).
+    """
+
+    device: str
+    site: str = DEFAULT_SITE
+    zenoh: ZenohOptions = field(default_factory=ZenohOptions)
+    status_period_s: float = DEFAULT_STATUS_PERIOD_S
+    baud: int = DEFAULT_BAUD
+    source: str = DEFAULT_SOURCE
+    frame_id: str = ""
+    fov_deg: float | None = None
+    resolution_deg: float | None = None
+    send_start: bool = False
+    clock: str = "wall"
+    read_timeout_s: float = READ_TIMEOUT_S
+
+    def __post_init__(self) -> None:
+        if not self.device:
+            raise ValueError("a device is required (--device PATH)")
+        if not isinstance(self.baud, int) or self.baud <= 0:
+            raise ValueError(f"baud must be a positive integer, got {self.baud!r}")
+        if not is_valid_source(self.source):
+            raise ValueError(f"bad source name {self.source!r}")
+        if self.clock not in ("wall", "site"):
+            raise ValueError(f"clock must be 'wall' or 'site', got {self.clock!r}")
+        for name in ("fov_deg", "resolution_deg"):
+            value = getattr(self, name)
+            if value is not None and not (math.isfinite(value) and value > 0):
+                raise ValueError(f"{name} must be > 0, got {value}")
+        if self.fov_deg is not None and self.fov_deg > 360.0:
+            raise ValueError(f"fov_deg must be <= 360, got {self.fov_deg}")
+        if not self.read_timeout_s > 0:
+            raise ValueError(f"read_timeout_s must be > 0, got {self.read_timeout_s}")
+        if not self.frame_id:
+            object.__setattr__(self, "frame_id", default_frame_id(self.source))
+
+
+# -- pure parts: geometry, time, message --------------------------------------------------
+
+
+@dataclass(frozen=True)
+class ScanField:
+    """Angles of one scan, radians (Foxglove ``LaserScan``: bearing about +z from +x).
+
+    Attributes
+    ----------
+    start_angle_rad, end_angle_rad : float
+        Bearing of the first and the last value.
+    count : int
+        Values per scan.
+    """
+
+    start_angle_rad: float
+    end_angle_rad: float
+    count: int
+
+
+def scan_field(count: int, fov_deg: float | None = None,
+               resolution_deg: float | None = None) -> ScanField:
+    """The angles of a scan of ``count`` values.
+
+    Beam ``k`` has bearing ``-fov/2 + k * step`` (the simulator's
+    :func:`services.sim.sensors.beam_angles_rad`, computed the same way so the angles
+    agree to the last bit).
+
+    Parameters
+    ----------
+    count : int
+        Values in the telegram.
+    fov_deg, resolution_deg : float, optional
+        Field of view and step, degrees.  Both None: the LMS200 field for the count
+        (:func:`services.protocols.lms200.field_for_count`).  One given: the other follows
+        from ``fov = (count - 1) * step``.  Both given: they must agree with the count.
+
+    Returns
+    -------
+    ScanField
+
+    Raises
+    ------
+    ValueError
+        If the count is not an LMS200 count (nothing given), or does not fit the given
+        field: ``fov != (count - 1) * step``.
+    """
+    if count < 2:
+        raise ValueError(f"a scan needs at least 2 values, got {count}")
+    if fov_deg is None and resolution_deg is None:
+        fov_deg, resolution_deg = lms200.field_for_count(count)
+    elif fov_deg is None:
+        fov_deg = resolution_deg * (count - 1)
+    elif resolution_deg is None:
+        resolution_deg = fov_deg / (count - 1)
+    elif abs(resolution_deg * (count - 1) - fov_deg) > _FIELD_TOLERANCE_DEG:
+        raise ValueError(f"{count} values do not fit a {fov_deg:g} deg field at "
+                         f"{resolution_deg:g} deg steps (that needs "
+                         f"{round(fov_deg / resolution_deg) + 1} values)")
+    start = math.radians(-0.5 * fov_deg)
+    end = math.radians(-0.5 * fov_deg + resolution_deg * (count - 1))
+    return ScanField(start_angle_rad=start, end_angle_rad=end, count=int(count))
+
+
+def transfer_time_ns(n_bytes: int, baud: int) -> int:
+    """Time the line takes to carry ``n_bytes`` bytes at ``baud`` (8N1: 10 bits a byte), ns."""
+    return n_bytes * BITS_PER_BYTE * _NS_PER_S // baud
+
+
+def telegram_end_offsets(window: bytes, telegrams: list[bytes]) -> list[int]:
+    """Where each telegram ends in the bytes the reader held plus the bytes just read.
+
+    Parameters
+    ----------
+    window : bytes
+        The reader's unconsumed bytes before the feed followed by the bytes fed.
+    telegrams : list of bytes
+        What :meth:`TelegramReader.feed` returned for them, in order.
+
+    Returns
+    -------
+    list of int
+        Offset just past each telegram in ``window``.  The reader returns the first
+        CRC-valid candidate at or after the previous telegram's end, so the first match
+        of its bytes from there is the telegram itself.  A telegram not found (which the
+        reader's contract rules out) is taken to end at the window's end.
+    """
+    ends: list[int] = []
+    pos = 0
+    for telegram in telegrams:
+        start = window.find(telegram, pos)
+        end = len(window) if start < 0 else start + len(telegram)
+        ends.append(end)
+        pos = end if start >= 0 else pos
+    return ends
+
+
+def scan_valid_time_ns(window_end_ns: int, bytes_behind: int, telegram_bytes: int,
+                       baud: int, not_before_ns: int | None = None) -> int:
+    """Valid time of a scan: when its first byte went on the line.
+
+    Parameters
+    ----------
+    window_end_ns : int
+        Time the last byte read so far arrived (site time, UTC ns).
+    bytes_behind : int
+        Bytes that arrived after the telegram's last byte, up to that moment.
+    telegram_bytes : int
+        The telegram's length in bytes.
+    baud : int
+        Line rate.
+    not_before_ns : int, optional
+        Earliest possible arrival of the telegram's last byte (the previous read, UTC ns):
+        the line-rate estimate is not taken back past it.
+
+    Returns
+    -------
+    int
+        ``max(window_end_ns - transfer_time(bytes_behind), not_before_ns)
+        - transfer_time(telegram_bytes)``, UTC ns.
+    """
+    last_byte_ns = window_end_ns - transfer_time_ns(bytes_behind, baud)
+    if not_before_ns is not None and last_byte_ns < not_before_ns:
+        last_byte_ns = not_before_ns
+    return last_byte_ns - transfer_time_ns(telegram_bytes, baud)
+
+
+def scan_message(ranges_m: np.ndarray, valid_time_ns: int, frame_id: str,
+                 geometry: ScanField) -> LaserScan:
+    """A ``foxglove.LaserScan`` for one measurement.
+
+    Parameters
+    ----------
+    ranges_m : numpy.ndarray of float, shape (n,)
+        Ranges, metres; NaN for no return / error codes.
+    valid_time_ns : int
+        The scan's valid time, UTC ns (its ``timestamp``).
+    frame_id : str
+        Scanner frame.
+    geometry : ScanField
+        Start and end angles (``geometry.count`` must equal n).
+
+    Returns
+    -------
+    LaserScan
+        With an identity pose (the scan origin is the frame origin) and no intensities.
+    """
+    if ranges_m.shape != (geometry.count,):
+        raise ValueError(f"{ranges_m.shape[0]} ranges for a {geometry.count}-value field")
+    msg = LaserScan(frame_id=frame_id, start_angle=geometry.start_angle_rad,
+                    end_angle=geometry.end_angle_rad)
+    set_timestamp_ns(msg.timestamp, valid_time_ns)
+    msg.pose.orientation.w = 1.0
+    msg.ranges.extend(ranges_m.tolist())
+    return msg
+
+
+# -- command line -------------------------------------------------------------------------
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Add the scanner's own options (the shared ones come from ``service_cli``)."""
+    parser.add_argument("--device", required=True, metavar="PATH",
+                        help="serial port of the LMS200, e.g. /dev/ttyUSB0 or a simulator pty")
+    parser.add_argument("--baud", type=int, default=DEFAULT_BAUD,
+                        help=f"line rate, baud (default {DEFAULT_BAUD})")
+    parser.add_argument("--source", default=DEFAULT_SOURCE,
+                        help=f"event source (default {DEFAULT_SOURCE})")
+    parser.add_argument("--frame-id", default="",
+                        help="LaserScan frame id (default: the source with its first '.' "
+                        "replaced by '/', e.g. bwr1/scanner)")
+    parser.add_argument("--fov-deg", type=float, default=None, metavar="DEG",
+                        help="field of view, degrees (default: from each telegram's value "
+                        "count: 401/201/101 -> 100, 361/181 -> 180)")
+    parser.add_argument("--resolution-deg", type=float, default=None, metavar="DEG",
+                        help="angular step, degrees (default: from the value count: 401 -> "
+                        "0.25, 361/201 -> 0.5, 181/101 -> 1)")
+    parser.add_argument("--send-start", action="store_true",
+                        help="send the start-continuous-output command once on start (not "
+                        "for a scanner already streaming or a read-only tap)")
+    parser.add_argument("--clock", choices=("wall", "site"), default="wall",
+                        help="site time: the machine's UTC clock (wall, default) or the "
+                        "simulator's clock events (site)")
+
+
+def config_from_args(args: argparse.Namespace) -> Config:
+    """A :class:`Config` from parsed arguments (raises ValueError on bad values)."""
+    return Config(device=args.device, site=args.site, zenoh=ZenohOptions.from_args(args),
+                  status_period_s=args.status_period, baud=args.baud, source=args.source,
+                  frame_id=args.frame_id, fov_deg=args.fov_deg,
+                  resolution_deg=args.resolution_deg, send_start=args.send_start,
+                  clock=args.clock)
+
+
+# -- the service --------------------------------------------------------------------------
+
+
+class _ScanPipeline:
+    """Bytes in, scans out: the reader, the arrival bookkeeping and the counters."""
+
+    def __init__(self, config: Config, runtime: ServiceRuntime, site_time: SiteTime) -> None:
+        self.config = config
+        self.runtime = runtime
+        self.status = runtime.status
+        self.site_time = site_time
+        self.publisher = runtime.publisher(config.source)
+        self.publisher.declare("scan")
+        self.reader = lms200.TelegramReader()
+        self._pending = b""  # the reader's unconsumed bytes (tail of the stream)
+        self._window_end_s = time.monotonic()  # monotonic time the last byte arrived
+        self._previous_read_s = self._window_end_s  # ... and the read before that one
+        self._crc_errors = 0
+        self._garbage_bytes = 0
+        self._fields: dict[int, ScanField | None] = {}
+        self._clock_logged = False
+
+    def feed(self, data: bytes, arrived_s: float) -> None:
+        """Bytes that arrived at local monotonic time ``arrived_s``."""
+        window = self._pending + data
+        self._previous_read_s, self._window_end_s = self._window_end_s, arrived_s
+        self._handle(window, self.reader.feed(data))
+
+    def idle(self) -> None:
+        """The line was idle for a whole read timeout: give up a pending candidate.
+
+        Also logs ``site clock ready`` as soon as the clock is known, scans or not.
+        """
+        if self.reader.buffered_bytes:
+            self._handle(self._pending, self.reader.flush())
+        if not self._clock_logged and self.site_time.ready.is_set():
+            self._site_ns(time.monotonic())
+
+    def _handle(self, window: bytes, telegrams: list[bytes]) -> None:
+        buffered = self.reader.buffered_bytes
+        self._pending = window[len(window) - buffered:] if buffered else b""
+        self._sync_reader_counters()
+        if not telegrams:
+            return
+        self.status.add("telegrams", len(telegrams))
+        ends = telegram_end_offsets(window, telegrams)
+        window_end_ns = self._site_ns(self._window_end_s)
+        not_before_ns = None if window_end_ns is None else self._site_ns(self._previous_read_s)
+        for telegram, end in zip(telegrams, ends):
+            self._telegram(telegram, window_end_ns, len(window) - end, not_before_ns)
+
+    def _sync_reader_counters(self) -> None:
+        reader = self.reader
+        if reader.crc_errors != self._crc_errors:
+            self.status.add("crc_errors", reader.crc_errors - self._crc_errors)
+            self._crc_errors = reader.crc_errors
+        if reader.garbage_bytes != self._garbage_bytes:
+            self.status.add("garbage_bytes", reader.garbage_bytes - self._garbage_bytes)
+            self._garbage_bytes = reader.garbage_bytes
+
+    def _site_ns(self, monotonic_s: float) -> int | None:
+        """Site time of a local monotonic reading, or None before the site clock is known."""
+        if not self.site_time.ready.is_set():
+            return None
+        if not self._clock_logged and self.site_time.mode == "site":
+            self._clock_logged = True
+            self.runtime.log("site clock ready", speed=self.site_time.speed)
+        return self.site_time.at(monotonic_s)
+
+    def _telegram(self, telegram: bytes, window_end_ns: int | None, bytes_behind: int,
+                  not_before_ns: int | None) -> None:
+        frame = lms200.decode_frame(telegram)
+        if frame.command != lms200.CMD_MEASUREMENT or not frame.from_scanner:
+            self.status.add("other_telegrams")
+            return
+        try:
+            measurement = lms200.decode_measurement(telegram)
+        except lms200.TelegramError as exc:
+            self._count_once("bad_telegrams", "bad 0xb0 telegram", error=str(exc))
+            return
+        if measurement.partial_index != 0:
+            self._count_once("partial_scans", "partial scans are not supported",
+                             partial_index=measurement.partial_index)
+            return
+        geometry = self._field(measurement.count)
+        if geometry is None:
+            self.status.add("field_mismatch")
+            return
+        if window_end_ns is None:
+            self.status.add("waiting_for_clock")
+            return
+        valid_ns = scan_valid_time_ns(window_end_ns, bytes_behind, len(telegram),
+                                      self.config.baud, not_before_ns)
+        self.publisher.publish(scan_message(measurement.ranges_m, valid_ns,
+                                            self.config.frame_id, geometry))
+        self.status.add("published")
+
+    def _field(self, count: int) -> ScanField | None:
+        """The scan geometry for a value count (cached); None (logged once) if it does not fit."""
+        if count not in self._fields:
+            try:
+                self._fields[count] = scan_field(count, self.config.fov_deg,
+                                                 self.config.resolution_deg)
+            except ValueError as exc:
+                self._fields[count] = None
+                self.runtime.log("value count does not fit the field; these scans are "
+                                 "dropped", level="warning", count=count, error=str(exc))
+        return self._fields[count]
+
+    def _count_once(self, counter: str, msg: str, **fields) -> None:
+        """Count a dropped telegram; log the first of its kind."""
+        if self.status.get(counter) == 0:
+            self.runtime.log(msg, level="warning", **fields)
+        self.status.add(counter)
+
+
+def _open_port(config: Config) -> serial.Serial:
+    """Open the serial port (raises serial.SerialException or OSError)."""
+    return serial.Serial(config.device, config.baud, timeout=config.read_timeout_s)
+
+
+def _send_start(port: serial.Serial, runtime: ServiceRuntime) -> None:
+    """Send the start-continuous-output command once; never wait for its answer.
+
+    A port that cannot be written (a read-only tap) is logged, not fatal.
+    """
+    try:
+        port.write(lms200.START_CONTINUOUS)
+        port.flush()
+    except (serial.SerialException, OSError) as exc:
+        runtime.log("could not send start continuous output", level="warning", error=str(exc))
+        return
+    runtime.log("sent start continuous output", command=lms200.START_CONTINUOUS.hex())
+
+
+def _read_chunk(port: serial.Serial) -> bytes:
+    """Wait up to the port's timeout for a byte, then take everything already waiting."""
+    data = port.read(1)
+    if data:
+        waiting = port.in_waiting
+        if waiting:
+            data += port.read(waiting)
+    return data
+
+
+def main(config: Config, *, stopper: Stopper | None = None) -> int:
+    """Run the scanner service until the device ends or SIGINT/SIGTERM.
+
+    Returns
+    -------
+    int
+        0 on a clean stop (signal or device closed), 2 if the device cannot be opened or
+        the Zenoh session cannot start.
+    """
+    import zenoh
+
+    stopper = stopper or Stopper()  # installed first: SIGTERM during start-up stops cleanly
+    try:
+        port = _open_port(config)
+    except (serial.SerialException, OSError, ValueError) as exc:
+        log(SERVICE, "cannot open device", level="error", device=config.device,
+            error=str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__)
+        return 2
+    with port:
+        runtime = ServiceRuntime(SERVICE, config.site, config.zenoh, name=config.source,
+                                 status_period_s=config.status_period_s, stopper=stopper)
+        try:
+            runtime.open(error_keys=ERROR_KEYS, announce=False)
+        except zenoh.ZError as exc:
+            log(SERVICE, "cannot open zenoh session", level="error", error=str(exc))
+            return 2
+        with runtime:
+            site_time = SiteTime(config.clock)
+            site_time.follow(runtime.session, config.site)
+            try:
+                _run(config, port, runtime, site_time)
+            finally:
+                site_time.close()
+    return 0
+
+
+def _run(config: Config, port: serial.Serial, runtime: ServiceRuntime,
+         site_time: SiteTime) -> None:
+    """The read loop.  The liveliness token is declared once the port is open, the clock
+    followed and the publisher declared: "token present" means "reading"."""
+    pipeline = _ScanPipeline(config, runtime, site_time)
+    runtime.announce()
+    runtime.log("reading", device=config.device, baud=config.baud, source=config.source,
+                frame_id=config.frame_id, clock=config.clock, epoch=pipeline.publisher.epoch)
+    if config.send_start:
+        _send_start(port, runtime)
+    stopper = runtime.stopper
+    while not stopper.is_set():
+        try:
+            data = _read_chunk(port)
+        except (serial.SerialException, OSError) as exc:
+            runtime.log("device closed", device=config.device, error=str(exc))
+            break
+        if data:
+            pipeline.feed(data, time.monotonic())
+        else:
+            pipeline.idle()

@@ -1,0 +1,49 @@
+"""``stockpile service NAME``: start one service of the yard.
+
+Each service module (:data:`services.service.SERVICE_MODULES`) provides
+``add_arguments(parser)`` (its own options; the shared ones are added here),
+``config_from_args(args) -> Config`` and ``main(config, *, stopper=None) -> int``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+
+from services.service import SERVICE_MODULES, add_service_arguments
+
+SUMMARIES = {
+    "scanner": "read LMS200 telegrams from a serial port, publish scans",
+    "gnss": "read NMEA GGA from a serial port, publish location fixes",
+    "localizer": "fuse joint readings and GNSS fixes (UKF), publish joint estimates and poses",
+    "ledger": "the single writer of the ledger: subscribe, append in batches, serve reads",
+}
+
+
+def _run(args: argparse.Namespace) -> int:
+    module = importlib.import_module(SERVICE_MODULES[args.service])
+    return int(module.main(module.config_from_args(args)) or 0)
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser("service", help="start one service of the yard (scanner, gnss, "
+                              "localizer, ledger)",
+                              description=__doc__.splitlines()[0])
+    sub = p.add_subparsers(dest="service", metavar="NAME", required=True,
+                           parser_class=type(p))
+    for name, module_name in SERVICE_MODULES.items():
+        sp = sub.add_parser(name, help=SUMMARIES.get(name, ""), description=SUMMARIES.get(name))
+        try:
+            module = importlib.import_module(module_name)
+        except ModuleNotFoundError as exc:
+            if exc.name != module_name:
+                raise
+            sp.set_defaults(func=lambda _a, n=name: _missing(n))
+            continue
+        module.add_arguments(sp)
+        add_service_arguments(sp)
+        sp.set_defaults(func=_run)
+
+
+def _missing(name: str) -> int:
+    raise OSError(f"service {name!r} is not installed in this build")
