@@ -352,9 +352,13 @@ class DuckDBStore(LedgerStore):
                            "ORDER BY global_seq", params)
 
     def as_of(self, valid_time_ns: int, known_time_ns: int, *,
-              types: Sequence[str] | None = None) -> Iterator[RecordedEvent]:
+              types: Sequence[str] | None = None,
+              after: tuple[int, int] | None = None) -> Iterator[RecordedEvent]:
         where = ["valid_time_ns <= ?", "recorded_time_ns <= ?"]
         params: list = [valid_time_ns, known_time_ns]
+        if after is not None:
+            where.append("(valid_time_ns > ? OR (valid_time_ns = ? AND global_seq > ?))")
+            params += [int(after[0]), int(after[0]), int(after[1])]
         self._filters(types, None, where, params)
         return self._query(f"SELECT {_ROW_COLUMNS} FROM event_log WHERE {' AND '.join(where)} "
                            "ORDER BY valid_time_ns, global_seq", params)

@@ -62,14 +62,16 @@ class MemoryStore(LedgerStore):
             yield row
 
     def as_of(self, valid_time_ns: int, known_time_ns: int, *,
-              types: Sequence[str] | None = None) -> Iterator[RecordedEvent]:
+              types: Sequence[str] | None = None,
+              after: tuple[int, int] | None = None) -> Iterator[RecordedEvent]:
         with self._lock:
             self._check_open()
             # recorded time is non-decreasing along the global sequence
             known = self._rows[:bisect.bisect_right(self._recorded, known_time_ns)]
         type_set = set(types) if types is not None else None
         chosen = [r for r in known if r.valid_time_ns <= valid_time_ns
-                  and (type_set is None or r.type in type_set)]
+                  and (type_set is None or r.type in type_set)
+                  and (after is None or (r.valid_time_ns, r.global_seq) > tuple(after))]
         chosen.sort(key=lambda r: (r.valid_time_ns, r.global_seq))
         return iter(chosen)
 

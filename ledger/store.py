@@ -404,11 +404,14 @@ class LedgerStore(abc.ABC):
         known_time_ns: int,
         *,
         types: Sequence[str] | None = None,
+        after: tuple[int, int] | None = None,
     ) -> Iterator[RecordedEvent]:
         """The ledger as it was known at ``known_time_ns`` about ``valid_time_ns``.
 
         Events with valid time <= V recorded at or before K, ordered by
-        (valid time, global seq).
+        (valid time, global seq).  ``after=(valid_ns, global_seq)`` keeps only the
+        events that come after that position in this order (a fold resuming from a
+        snapshot).
         """
 
     @abc.abstractmethod

@@ -266,6 +266,12 @@ class LedgerStoreContract(abc.ABC):
                         if v <= valid and r <= known]
                 got = [r.global_seq for r in store.as_of(valid, known)]
                 assert got == want, (valid, known)
+                # resuming after any position gives exactly the rest, in the same order
+                rows = list(store.as_of(valid, known))
+                for cut in {0, len(rows) // 2, len(rows) - 1} if rows else ():
+                    mark = (rows[cut].valid_time_ns, rows[cut].global_seq)
+                    rest = [r.global_seq for r in store.as_of(valid, known, after=mark)]
+                    assert rest == want[cut + 1:], (valid, known, mark)
             store.close()
 
     def test_preserved_recorded_time_is_kept(self, tmp_path):

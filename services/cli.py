@@ -24,6 +24,7 @@ class _Parser(argparse.ArgumentParser):
 
 def build_parser() -> argparse.ArgumentParser:
     from ledger import cli as ledger_cli
+    from ledger.projector import cli as project_cli
     from services import demo
     from services import run_config, service_cli
     from services.sim import cli as sim_cli
@@ -37,6 +38,7 @@ def build_parser() -> argparse.ArgumentParser:
                                 parser_class=_Parser)
     demo.register(sub)
     ledger_cli.register(sub)
+    project_cli.register(sub)
     sim_cli.register(sub)
     service_cli.register(sub)
     run_config.register(sub)

@@ -19,6 +19,7 @@ every event they say they published, stops the ledger, and checks the result
 from __future__ import annotations
 
 import json
+import re
 import time
 from dataclasses import fields
 from pathlib import Path
@@ -281,6 +282,8 @@ def run_yard_demo(out_dir: Path, *, seed: int = 1, speed: float = 40.0, idle_spe
                       "")
         if pacing:
             _say(f"   simulator {pacing}")
+        lag = re.search(r"largest lag ([0-9.]+) s", pacing)
+        sim_max_lag_s = float(lag.group(1)) if lag else 0.0
         for name in ("scanner", "gnss"):  # their ports went quiet: they end on their own
             if yard.wait_exit(name, 30) is None:
                 yard.stop(name)
@@ -356,7 +359,7 @@ def run_yard_demo(out_dir: Path, *, seed: int = 1, speed: float = 40.0, idle_spe
     summary = {"ok": ok, "exit_codes": rc, "published": published, "exactly_once": exact,
                "per_type": stats.per_type, "open_gaps": len(gaps), "quarantined": len(quarantine),
                "verify_ok": verify.ok, "pile_book": book, "localizer": rmse, "scan_timing": timing,
-               "speed": speed, "sim_pacing": pacing, "wall_s": time.monotonic() - started}
+               "speed": speed, "sim_pacing": pacing, "sim_max_lag_s": sim_max_lag_s, "wall_s": time.monotonic() - started}
     (out_dir / "summary.json").write_text(json.dumps(summary, indent=2, default=list))
     _say(f"\n{'all checks hold' if ok else 'CHECKS FAILED'}: exit codes {rc}; "
          f"done in {time.monotonic() - started:.0f} s -> {out_dir}/summary.json")

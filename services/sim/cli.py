@@ -59,7 +59,7 @@ def run_sim(args: argparse.Namespace) -> int:
     print(f"simulating scenario {scenario.name!r}, seed {args.seed} -> {out}", flush=True)
     try:
         sim = Simulation(scenario, args.seed, out, sinks=sinks, scanner_pty=ptys.get("scanner"),
-                         gnss_pty=ptys.get("gnss"),
+                         gnss_pty=ptys.get("gnss"), scan_events=args.scan_events,
                          progress=lambda line: print(f"  {line}", file=sys.stderr, flush=True))
         stats = sim.run(duration_h=args.duration, speed=args.speed, idle_speed=args.idle_speed)
         for pty in ptys.values():  # the devices go quiet: their readers see the end
@@ -128,6 +128,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--pty", action="store_true",
                    help="also write the scanner and GNSS streams to pseudo-terminals (paths printed)")
     p.add_argument("--zenoh", action="store_true", help="also publish the events on zenoh")
+    p.add_argument("--scan-events", choices=("off", "truth", "encoders"), default="off",
+                   help="also emit, per scan, a 'scan' event (source MACHINE.scanner, as the "
+                   "scanner service decodes the LMS200 telegram) and the scanner's "
+                   "'frame_transform' (source MACHINE.poses, site -> MACHINE/scanner) at the "
+                   "scan time, so a ledger needs no scanner or localizer service: truth = the "
+                   "true scanner pose, encoders = forward kinematics of the latest encoder "
+                   "reading; default off (no such events)")
     p.add_argument("--wait-subscriber", type=float, default=0.0, metavar="SECONDS",
                    help="with --zenoh: start only once a subscriber listens (give up after SECONDS)")
     p.add_argument("--wait-live", action="append", default=[], metavar="KEY",

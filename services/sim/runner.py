@@ -5,6 +5,7 @@ Output of one run (all deterministic for a given scenario and seed):
 ``events.jsonl``
     every event the yard publishes on Zenoh (declarations, clock, joint readings,
     stacking and reclaim events, lots, assays), as canonical JSON lines;
+    with ``scan_events`` (below) also the scans and the scanner's poses;
 ``lms200.bin``
     the byte stream of the LMS200 scanner (0xB0 telegrams), as written to its
     pseudo-terminal;
@@ -17,6 +18,33 @@ Output of one run (all deterministic for a given scenario and seed):
 Time is site time (UTC ns).  The site clock is published as ``clock`` events every
 ``clock_period_s``; at ``speed`` > 0 the run is paced against the wall clock
 (``speed`` site seconds per wall second), at 0 it runs as fast as it can.
+
+Scan events (``scan_events``, CLI ``--scan-events``).  A yard gets its ``scan`` events
+from the scanner service (which decodes the LMS200 byte stream) and the scanner's
+``frame_transform`` events from the localizer.  For testing consumers on a ledger built
+from the simulator alone, the run can emit both itself, into every sink:
+
+``"off"`` (default)
+    none; every output is byte-identical to a run without the option.
+``"truth"``
+    per scan, one ``frame_transform`` (source ``<machine>.poses``, parent ``site``, child
+    ``<machine>/scanner``) with the true scanner pose the scan was ray-cast from, and one
+    ``scan`` (source ``<machine>.scanner``), both with the scan's valid time (the moment
+    its telegram starts on the line, as the scanner service reconstructs it).
+``"encoders"``
+    the same, but the pose is the forward kinematics of the latest ``joint_reading``
+    at or before the scan time (the encoders read at that very time are included): what a
+    yard without a localizer would have.
+
+The scan is the LMS200 telegram written to ``lms200.bin`` decoded and turned into a
+``foxglove.LaserScan`` by :func:`services.scanner.scan_message` with the scanner
+service's defaults (frame ``<machine>/scanner``, angles from the value count, ranges in
+metres quantised to the telegram's unit, NaN for no-return and error codes).  Both
+events are emitted after everything else the yard does at that instant (the frame
+transform first); no random numbers are drawn for them, so the other streams do not
+change.  Do not combine them with a scanner service or localizer on the same yard: the
+ledger would get both versions (the localizer's transforms have source
+``<machine>.localizer``; a scanner service's scans the same source, another epoch).
 """
 
 from __future__ import annotations
@@ -31,12 +59,14 @@ from pathlib import Path
 from typing import Callable
 
 import numpy as np
+from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
 from scipy.spatial.transform import Rotation
 
 from schemas import pb
 from schemas.events import set_timestamp_ns
 from services.protocols import lms200
 from services.protocols.nmea import format_gga
+from services.scanner import default_frame_id, scan_field, scan_message
 from services.sim import sensors
 from services.sim.grades import ANALYTES, NS_PER_S, BeltGrade, LabModel, LabResult
 from services.sim.kinematics import boom_radius_m, envelope_floor_z, wheel_centre
@@ -54,6 +84,8 @@ CHUNK_S = 30.0           # stacking is released in chunks of this much site time
 CUT_SUBSWEEPS = 8        # a cut removes material in this many steps of its slew
 MOVE_SPEED_M_S = 0.5     # travel speed between cuts and while patrolling
 SLEW_STEP_RAD = math.radians(0.5)
+#: values of ``Simulation.scan_events`` / ``--scan-events`` (see the module docstring)
+SCAN_EVENTS = ("off", "truth", "encoders")
 
 
 def _rng(seed: int, name: str) -> np.random.Generator:
@@ -118,9 +150,15 @@ class Simulation:
     progress: Callable[[str], None] | None = None
     #: keep every scan's cast ranges and beam status (tests; memory grows with the run)
     record_scans: bool = False
+    #: "off", "truth" or "encoders": emit ``scan`` and scanner ``frame_transform`` events
+    #: (see the module docstring)
+    scan_events: str = "off"
 
     def __post_init__(self) -> None:
         sc = self.scenario
+        if self.scan_events not in SCAN_EVENTS:
+            raise ValueError(f"scan_events must be one of {', '.join(SCAN_EVENTS)}, "
+                             f"got {self.scan_events!r}")
         self.out_dir = Path(self.out_dir)
         self.out_dir.mkdir(parents=True, exist_ok=True)
         self.jsonl = JsonlSink(self.out_dir / "events.jsonl")
@@ -130,6 +168,9 @@ class Simulation:
             ("config", "yard.config"), ("clock", "sim.clock"),
             ("encoders", f"{sc.machine_id}.encoders"), ("stacker", f"{sc.stacker_id}.plc"),
             ("reclaimer", f"{sc.machine_id}.plc"), ("lims", "lims"), ("lab", "lab1"))}
+        if self.scan_events != "off":
+            self.producers["scans"] = Producer(f"{sc.machine_id}.scanner", epoch, all_sinks)
+            self.producers["poses"] = Producer(f"{sc.machine_id}.poses", epoch, all_sinks)
         margin = max(sc.pile_width_m * 0.25, 4 * sc.deposition_cell_m)
         self.grid = Grid.covering(sc.pile_origin_x_m - margin, sc.pile_origin_x_m + sc.pile_width_m + margin,
                                   sc.pile_origin_y_m - margin, sc.pile_origin_y_m + sc.pile_length_m + margin,
@@ -143,6 +184,13 @@ class Simulation:
         self.scanner = sensors.ScannerModel(fov_deg=sc.scan_fov_deg, step_deg=sc.scan_step_deg,
                                             max_range_m=8.0 if self.unit_mm else 80.0,
                                             unit_mm=self.unit_mm, rng=_rng(self.seed, "scanner"))
+        if self.scan_events != "off":
+            # the scanner service's defaults: frame from the source, field from the value
+            # count (the scanner model only takes LMS200 fields, so they are the cast ones)
+            self.scan_frame_id = default_frame_id(self.producers["scans"].source)
+            self.scan_field = scan_field(self.scanner.n_beams)
+        #: the latest encoder reading: (t_ns, travel m, slew rad, luff rad) as published
+        self.last_reading: tuple[int, float, float, float] | None = None
         self.rng_belt = _rng(self.seed, "belt")
         self.rng_stack = _rng(self.seed, "stacking")
         self.lms_file = (self.out_dir / "lms200.bin").open("wb")
@@ -339,6 +387,7 @@ class Simulation:
         msg = pb.JointReading(machine_id=self.scenario.machine_id, travel_m=float(travel),
                               slew_rad=float(slew), luff_rad=float(luff))
         self.producers["encoders"].emit(_stamp(msg, "time", t))
+        self.last_reading = (t, msg.travel_m, msg.slew_rad, msg.luff_rad)
         at(t + self._period_ns(t, self.scenario.encoder_hz), "encoder", None)
 
     def _on_gnss(self, t: int, period: int, at) -> None:
@@ -373,7 +422,29 @@ class Simulation:
         self.truth_scans.append((t, *position, *rotation.ravel()))
         self.stats.scans += 1
         self.stats.lms200_bytes += len(data)
+        if self.scan_events != "off":
+            # queued at this very time: handled after everything already due now (the
+            # encoders read at t among them), and nothing else moves in the queue
+            at(t, "scan_events", (data, position, rotation))
         at(t + self._period_ns(t, sc.scan_hz), "scan", None)
+
+    def _on_scan_events(self, t: int, payload, at) -> None:
+        """The ``frame_transform`` and ``scan`` events of the scan taken at ``t``."""
+        data, position, rotation = payload
+        if self.scan_events == "encoders":
+            if self.last_reading is None:  # cannot happen: the encoders read first at t0
+                raise RuntimeError("a scan before the first encoder reading")
+            position, rotation = self._scanner_pose(self.last_reading[1:])
+        quat = Rotation.from_matrix(rotation).as_quat()  # x, y, z, w
+        if quat[3] < 0:
+            quat = -quat
+        ft = FrameTransform(parent_frame_id="site",
+                            child_frame_id=f"{self.scenario.machine_id}/scanner")
+        ft.translation.x, ft.translation.y, ft.translation.z = (float(v) for v in position)
+        ft.rotation.x, ft.rotation.y, ft.rotation.z, ft.rotation.w = (float(v) for v in quat)
+        self.producers["poses"].emit(_stamp(ft, "timestamp", t))
+        ranges = lms200.decode_measurement(data).ranges_m
+        self.producers["scans"].emit(scan_message(ranges, t, self.scan_frame_id, self.scan_field))
 
     def _on_telegram(self, t: int, data: bytes, at) -> None:
         self._write(self.lms_file, self.scanner_pty, data)

@@ -1,0 +1,215 @@
+"""Projector benchmarks: throughput of the projector's kernels, one section per stage group.
+
+Run it from the project root with the project's virtualenv::
+
+    .venv/bin/python bench/projector.py             # every section
+    .venv/bin/python bench/projector.py --quick     # smaller inputs (smoke run)
+
+Structure: ``SECTIONS`` is a list of section functions.  Each takes the parsed arguments
+and returns a :class:`Section` (a title, a table and notes); :func:`main` runs them in
+order and prints each table.  To add a benchmark, write ``section_xxx(args) -> Section``
+and append it to ``SECTIONS``.
+
+The process is pinned to one CPU and the BLAS/OpenMP pools to one thread before numpy
+is imported, so the figures are single-core.
+
+Sections
+--------
+1. :func:`section_georef_fuse` -- scans -> height map: ``interpolate_poses`` +
+   ``clean_profile`` + ``georeference`` + ``rasterize`` + ``fuse`` on 401-beam LMS200
+   scans of the full-scale hyperbolic pile of ``bench/accuracy.py`` (220 m x 30 m,
+   0.25 m cells), in batches of 75 scans (one second of a 75 Hz LMS200), two passes over
+   the pile (the first initialises the cells, the second updates them by Kalman steps).
+   Target: >= 1,000,000 scan points per second through all stages.  Also prints the
+   peak memory of the pipeline (tracemalloc, a separate untimed run) and the process's
+   peak RSS.
+"""
+
+from __future__ import annotations
+
+import os
+
+for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS",
+             "NUMEXPR_NUM_THREADS", "VECLIB_MAXIMUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
+import argparse  # noqa: E402
+import resource  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+import tracemalloc  # noqa: E402
+from dataclasses import dataclass, field, replace  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+for _p in (ROOT, ROOT / "bench"):
+    if str(_p) not in sys.path:
+        sys.path.insert(0, str(_p))
+
+import numpy as np  # noqa: E402
+
+from accuracy import NS_PER_S, Case, Rig, grid_for, simulate, thesis_piles  # noqa: E402
+from ledger.projector.georef import georeference, interpolate_poses  # noqa: E402
+from ledger.projector.heightmap import HeightMap, fuse, rasterize  # noqa: E402
+from ledger.projector.profile import clean_profile  # noqa: E402
+
+
+@dataclass
+class Section:
+    """One benchmark section's output: a table (header + rows of cells) and notes."""
+
+    title: str
+    header: list[str]
+    rows: list[list[str]]
+    notes: list[str] = field(default_factory=list)
+    ok: bool = True
+
+
+def pin_one_core() -> str:
+    """Pin this process to one CPU (Linux); returns a description."""
+    try:
+        cpu = min(os.sched_getaffinity(0))
+        os.sched_setaffinity(0, {cpu})
+        return f"pinned to CPU {cpu}"
+    except (AttributeError, OSError):
+        return "not pinned (no sched_setaffinity)"
+
+
+def print_section(number: int, s: Section) -> None:
+    print(f"\n{number}. {s.title}")
+    widths = [max(len(h), *(len(r[i]) for r in s.rows)) for i, h in enumerate(s.header)]
+    def fmt(cells):
+        return "  ".join(c.rjust(w) if i else c.ljust(w)
+                         for i, (c, w) in enumerate(zip(cells, widths)))
+
+    line = fmt(s.header)
+    print(line)
+    print("-" * len(line))
+    for r in s.rows:
+        print(fmt(r))
+    for n in s.notes:
+        print(n)
+
+
+# --------------------------------------------------------------------------------------
+# 1. scans -> height map
+# --------------------------------------------------------------------------------------
+
+STAGES = ("interpolate_poses", "clean_profile", "georeference", "rasterize", "fuse")
+TARGET_POINTS_S = 1_000_000
+
+
+def _pipeline(hm, t_scan, ranges, angle_min, inc, t_pose, pose_tr, pose_q, batch, sd,
+              timer=None):
+    """Run all batches through the stages; ``timer`` accumulates seconds per stage."""
+    clock = time.perf_counter
+    for k in range(0, len(t_scan), batch):
+        sl = slice(k, k + batch)
+        t0 = clock()
+        tr, q = interpolate_poses(t_scan[sl], t_pose, pose_tr, pose_q, max_gap_ns=NS_PER_S // 2)
+        t1 = clock()
+        clean = clean_profile(ranges[sl])
+        t2 = clock()
+        pts = georeference(clean, angle_min, inc, tr, q)
+        t3 = clock()
+        obs = rasterize(hm.geometry, pts)
+        t4 = clock()
+        hm, _ = fuse(hm, obs, int(t_scan[sl][-1]), sd)
+        t5 = clock()
+        if timer is not None:
+            for name, dt in zip(STAGES, (t1 - t0, t2 - t1, t3 - t2, t4 - t3, t5 - t4)):
+                timer[name] += dt
+    return hm
+
+
+def section_georef_fuse(args) -> Section:
+    """Throughput of georeference + clean + rasterize + fuse, 401-beam scans, one core."""
+    pile = next(p for p in thesis_piles() if p.name == "hyperbolic")
+    sd = 0.05
+    rig = Rig()                                   # 45 m up, 0.25 deg (401 beams), 0.1 m apart
+    if args.quick:
+        pile = pile.scaled(0.25)
+        rig = replace(rig.scaled(0.25), max_range_m=80.0)
+    case = Case(pile, "full", "noisy", sd, 0.25, rig)
+    geom = grid_for(case)
+    rng = np.random.default_rng(args.seed)
+    passes = []
+    for _ in range(2):                            # two passes, independent noise
+        t_scan, _pos, ranges, angle_min, inc, t_pose, pose_tr, pose_q = simulate(case, geom, rng)
+        passes.append((t_scan, ranges, t_pose, pose_tr, pose_q))
+    # the second pass happens an hour later (the same ride)
+    hour = 3600 * NS_PER_S
+    t_scan2, ranges2, t_pose2, pose_tr2, pose_q2 = passes[1]
+    passes[1] = (t_scan2 + hour, ranges2, t_pose2 + hour, pose_tr2, pose_q2)
+    n_beams = passes[0][1].shape[1]
+    points = sum(int(p[1].size) for p in passes)
+    returns = sum(int(np.isfinite(p[1]).sum()) for p in passes)
+    batch = 75
+
+    # warm-up (first calls, first-touch allocations) on one batch, then the timed run
+    t_scan, ranges, t_pose, pose_tr, pose_q = passes[0]
+    _pipeline(HeightMap.empty(geom), t_scan[:batch], ranges[:batch], angle_min, inc, t_pose,
+              pose_tr, pose_q, batch, sd)
+    timer = {s: 0.0 for s in STAGES}
+    hm = HeightMap.empty(geom)
+    wall0 = time.perf_counter()
+    for t_scan, ranges, t_pose, pose_tr, pose_q in passes:
+        hm = _pipeline(hm, t_scan, ranges, angle_min, inc, t_pose, pose_tr, pose_q, batch, sd,
+                       timer)
+    wall = time.perf_counter() - wall0
+    seen = int(hm.seen.sum())
+
+    # peak memory of the pipeline alone (inputs already allocated), untimed
+    tracemalloc.start()
+    base = tracemalloc.get_traced_memory()[0]
+    hm2 = HeightMap.empty(geom)
+    t_scan, ranges, t_pose, pose_tr, pose_q = passes[0]
+    hm2 = _pipeline(hm2, t_scan, ranges, angle_min, inc, t_pose, pose_tr, pose_q, batch, sd)
+    peak = tracemalloc.get_traced_memory()[1] - base
+    tracemalloc.stop()
+    maxrss_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+    total = sum(timer.values())
+    rows = []
+    for s in STAGES:
+        rows.append([s, f"{timer[s]:.3f}", f"{points / timer[s]:,.0f}",
+                     f"{100 * timer[s] / total:.1f}"])
+    rate = points / total
+    ok = rate >= TARGET_POINTS_S
+    rows.append(["all stages", f"{total:.3f}", f"{rate:,.0f}", "100.0"])
+    mb = 1024 * 1024
+    notes = [
+        f"input: {points:,} scan points ({returns:,} returns) = 2 passes x {len(passes[0][0]):,} "
+        f"scans x {n_beams} beams, batches of {batch} scans; grid {geom.nx} x {geom.ny} cells of "
+        f"{geom.cell_m} m ({seen:,} seen); wall {wall:.3f} s",
+        f"target >= {TARGET_POINTS_S:,} points/s through all stages: "
+        f"{rate:,.0f} points/s -> {'PASS' if ok else 'MISS'}",
+        f"peak memory: pipeline {peak / mb:.1f} MiB (tracemalloc, one pass; height map "
+        f"{sum(a.nbytes for a in hm.grid.layers.values()) / mb:.1f} MiB, copied by each fuse), "
+        f"process peak RSS {maxrss_mb:.0f} MiB (includes the simulated input)",
+    ]
+    return Section("scans -> height map (georeference + clean + rasterize + fuse), one core",
+                   ["stage", "seconds", "points/s", "% time"], rows, notes, ok)
+
+
+SECTIONS = [section_georef_fuse]
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--seed", type=int, default=0, help="seed of the simulated range noise")
+    ap.add_argument("--quick", action="store_true", help="smaller inputs (smoke run)")
+    args = ap.parse_args(argv)
+    pinned = pin_one_core()
+    print(f"projector benchmarks: seed={args.seed}, numpy {np.__version__}, {pinned}"
+          + (", quick" if args.quick else ""))
+    ok = True
+    for number, section in enumerate(SECTIONS, start=1):
+        result = section(args)
+        print_section(number, result)
+        ok &= result.ok
+    return 0 if ok else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,518 @@
+"""The projection as a fold: ``apply(state, event) -> state``, no I/O inside.
+
+Events are folded in (valid time, global seq) order, the order
+:meth:`ledger.store.LedgerStore.as_of` returns.  The state holds the geometry of one
+pile (the fused height map and the layer stack with its deposits), the reclaim cuts
+with what they removed, and what grades are joined from at query time: lots' planned
+grades and the assays the fold has seen.  Grades are never folded into the geometry:
+:mod:`ledger.projector.query` joins them as known at K.
+
+How each event type acts
+------------------------
+``pile_declared``     (this pile) the grid, the empty height map and the layer stack
+``machine_declared``  a reclaimer's constants (for the cutting envelope)
+``lot_declared``      a lot's planned grade
+``stack_started``     opens a deposit for the pass; rises until its end belong to it
+``stack_ended``       closes the pass (belt tonnes kept for reports)
+``frame_transform``   a pose of a ``<machine>/scanner`` frame; releases waiting scans
+``scan``              waits for the scanner pose after it, then is georeferenced,
+                      cleaned, rasterised and fused into the height map in batches
+``reclaim_cut``       clamps every surface to the cutting-envelope floor; the removed
+                      bands are the cut's composition
+``assay``             kept (with its recorded time) for the grade join
+
+After each batch of scans the layer stack follows the height map: a cell that rose
+beyond the noise margin adds to the open pass's deposit (outside any pass: to a
+flagged deposit); a cell that fell beyond the margin is clamped to the measurement
+and the removed material is attributed to the latest cut as its geometry residual
+(before any cut: flagged as unexplained loss).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+
+from schemas.events import decode_payload, timestamp_ns
+
+from ledger.projector import georef, heightmap, profile
+from ledger.projector.envelope import Reclaimer, cut_floor
+from ledger.projector.grades import AssayRecord
+from ledger.projector.grid import GridGeometry
+from ledger.projector.layers import DepositInfo, LayerStack, Removal
+
+__all__ = ["FoldConfig", "PileInfo", "PassRecord", "CutRecord", "ProjectorState",
+           "initial_state", "apply", "flush", "GEOMETRY_TYPES"]
+
+#: event types that change the geometric state (assays and lots only feed the join)
+GEOMETRY_TYPES = ("pile_declared", "machine_declared", "stack_started", "stack_ended",
+                  "frame_transform", "scan", "reclaim_cut")
+#: every type the fold reads
+FOLD_TYPES = GEOMETRY_TYPES + ("lot_declared", "assay")
+
+DEFAULT_CELL_M = 0.25
+DEFAULT_VOXEL_M = 1.0
+
+
+@dataclass(frozen=True)
+class FoldConfig:
+    """Tuning of the fold (defaults suit an LMS200 on a full-scale reclaimer).
+
+    Attributes
+    ----------
+    pile_id : str
+        The pile this state projects.
+    point_sd_m : float or None
+        Height noise of one scan point, metres.  None: from the pile's cell size, 5 cm
+        for a yard (LMS200 range noise plus pose error) and 15 mm (the LMS200's own
+        noise) for a laboratory pile with cells under 5 cm.
+    scan_batch : int
+        Scans georeferenced and fused together.
+    max_pose_gap_ns : int
+        Longest gap between two scanner poses a scan time may be interpolated across.
+    max_scan_wait_ns : int
+        A scan with no pose after it this long after its time is dropped (counted).
+    margin_sigma : float
+        A cell's stack surface follows the height map when they differ by more than
+        this many sigma of the fused height (plus ``margin_m``).
+    margin_m : float or None
+        Fixed part of that margin, metres (None: 0.4 x ``point_sd_m``).
+    gate_sigma : float
+        Mahalanobis gate of the height fusion.
+    change_count : int
+        Agreeing out-of-gate observations before a sparsely seen cell changes.
+    strong_points : int
+        A cell with at least this many points in one batch changes at once.
+    fill_gap_cells : int
+        Unseen runs of at most this many cells between seen cells are interpolated
+        (linearly) before the stack follows the height map; 0 = no filling.
+    """
+
+    pile_id: str
+    point_sd_m: float | None = None
+    scan_batch: int = 50
+    max_pose_gap_ns: int = 2_000_000_000
+    max_scan_wait_ns: int = 10_000_000_000
+    margin_sigma: float = 3.0
+    margin_m: float | None = None
+    gate_sigma: float = 3.0
+    change_count: int = 3
+    strong_points: int = 3
+    fill_gap_cells: int = 16
+
+
+@dataclass(frozen=True)
+class PileInfo:
+    """What ``pile_declared`` said."""
+
+    pile_id: str
+    geometry: GridGeometry
+    ground_z_m: float
+    voxel_m: float
+    default_bulk_density_t_m3: float
+
+
+@dataclass
+class PassRecord:
+    """One stacking pass."""
+
+    pass_id: str
+    lot_id: str
+    machine_id: str
+    started_ns: int
+    deposit_index: int
+    ended_ns: int | None = None
+    belt_tonnes: float | None = None
+
+
+@dataclass
+class CutRecord:
+    """One reclaim cut: what the envelope removed and what scans attributed to it later."""
+
+    cut_id: str
+    bench_id: str
+    machine_id: str
+    start_ns: int
+    end_ns: int
+    belt_tonnes: float
+    removals: list[Removal] = field(default_factory=list)
+    predicted_m3: float = 0.0
+    residual_m3: float = 0.0
+    returned_m3: float = 0.0
+
+
+@dataclass
+class _Scan:
+    t_ns: int
+    ranges_m: np.ndarray
+    start_angle_rad: float
+    end_angle_rad: float
+
+
+@dataclass
+class ProjectorState:
+    """Everything the fold knows about one pile.  Build with :func:`initial_state`."""
+
+    config: FoldConfig
+    pile: PileInfo | None = None
+    machines: dict[str, Reclaimer] = field(default_factory=dict)
+    lots: dict[str, dict[str, float]] = field(default_factory=dict)
+    passes: dict[str, PassRecord] = field(default_factory=dict)
+    active_pass: str | None = None
+    height: Any = None              # heightmap.HeightMap
+    stack: LayerStack | None = None
+    cuts: list[CutRecord] = field(default_factory=list)
+    assays: list[AssayRecord] = field(default_factory=list)
+    pose_t_ns: list[int] = field(default_factory=list)
+    pose_xyz: list[tuple[float, float, float]] = field(default_factory=list)
+    pose_q: list[tuple[float, float, float, float]] = field(default_factory=list)
+    pending: list[_Scan] = field(default_factory=list)
+    flagged_loss_m3: float = 0.0
+    point_sd_m: float = 0.05       # resolved from the config and the pile
+    margin_m: float = 0.02
+    counters: dict[str, int] = field(default_factory=dict)
+    high_water: tuple[int, int] = (-(2 ** 62), -1)   # (valid ns, global seq) folded so far
+
+    def count(self, key: str, n: int = 1) -> None:
+        self.counters[key] = self.counters.get(key, 0) + n
+
+    def copy(self) -> "ProjectorState":
+        """A deep enough copy for a snapshot (arrays are copied; records are immutable)."""
+        return replace(
+            self, machines=dict(self.machines), lots={k: dict(v) for k, v in self.lots.items()},
+            passes={k: replace(v) for k, v in self.passes.items()},
+            height=None if self.height is None else self.height.copy(),
+            stack=None if self.stack is None else self.stack.copy(),
+            cuts=[replace(c, removals=list(c.removals)) for c in self.cuts],
+            assays=list(self.assays), pose_t_ns=list(self.pose_t_ns),
+            pose_xyz=list(self.pose_xyz), pose_q=list(self.pose_q),
+            pending=list(self.pending), counters=dict(self.counters))
+
+
+def initial_state(config: FoldConfig | str) -> ProjectorState:
+    """The state before any event (``config`` may be just the pile id)."""
+    if isinstance(config, str):
+        config = FoldConfig(pile_id=config)
+    return ProjectorState(config=config)
+
+
+# -- the fold -----------------------------------------------------------------------------
+
+
+def apply(state: ProjectorState, event) -> ProjectorState:
+    """Fold one ledger event (a :class:`ledger.records.RecordedEvent`) into the state.
+
+    Events must come in (valid time, global seq) order; other types are ignored.
+    Returns the state (updated in place: the caller copies it to keep a snapshot).
+    """
+    handler = _HANDLERS.get(event.type)
+    state.high_water = (event.valid_time_ns, event.global_seq)
+    if handler is None:
+        return state
+    handler(state, event, decode_payload(event.type, event.payload))
+    return state
+
+
+def flush(state: ProjectorState) -> ProjectorState:
+    """Fuse every waiting scan that has a pose and settle drops (at a query's end)."""
+    _process_scans(state, final=True)
+    if state.stack is not None:
+        _follow_height(state, state.high_water[0])
+    return state
+
+
+def _on_pile(state: ProjectorState, event, msg) -> None:
+    if msg.pile_id != state.config.pile_id or state.pile is not None:
+        if msg.pile_id == state.config.pile_id:
+            state.count("pile_redeclared_ignored")
+        return
+    cell = msg.cell_m or DEFAULT_CELL_M
+    geometry = GridGeometry.covering(msg.origin_x_m, msg.origin_y_m, msg.width_m, msg.length_m,
+                                     cell)
+    voxel = msg.voxel_m or DEFAULT_VOXEL_M
+    # the voxel edge must be a whole number of cells
+    voxel = max(cell, round(voxel / cell) * cell)
+    state.pile = PileInfo(msg.pile_id, geometry, float(msg.ground_z_m), voxel,
+                          float(msg.default_bulk_density_t_m3))
+    config = state.config
+    state.point_sd_m = (config.point_sd_m if config.point_sd_m is not None
+                        else (0.015 if cell < 0.05 else 0.05))
+    state.margin_m = config.margin_m if config.margin_m is not None else 0.4 * state.point_sd_m
+    state.height = heightmap.HeightMap.empty(geometry)
+    state.stack = LayerStack.empty(geometry, float(msg.ground_z_m))
+
+
+def _on_machine(state: ProjectorState, event, msg) -> None:
+    if msg.kind == 1:  # BUCKET_WHEEL_RECLAIMER
+        state.machines[msg.machine_id] = Reclaimer.from_message(msg)
+
+
+def _on_lot(state: ProjectorState, event, msg) -> None:
+    state.lots[msg.lot_id] = dict(msg.planned_grade)
+
+
+def _on_stack_started(state: ProjectorState, event, msg) -> None:
+    if msg.pile_id != state.config.pile_id or state.stack is None:
+        return
+    _process_scans(state)
+    index = state.stack.n_deposits + 1
+    state.stack = state.stack.open_deposit(
+        DepositInfo(index, msg.pass_id, msg.lot_id, event.valid_time_ns))
+    state.passes[msg.pass_id] = PassRecord(msg.pass_id, msg.lot_id, msg.machine_id,
+                                           event.valid_time_ns, index)
+    state.active_pass = msg.pass_id
+
+
+def _on_stack_ended(state: ProjectorState, event, msg) -> None:
+    if msg.pile_id != state.config.pile_id:
+        return
+    _process_scans(state, until_ns=event.valid_time_ns)
+    record = state.passes.get(msg.pass_id)
+    if record is not None:
+        record.ended_ns = event.valid_time_ns
+        record.belt_tonnes = float(msg.tonnes)
+    if state.active_pass == msg.pass_id:
+        state.active_pass = None
+
+
+def _on_frame_transform(state: ProjectorState, event, msg) -> None:
+    if msg.parent_frame_id != "site" or not msg.child_frame_id.endswith("/scanner"):
+        return
+    t = timestamp_ns(msg.timestamp)
+    if state.pose_t_ns and t <= state.pose_t_ns[-1]:
+        if t < state.pose_t_ns[-1]:
+            state.count("poses_out_of_order")
+        return
+    state.pose_t_ns.append(t)
+    state.pose_xyz.append((msg.translation.x, msg.translation.y, msg.translation.z))
+    state.pose_q.append((msg.rotation.x, msg.rotation.y, msg.rotation.z, msg.rotation.w))
+    if len(state.pose_t_ns) > 4096:  # keep the recent track only
+        del state.pose_t_ns[:2048], state.pose_xyz[:2048], state.pose_q[:2048]
+    if len(state.pending) >= state.config.scan_batch:
+        _process_scans(state)
+
+
+def _on_scan(state: ProjectorState, event, msg) -> None:
+    if state.stack is None:
+        return
+    state.pending.append(_Scan(timestamp_ns(msg.timestamp), np.asarray(msg.ranges, np.float64),
+                               float(msg.start_angle), float(msg.end_angle)))
+    if len(state.pending) >= 2 * state.config.scan_batch:
+        _process_scans(state)
+
+
+def _on_reclaim_cut(state: ProjectorState, event, msg) -> None:
+    if msg.pile_id != state.config.pile_id or state.stack is None:
+        return
+    # every scan taken up to the cut's end watched the bank before or during the cut:
+    # fuse them before the cut is applied, never after
+    _process_scans(state, until_ns=timestamp_ns(msg.end_time))
+    machine = state.machines.get(msg.machine_id)
+    record = CutRecord(msg.cut_id, msg.bench_id, msg.machine_id, timestamp_ns(msg.start_time),
+                       timestamp_ns(msg.end_time), float(msg.tonnes))
+    if machine is None:
+        state.count("cuts_without_machine")
+    else:
+        floor = cut_floor(state.pile.geometry, machine, msg.travel_m, msg.luff_rad,
+                          msg.slew_start_rad, msg.slew_end_rad)
+        state.stack, removal = state.stack.clamp(floor)
+        record.removals.append(removal)
+        record.predicted_m3 = removal.volume_m3
+        # the height map learns the cut too: the scans after it confirm or correct it
+        state.height = _lower_height(state.height, floor, state.point_sd_m)
+    state.cuts.append(record)
+    # the scans that watched this cut dig (valid before its end) saw what it took
+    # below the envelope: that is the cut's too
+    _follow_height(state, record.end_ns)
+
+
+def _on_assay(state: ProjectorState, event, msg) -> None:
+    state.assays.append(AssayRecord.from_message(msg, event.recorded_time_ns))
+
+
+_HANDLERS = {
+    "pile_declared": _on_pile, "machine_declared": _on_machine, "lot_declared": _on_lot,
+    "stack_started": _on_stack_started, "stack_ended": _on_stack_ended,
+    "frame_transform": _on_frame_transform, "scan": _on_scan,
+    "reclaim_cut": _on_reclaim_cut, "assay": _on_assay,
+}
+
+
+# -- scans -> height map -> layer stack -----------------------------------------------------
+
+
+def _process_scans(state: ProjectorState, *, until_ns: int | None = None,
+                   final: bool = False) -> None:
+    """Fuse the waiting scans that have a pose after them (all up to ``until_ns``)."""
+    if not state.pending or state.pile is None:
+        return
+    last_pose = state.pose_t_ns[-1] if state.pose_t_ns else None
+    ready, waiting = [], []
+    for scan in state.pending:
+        if last_pose is not None and scan.t_ns <= last_pose:
+            ready.append(scan)
+        elif final or (until_ns is not None and scan.t_ns <= until_ns
+                       and (last_pose is None or scan.t_ns < last_pose)) \
+                or (last_pose is not None and last_pose - scan.t_ns > state.config.max_scan_wait_ns):
+            state.count("scans_without_pose")
+        else:
+            waiting.append(scan)
+    state.pending = waiting
+    if not ready:
+        return
+    by_beams: dict[tuple[int, float, float], list[_Scan]] = {}
+    for scan in ready:
+        by_beams.setdefault((scan.ranges_m.size, scan.start_angle_rad, scan.end_angle_rad),
+                            []).append(scan)
+    pose_t = np.asarray(state.pose_t_ns, np.int64)
+    pose_xyz = np.asarray(state.pose_xyz, np.float64)
+    pose_q = np.asarray(state.pose_q, np.float64)
+    for (beams, start, end), scans in by_beams.items():
+        if beams < 2:
+            state.count("scans_unusable", len(scans))
+            continue
+        t = np.asarray([s.t_ns for s in scans], np.int64)
+        xyz, q = georef.interpolate_poses(t, pose_t, pose_xyz, pose_q,
+                                          max_gap_ns=state.config.max_pose_gap_ns)
+        ranges = np.stack([s.ranges_m for s in scans])
+        ranges = profile.clean_profile(ranges)
+        increment = (end - start) / (beams - 1)
+        points = georef.georeference(ranges, start, increment, xyz, q).reshape(-1, 3)
+        points = points[np.isfinite(points).all(axis=1)]
+        state.count("scans_fused", len(scans))
+        state.count("points_fused", len(points))
+        if len(points) == 0:
+            continue
+        obs = heightmap.rasterize(state.pile.geometry, points)
+        # A cell seen by several points of this batch that agree is strong evidence of
+        # a change on its own (a stacked layer rises between two patrols, so waiting
+        # for agreeing patrols would never accept it); a cell seen by a point or two
+        # needs repeated agreeing observations.
+        strong = obs.count >= state.config.strong_points
+        for subset, change_count in ((strong, 1), (~strong, state.config.change_count)):
+            if subset.any():
+                state.height, _stats = heightmap.fuse(
+                    state.height, _subset(obs, subset), int(t.max()), state.point_sd_m,
+                    gate_sigma=state.config.gate_sigma, change_count=change_count)
+        _follow_height(state, int(t.max()), drops=False)
+
+
+def _subset(obs, mask: np.ndarray):
+    pick = (lambda a: None if a is None else a[mask])
+    return heightmap.CellObservations(obs.ix[mask], obs.iy[mask], obs.z_mean_m[mask],
+                                      obs.z_var_m2[mask], obs.count[mask],
+                                      pick(obs.x_offset_m), pick(obs.y_offset_m))
+
+
+def _follow_height(state: ProjectorState, t_ns: int, *, drops: bool = True) -> None:
+    """Move the layer stack's top to the height map where they differ beyond the margin.
+
+    Rises follow at once.  Drops follow only when ``drops`` (at a cut, or at the end of
+    a query): a cut is known only when its event arrives at its end time, after the
+    scans that watched it dig, so a drop seen by those scans must wait for that cut
+    rather than be charged to the one before.
+    """
+    elevation = state.height.elevation
+    if state.config.fill_gap_cells:
+        # an unseen strip between seen cells (between two scan lines, behind a crest)
+        # is interpolated rather than left at the ground
+        elevation = heightmap.fill_holes(elevation, method="linear",
+                                         max_gap_cells=state.config.fill_gap_cells)
+    variance = state.height.variance
+    top = state.stack.surface()
+    with np.errstate(invalid="ignore"):
+        margin = state.config.margin_sigma * np.sqrt(np.nan_to_num(variance, nan=0.0)) \
+            + state.margin_m
+        up = np.isfinite(elevation) & (elevation > top + margin)
+        down = np.isfinite(elevation) & (elevation < top - margin)
+    if up.any():
+        if state.active_pass is None and not _settling_last_pass(state):
+            info = state.stack.deposits[-1] if state.stack.n_deposits else None
+            if info is None or not info.flagged or info.opened_ns < _last_event_ns(state):
+                state.stack = state.stack.open_deposit(
+                    DepositInfo(state.stack.n_deposits + 1, "", "", t_ns, flagged=True))
+        state.stack, added = state.stack.raise_to(np.where(up, elevation, np.nan),
+                                                  _deposition_ns(state, t_ns))
+        state.count("rises")
+        if state.active_pass is None and state.cuts and not _settling_last_pass(state):
+            # material rising outside a pass after a cut is what slumped into the cut's
+            # hole from its face: the cut did not take it
+            state.cuts[-1].returned_m3 += added
+    if drops and down.any():
+        state.stack, removal = state.stack.clamp(np.where(down, elevation, np.inf))
+        if state.cuts:
+            cut = state.cuts[-1]
+            cut.removals.append(removal)
+            cut.residual_m3 += removal.volume_m3
+        else:
+            state.flagged_loss_m3 += removal.volume_m3
+
+
+def _lower_height(height, floor_m: np.ndarray, sd_m: float):
+    """The height map after a cut: cells above the envelope floor drop to it.
+
+    Their variance becomes one point's (the prediction is as good as a fresh
+    observation) and pending change evidence is dropped, so the scans after the cut
+    confirm it by Kalman steps or correct it through the change gate.
+    """
+    grid = height.copy().grid
+    elevation = grid["elevation"]
+    with np.errstate(invalid="ignore"):
+        lowered = np.isfinite(floor_m) & np.isfinite(elevation) & (elevation > floor_m)
+    if not lowered.any():
+        return height
+    elevation[lowered] = floor_m[lowered]
+    grid["variance"][lowered] = sd_m * sd_m
+    grid["pending_count"][lowered] = 0.0
+    for name in ("pending_z", "pending_var", "pending_x_offset_m", "pending_y_offset_m"):
+        if name in grid:
+            grid[name][lowered] = np.nan
+    return type(height)(grid)
+
+
+def _deposition_ns(state: ProjectorState, t_ns: int) -> int:
+    """When material seen rising at ``t_ns`` was deposited.
+
+    Material of a pass was stacked during the pass, even if the scanner saw it later:
+    the time is clipped to the pass (its grade is looked up by deposition time).
+    """
+    info = state.stack.deposits[-1] if state.stack.n_deposits else None
+    record = state.passes.get(info.pass_id) if info is not None and info.pass_id else None
+    if record is None:
+        return t_ns
+    end = record.ended_ns if record.ended_ns is not None else t_ns
+    return int(min(max(t_ns, record.started_ns), end))
+
+
+def _settling_last_pass(state: ProjectorState) -> bool:
+    """Whether rises now still belong to the pass that ended last.
+
+    The scanner sees a stacked layer only when it passes over it, often after the
+    pass has ended: until the next cut, a rise is that pass's material (it is the top
+    deposit then).
+    """
+    if not state.passes or state.stack.n_deposits == 0:
+        return False
+    last = max(state.passes.values(), key=lambda p: p.started_ns)
+    if last.deposit_index != state.stack.n_deposits:
+        return False
+    last_cut = max((c.end_ns for c in state.cuts), default=None)
+    return last_cut is None or (last.ended_ns or last.started_ns) > last_cut
+
+
+def _last_event_ns(state: ProjectorState) -> int:
+    """The latest pass or cut boundary: a flagged deposit opened before it is not reused."""
+    times = [p.ended_ns or p.started_ns for p in state.passes.values()]
+    times += [c.end_ns for c in state.cuts]
+    return max(times) if times else -(2 ** 62)
+
+
+def removal_volume(removals: list[Removal]) -> float:
+    return float(sum(r.volume_m3 for r in removals))
+
+
+def _isfinite(x: float) -> bool:
+    return math.isfinite(x)

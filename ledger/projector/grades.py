@@ -1,0 +1,238 @@
+"""Grades joined to material at query time, from the assays known at a time K.
+
+A lot is sampled on the belt over windows; the lab reports each window's assay hours later
+(DOMAIN.md §1, §2).  Material deposited at time t from lot L takes the grade of the assay of
+L whose sampling window contains t, *as known at K* (recorded at or before K); without one
+it takes the lot's planned grade and is marked not assayed.  So the same pile has different
+grades as of different K, and the answer changes exactly when an assay is recorded.
+
+Which assays count at K (:func:`effective_assays`)
+--------------------------------------------------
+1. Only assays recorded at or before K.  If one ``assay_id`` was recorded more than once,
+   the copy recorded last counts.
+2. An assay named in the ``supersedes`` field of another assay recorded at or before K is
+   dropped (whatever the statuses; chains drop every replaced link; an assay naming itself
+   is ignored).
+3. A PROVISIONAL assay is dropped when a FINAL assay of the same lot that survived rule 2
+   covers an overlapping window: the two windows share an interval of positive length,
+   ``max(starts) < min(ends)``, or one of them is a single instant inside the other
+   (``max(starts) <= min(ends)``).  Windows that merely touch at an end (consecutive lab
+   windows share their boundary) do not overlap.
+
+Which assay a time takes (:func:`grade_at`)
+-------------------------------------------
+Among the effective assays of the lot whose window contains t (``start <= t <= end``):
+FINAL before PROVISIONAL, then the one recorded last, then the larger ``assay_id``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Iterable, Mapping, Sequence
+
+import numpy as np
+
+__all__ = ["AssayRecord", "effective_assays", "grade_at", "timestamp_ns", "STATUSES"]
+
+#: Assay statuses, in increasing precedence.
+STATUSES: tuple[str, ...] = ("PROVISIONAL", "FINAL")
+
+# protobuf enum values of stockpile.v1.AssayStatus (events.proto)
+_STATUS_BY_NUMBER = {1: "PROVISIONAL", 2: "FINAL"}
+
+
+def timestamp_ns(value) -> int:
+    """UTC ns of a protobuf ``Timestamp`` (``seconds``, ``nanos``) or of an integer."""
+    if isinstance(value, bool):
+        raise TypeError("a time must be a Timestamp or integer ns, got a bool")
+    if isinstance(value, (int, np.integer)):
+        return int(value)
+    if hasattr(value, "seconds") and hasattr(value, "nanos"):
+        return int(value.seconds) * 1_000_000_000 + int(value.nanos)
+    raise TypeError(f"a time must be a Timestamp or integer ns, got {type(value).__name__}")
+
+
+@dataclass(frozen=True)
+class AssayRecord:
+    """One lab result as the ledger recorded it.
+
+    Attributes
+    ----------
+    assay_id, lot_id : str
+    window_start_ns, window_end_ns : int
+        The sampling window of belt flow (UTC ns), start <= end.
+    analytes : dict
+        Analyte -> mass %.
+    bulk_density_t_m3 : float
+        t/m3; 0 = unknown.
+    status : str
+        ``"PROVISIONAL"`` or ``"FINAL"``.
+    supersedes : str
+        The ``assay_id`` this one replaces; ``""`` none.
+    recorded_ns : int
+        When the ledger learned it (UTC ns): the K it becomes known at.
+    """
+
+    assay_id: str
+    lot_id: str
+    window_start_ns: int
+    window_end_ns: int
+    analytes: Mapping[str, float] = field(hash=False)
+    bulk_density_t_m3: float
+    status: str
+    supersedes: str
+    recorded_ns: int
+
+    def __post_init__(self) -> None:
+        for name in ("window_start_ns", "window_end_ns", "recorded_ns"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+                raise TypeError(f"{name} must be an integer (UTC ns), got {value!r}")
+        if self.window_end_ns < self.window_start_ns:
+            raise ValueError(f"assay {self.assay_id!r}: window ends before it starts")
+        if self.status not in STATUSES:
+            raise ValueError(f"assay {self.assay_id!r}: status must be one of {STATUSES}, "
+                             f"got {self.status!r}")
+        density = float(self.bulk_density_t_m3)
+        if not (math.isfinite(density) and density >= 0):
+            raise ValueError(f"assay {self.assay_id!r}: bulk density must be >= 0 (0 = "
+                             f"unknown), got {self.bulk_density_t_m3!r}")
+        object.__setattr__(self, "analytes", {str(k): float(v) for k, v in self.analytes.items()})
+
+    @classmethod
+    def from_message(cls, msg, recorded_ns: int) -> "AssayRecord":
+        """The record of an ``Assay`` message recorded at ``recorded_ns``.
+
+        ``window_start`` / ``window_end`` may be protobuf Timestamps or integer ns; ``status``
+        the enum number (1 = PROVISIONAL, 2 = FINAL) or its name.
+        """
+        status = msg.status
+        if isinstance(status, str):
+            status = status.upper()
+        else:
+            number = int(status)
+            if number not in _STATUS_BY_NUMBER:
+                raise ValueError(f"assay {msg.assay_id!r}: unknown status {status!r}")
+            status = _STATUS_BY_NUMBER[number]
+        return cls(assay_id=str(msg.assay_id), lot_id=str(msg.lot_id),
+                   window_start_ns=timestamp_ns(msg.window_start),
+                   window_end_ns=timestamp_ns(msg.window_end),
+                   analytes=dict(msg.analytes),
+                   bulk_density_t_m3=float(getattr(msg, "bulk_density_t_m3", 0.0) or 0.0),
+                   status=status, supersedes=str(getattr(msg, "supersedes", "") or ""),
+                   recorded_ns=int(recorded_ns))
+
+    @property
+    def is_final(self) -> bool:
+        return self.status == "FINAL"
+
+
+def _windows_overlap(a: AssayRecord, b: AssayRecord) -> bool:
+    lo = max(a.window_start_ns, b.window_start_ns)
+    hi = min(a.window_end_ns, b.window_end_ns)
+    if a.window_start_ns == a.window_end_ns or b.window_start_ns == b.window_end_ns:
+        return lo <= hi
+    return lo < hi
+
+
+def effective_assays(assays: Iterable[AssayRecord], known_ns: int) -> list[AssayRecord]:
+    """The assays that count as known at ``known_ns`` (rules in the module docstring).
+
+    Parameters
+    ----------
+    assays : iterable of AssayRecord
+    known_ns : int
+        K (UTC ns).
+
+    Returns
+    -------
+    list of AssayRecord
+        Ordered by (recorded_ns, assay_id).
+    """
+    if isinstance(known_ns, bool) or not isinstance(known_ns, (int, np.integer)):
+        raise TypeError(f"known_ns must be an integer (UTC ns), got {known_ns!r}")
+    latest: dict[str, AssayRecord] = {}
+    for a in assays:
+        if a.recorded_ns <= known_ns:
+            old = latest.get(a.assay_id)
+            if old is None or a.recorded_ns >= old.recorded_ns:
+                latest[a.assay_id] = a
+    known = list(latest.values())
+    replaced = {a.supersedes for a in known if a.supersedes and a.supersedes != a.assay_id}
+    alive = [a for a in known if a.assay_id not in replaced]
+    finals: dict[str, list[AssayRecord]] = {}
+    for a in alive:
+        if a.is_final:
+            finals.setdefault(a.lot_id, []).append(a)
+    out = [a for a in alive
+           if a.is_final or not any(_windows_overlap(a, f) for f in finals.get(a.lot_id, ()))]
+    out.sort(key=lambda a: (a.recorded_ns, a.assay_id))
+    return out
+
+
+def grade_at(lot_id: str, planned_grade: Mapping[str, float],
+             assays_effective: Sequence[AssayRecord], times_ns,
+             analytes: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The grade of lot ``lot_id``'s material deposited at given times, as known at K.
+
+    Parameters
+    ----------
+    lot_id : str
+    planned_grade : mapping
+        Analyte -> mass % (the lot's declared plan); analytes it lacks are NaN.
+    assays_effective : sequence of AssayRecord
+        :func:`effective_assays` at K (assays of other lots are ignored).
+    times_ns : array_like, shape (N,)
+        Deposition times (UTC ns); integer (exact) or float (NaN = unknown: NaN grade).
+    analytes : tuple of str
+        The analytes to return, in this order (A of them).
+
+    Returns
+    -------
+    grade : ndarray, shape (N, A)
+        Mass %.  From the assay whose window contains the time (module docstring); an
+        analyte that assay does not report falls back to the planned value.  Otherwise the
+        planned grade.
+    assayed : ndarray of bool, shape (N,)
+        Whether an assay applied.
+    density_t_m3 : ndarray, shape (N,)
+        The assay's bulk density; NaN where no assay applied or it reported none (0).
+
+    Raises
+    ------
+    ValueError
+        If ``times_ns`` is not one-dimensional.
+    """
+    times = np.asarray(times_ns)
+    if times.ndim != 1:
+        raise ValueError(f"times_ns must have shape (N,), got {times.shape}")
+    analytes = tuple(analytes)
+    n, n_a = times.shape[0], len(analytes)
+    planned = np.array([float(planned_grade.get(a, math.nan)) for a in analytes])
+    grade = np.tile(planned, (n, 1)) if n else np.zeros((0, n_a))
+    assayed = np.zeros(n, dtype=bool)
+    density = np.full(n, math.nan)
+    if times.dtype.kind in "iu":
+        valid = np.ones(n, dtype=bool)
+        t = times.astype(np.int64)
+        bound = int
+    else:
+        t = times.astype(np.float64)
+        valid = ~np.isnan(t)
+        bound = float
+    grade[~valid] = math.nan
+    mine = [a for a in assays_effective if a.lot_id == lot_id]
+    # lowest precedence first: later ones overwrite
+    mine.sort(key=lambda a: (a.is_final, a.recorded_ns, a.assay_id))
+    for a in mine:
+        with np.errstate(invalid="ignore"):
+            hit = valid & (t >= bound(a.window_start_ns)) & (t <= bound(a.window_end_ns))
+        if not hit.any():
+            continue
+        row = np.array([a.analytes.get(name, planned[j]) for j, name in enumerate(analytes)],
+                       dtype=np.float64)
+        grade[hit] = row
+        assayed[hit] = True
+        density[hit] = a.bulk_density_t_m3 if a.bulk_density_t_m3 > 0 else math.nan
+    return grade, assayed, density

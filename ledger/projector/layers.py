@@ -1,0 +1,390 @@
+"""The pile as a monotone stack of surfaces, one band per deposit.
+
+Every column of the grid holds the surfaces ``S0 (ground) <= S1 <= ... <= Sn``; the band
+``(S(k-1), S(k)]`` of a column is the material of deposit ``k`` (1-based: deposit ``k`` is
+the ``k``-th one opened).  Deposits only ever open on top, so the order of the bands is the
+order of deposition.
+
+- :meth:`LayerStack.open_deposit` adds a band of zero thickness on top;
+- :meth:`LayerStack.raise_to` puts the material between the top and a higher observed
+  surface into the *top* deposit;
+- :meth:`LayerStack.clamp` lowers every surface above a floor to the floor (a reclaimer cut,
+  :func:`ledger.projector.envelope.cut_floor`) and reports what it removed per deposit.
+
+A band is well mixed per column, like the simulator's parcels: material of one deposit that
+reaches a column at different times keeps one thickness-weighted mean deposition time, and a
+partly removed band keeps that time.
+
+Stacks are immutable values: every operation returns a new stack, which shares the arrays it
+did not change with the old one (copy-on-write per array).  The arrays handed out are
+read-only; copy them to modify them.  Times are UTC nanoseconds; per-cell deposition times
+are returned as float64 (about 256 ns resolution at current epochs); internally they are
+kept relative to the first raise's time (about 1 ns resolution over 100 days).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from ledger.projector.grid import GridGeometry
+
+__all__ = ["DepositInfo", "DepositRemoval", "Removal", "LayerStack"]
+
+
+@dataclass(frozen=True)
+class DepositInfo:
+    """What a deposit is: one stacking pass (or material that rose outside any pass).
+
+    Attributes
+    ----------
+    index : int
+        1-based position in the stack: the band ``(S(index-1), S(index)]``.
+    pass_id : str
+        The stacking pass (``""`` when none).
+    lot_id : str
+        The lot stacked (``""`` when unknown).
+    opened_ns : int
+        When the deposit was opened (UTC ns).
+    flagged : bool
+        True for material that rose outside any stacking pass.
+    """
+
+    index: int
+    pass_id: str
+    lot_id: str
+    opened_ns: int
+    flagged: bool = False
+
+
+@dataclass(frozen=True, eq=False)
+class DepositRemoval:
+    """What one clamp removed from one deposit.
+
+    Attributes
+    ----------
+    index : int
+        The deposit (1-based).
+    info : DepositInfo
+    volume_m3 : float
+        Total removed volume (m3).
+    ix, iy : ndarray, shape (m,), int64
+        The cells some of the deposit was removed from.
+    cell_volume_m3 : ndarray, shape (m,)
+        Removed volume per cell (m3, > 0).
+    deposition_time_ns : ndarray, shape (m,), float64
+        When the removed material arrived in that cell (UTC ns): the band's
+        thickness-weighted mean deposition time.
+    """
+
+    index: int
+    info: DepositInfo
+    volume_m3: float
+    ix: np.ndarray
+    iy: np.ndarray
+    cell_volume_m3: np.ndarray
+    deposition_time_ns: np.ndarray
+
+    @property
+    def mean_deposition_time_ns(self) -> float:
+        """Volume-weighted mean deposition time of the removed material (UTC ns)."""
+        if self.volume_m3 <= 0:
+            return math.nan
+        return float(np.sum(self.cell_volume_m3 * self.deposition_time_ns) / self.volume_m3)
+
+
+@dataclass(frozen=True, eq=False)
+class Removal:
+    """What one :meth:`LayerStack.clamp` removed, per deposit (only deposits that lost material).
+
+    Attributes
+    ----------
+    deposits : tuple of DepositRemoval
+        In deposit order (bottom to top).
+    """
+
+    deposits: tuple[DepositRemoval, ...] = ()
+
+    @property
+    def volume_m3(self) -> float:
+        """Total removed volume (m3)."""
+        return float(sum(d.volume_m3 for d in self.deposits))
+
+    def by_index(self) -> dict[int, DepositRemoval]:
+        """The removals keyed by deposit index."""
+        return {d.index: d for d in self.deposits}
+
+    def removed_m(self, geometry: GridGeometry) -> np.ndarray:
+        """Removed thickness per cell, all deposits, shape (nx, ny) (m)."""
+        out = np.zeros(geometry.shape)
+        for d in self.deposits:
+            np.add.at(out, (d.ix, d.iy), d.cell_volume_m3 / geometry.cell_area_m2)
+        return out
+
+
+def _frozen(a: np.ndarray) -> np.ndarray:
+    a.setflags(write=False)
+    return a
+
+
+def _check_layer(geometry: GridGeometry, values, name: str) -> np.ndarray:
+    arr = np.asarray(values, dtype=np.float64)
+    if arr.shape != geometry.shape:
+        raise ValueError(f"{name} must have shape {geometry.shape} (nx, ny), got {arr.shape}")
+    return arr
+
+
+class LayerStack:
+    """An immutable stack of surfaces ``S0 <= S1 <= ... <= Sn`` on one grid (module docstring).
+
+    Build one with :meth:`empty`; every operation returns a new stack.
+    """
+
+    __slots__ = ("_geometry", "_surfaces", "_times", "_infos", "_epoch_ns")
+
+    def __init__(self, geometry: GridGeometry, surfaces: tuple[np.ndarray, ...],
+                 times_rel: tuple[np.ndarray, ...], infos: tuple[DepositInfo, ...],
+                 epoch_ns: int | None) -> None:
+        if len(surfaces) != len(infos) + 1 or len(times_rel) != len(infos):
+            raise ValueError("a stack needs n + 1 surfaces and n time layers for n deposits")
+        self._geometry = geometry
+        self._surfaces = surfaces
+        self._times = times_rel
+        self._infos = infos
+        self._epoch_ns = epoch_ns
+
+    # ------------------------------------------------------------------ construction
+    @classmethod
+    def empty(cls, geometry: GridGeometry, ground_z_m) -> "LayerStack":
+        """A stack with no deposits on the ground ``ground_z_m``.
+
+        Parameters
+        ----------
+        geometry : GridGeometry
+        ground_z_m : float or array_like, shape (nx, ny)
+            Ground level (m), finite.
+        """
+        ground = np.broadcast_to(np.asarray(ground_z_m, dtype=np.float64), geometry.shape).copy()
+        if not np.all(np.isfinite(ground)):
+            raise ValueError("the ground level must be finite everywhere")
+        return cls(geometry, (_frozen(ground),), (), (), None)
+
+    def copy(self) -> "LayerStack":
+        """An independent deep copy (stacks are immutable, so this is rarely needed)."""
+        return LayerStack(self._geometry, tuple(_frozen(s.copy()) for s in self._surfaces),
+                          tuple(_frozen(t.copy()) for t in self._times), self._infos,
+                          self._epoch_ns)
+
+    # ------------------------------------------------------------------ accessors
+    @property
+    def geometry(self) -> GridGeometry:
+        return self._geometry
+
+    @property
+    def n_deposits(self) -> int:
+        """Number of deposits n (bands)."""
+        return len(self._infos)
+
+    @property
+    def deposits(self) -> tuple[DepositInfo, ...]:
+        """The deposits, bottom (index 1) to top (index n)."""
+        return self._infos
+
+    def info(self, k: int) -> DepositInfo:
+        """The deposit with index ``k`` (1-based)."""
+        self._check_k(k)
+        return self._infos[k - 1]
+
+    def ground(self) -> np.ndarray:
+        """S0, the ground, shape (nx, ny) (m, read-only)."""
+        return self._surfaces[0]
+
+    def surface(self) -> np.ndarray:
+        """Sn, the top surface, shape (nx, ny) (m, read-only)."""
+        return self._surfaces[-1]
+
+    def surface_k(self, k: int) -> np.ndarray:
+        """S(k), the top of deposit ``k`` (``k = 0``: the ground), shape (nx, ny) (read-only)."""
+        if isinstance(k, bool) or not 0 <= int(k) <= self.n_deposits:
+            raise ValueError(f"surface index must be in 0..{self.n_deposits}, got {k!r}")
+        return self._surfaces[int(k)]
+
+    def surfaces(self) -> np.ndarray:
+        """All surfaces stacked, shape (n + 1, nx, ny) (m, a new array)."""
+        return np.stack(self._surfaces)
+
+    def band(self, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """``(S(k-1), S(k))``: bottom and top of deposit ``k``, each (nx, ny) (read-only)."""
+        self._check_k(k)
+        return self._surfaces[k - 1], self._surfaces[k]
+
+    def thickness(self, k: int) -> np.ndarray:
+        """Thickness of deposit ``k`` per cell, ``S(k) - S(k-1)``, shape (nx, ny) (m, >= 0)."""
+        lo, hi = self.band(k)
+        return hi - lo
+
+    def deposition_time_ns(self, k: int) -> np.ndarray:
+        """When deposit ``k``'s material in each cell arrived, shape (nx, ny), float64 UTC ns.
+
+        The thickness-weighted mean over the material of the deposit in that cell; NaN where
+        the deposit has no material.
+        """
+        th = self.thickness(k)
+        epoch = float(self._epoch_ns) if self._epoch_ns is not None else 0.0
+        return np.where(th > 0, self._times[k - 1] + epoch, np.nan)
+
+    def volume_m3(self, k: int) -> float:
+        """Volume of deposit ``k`` (m3)."""
+        return float(np.sum(self.thickness(k)) * self._geometry.cell_area_m2)
+
+    def total_volume_m3(self) -> float:
+        """Volume of the whole pile, ``sum(Sn - S0) * cell area`` (m3)."""
+        return float(np.sum(self._surfaces[-1] - self._surfaces[0]) * self._geometry.cell_area_m2)
+
+    @property
+    def epoch_ns(self) -> int | None:
+        """The reference time of the internal relative times (the first raise's), or None."""
+        return self._epoch_ns
+
+    def _check_k(self, k) -> None:
+        if isinstance(k, bool) or not isinstance(k, (int, np.integer)) \
+                or not 1 <= int(k) <= self.n_deposits:
+            raise ValueError(f"deposit index must be an int in 1..{self.n_deposits}, got {k!r}")
+
+    # ------------------------------------------------------------------ operations
+    def open_deposit(self, info: DepositInfo) -> "LayerStack":
+        """A new deposit on top, of zero thickness everywhere.
+
+        Parameters
+        ----------
+        info : DepositInfo
+            Its ``index`` must be ``n_deposits + 1``.
+        """
+        if not isinstance(info, DepositInfo):
+            raise TypeError(f"info must be a DepositInfo, got {type(info).__name__}")
+        if info.index != self.n_deposits + 1:
+            raise ValueError(f"the next deposit's index is {self.n_deposits + 1}, "
+                             f"got {info.index}")
+        zeros = _frozen(np.zeros(self._geometry.shape))
+        # the new top surface is the old one: share the (read-only) array
+        return LayerStack(self._geometry, self._surfaces + (self._surfaces[-1],),
+                          self._times + (zeros,), self._infos + (info,), self._epoch_ns)
+
+    def raise_to(self, surface_m, t_ns: int) -> tuple["LayerStack", float]:
+        """Add the material between the top and a higher observed surface to the top deposit.
+
+        Parameters
+        ----------
+        surface_m : array_like, shape (nx, ny)
+            Observed surface (m); NaN = no observation.  Cells where it is at or below the top
+            are left alone (lowering happens only through :meth:`clamp`).
+        t_ns : int
+            When the material arrived (UTC ns).
+
+        Returns
+        -------
+        stack : LayerStack
+        added_m3 : float
+            The volume added (m3).
+
+        Raises
+        ------
+        ValueError
+            On a wrong shape, +inf heights, or a stack with no deposit.
+        """
+        if isinstance(t_ns, bool) or not isinstance(t_ns, (int, np.integer)):
+            raise TypeError(f"t_ns must be an integer (UTC ns), got {type(t_ns).__name__}")
+        surf = _check_layer(self._geometry, surface_m, "surface_m")
+        if np.any(np.isposinf(surf)):
+            raise ValueError("surface_m must not contain +inf (NaN = no observation)")
+        if self.n_deposits == 0:
+            raise ValueError("no deposit is open: open_deposit() before raise_to()")
+        top = self._surfaces[-1]
+        with np.errstate(invalid="ignore"):
+            up = surf > top  # NaN compares False
+        if not up.any():
+            return self, 0.0
+        epoch = int(t_ns) if self._epoch_ns is None else self._epoch_ns
+        t_rel = float(int(t_ns) - epoch)
+        lower = self._surfaces[-2]
+        old = (top - lower)[up]
+        add = surf[up] - top[up]
+        new_top = top.copy()
+        new_top[up] = surf[up]
+        new_time = self._times[-1].copy()
+        t_old = new_time[up]
+        new_time[up] = np.where(old > 0, (t_old * old + t_rel * add) / (old + add), t_rel)
+        stack = LayerStack(self._geometry, self._surfaces[:-1] + (_frozen(new_top),),
+                           self._times[:-1] + (_frozen(new_time),), self._infos, epoch)
+        return stack, float(np.sum(add) * self._geometry.cell_area_m2)
+
+    def clamp(self, floor_m) -> tuple["LayerStack", Removal]:
+        """Lower every surface above a floor to it: ``S(k) = min(S(k), floor)`` for k >= 1.
+
+        The floor never goes below the ground (material is not removed below S0).
+
+        Parameters
+        ----------
+        floor_m : array_like, shape (nx, ny)
+            Floor (m); +inf = untouched (e.g. :func:`ledger.projector.envelope.cut_floor`).
+
+        Returns
+        -------
+        stack : LayerStack
+        removal : Removal
+            What was removed, per deposit, with per-cell volumes and deposition times.
+
+        Raises
+        ------
+        ValueError
+            On a wrong shape or NaN in the floor.
+        """
+        floor = _check_layer(self._geometry, floor_m, "floor_m")
+        if np.any(np.isnan(floor)):
+            raise ValueError("floor_m must not contain NaN (+inf = untouched)")
+        top = self._surfaces[-1]
+        cut = np.flatnonzero(floor < top)
+        if cut.size == 0 or self.n_deposits == 0:
+            return self, Removal()
+        shape = self._geometry.shape
+        f = np.maximum(floor.ravel()[cut], self._surfaces[0].ravel()[cut])
+        surfaces = list(self._surfaces)
+        lowered = []  # lowered[k] = S(k) - S'(k) at the cut cells, k = n, n-1, ...
+        for k in range(self.n_deposits, 0, -1):
+            s_k = self._surfaces[k].ravel()[cut]
+            drop = s_k - np.minimum(s_k, f)
+            if not np.any(drop > 0):
+                break  # monotone: no lower surface is above the floor either
+            new = self._surfaces[k].copy()
+            new.ravel()[cut] = np.minimum(s_k, f)
+            surfaces[k] = _frozen(new)
+            lowered.append((k, drop))
+        if not lowered:
+            return self, Removal()
+        area = self._geometry.cell_area_m2
+        epoch = float(self._epoch_ns) if self._epoch_ns is not None else 0.0
+        removals = []
+        lowered.reverse()  # bottom-most lowered surface first
+        below = np.zeros(cut.size)
+        for k, drop in lowered:
+            removed = drop - below  # (S(k) - S'(k)) - (S(k-1) - S'(k-1)) >= 0
+            below = drop
+            sel = removed > 0
+            if not sel.any():
+                continue
+            cells = cut[sel]
+            ix, iy = np.unravel_index(cells, shape)
+            vol = removed[sel] * area
+            removals.append(DepositRemoval(
+                index=k, info=self._infos[k - 1], volume_m3=float(np.sum(vol)),
+                ix=ix.astype(np.int64), iy=iy.astype(np.int64), cell_volume_m3=vol,
+                deposition_time_ns=self._times[k - 1].ravel()[cells] + epoch))
+        stack = LayerStack(self._geometry, tuple(surfaces), self._times, self._infos,
+                           self._epoch_ns)
+        return stack, Removal(tuple(removals))
+
+    def __repr__(self) -> str:
+        return (f"LayerStack({self._geometry.nx}x{self._geometry.ny} cells, "
+                f"{self.n_deposits} deposits, {self.total_volume_m3():.3f} m3)")

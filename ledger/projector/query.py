@@ -1,0 +1,365 @@
+"""``project(store, pile_id, V, K)``: the pile as of valid time V as known at K.
+
+The edge of the projector: it reads the ledger (``as_of``), runs the pure fold
+(:mod:`ledger.projector.fold`), optionally starting from a snapshot
+(:class:`SnapshotStore`), and joins grades as known at K.
+
+Snapshots hold the geometric state after folding every geometry event up to a
+position ``(valid ns, global seq)`` as known when the ledger's head was ``head_seq``.
+One is usable for a query (V, K) when its position is at or before V and no geometry
+event at or before its position was recorded after it (a late scan or cut makes the
+snapshot unusable for any K past that event's arrival, never silently wrong): the
+check reads only the events appended after the snapshot.
+"""
+
+from __future__ import annotations
+
+import math
+import pickle
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ledger.projector import fold as F
+from ledger.projector.grades import AssayRecord, effective_assays, grade_at
+from ledger.projector.grid import GridGeometry
+from ledger.projector.layers import Removal
+
+__all__ = ["DepositSummary", "CutSummary", "PileState", "project", "SnapshotStore",
+           "CANONICAL_ANALYTES"]
+
+CANONICAL_ANALYTES = ("Fe", "SiO2", "Al2O3", "P", "LOI")
+FAR_FUTURE_NS = 2 ** 62
+
+
+@dataclass(frozen=True)
+class DepositSummary:
+    index: int
+    pass_id: str
+    lot_id: str
+    flagged: bool
+    volume_m3: float
+    tonnes: float
+    grade: dict[str, float]
+    assayed_fraction: float
+
+
+@dataclass(frozen=True)
+class CutSummary:
+    cut_id: str
+    bench_id: str
+    start_time_ns: int
+    end_time_ns: int
+    volume_m3: float
+    tonnes: float
+    tonnes_scale: float
+    grade: dict[str, float]
+    assayed_fraction: float
+    predicted_m3: float
+    residual_m3: float
+    slumped_in_m3: float
+    deposits: list[dict[str, Any]]
+
+
+@dataclass
+class PileState:
+    """The pile as of (V, K).  Voxels are computed on demand (:meth:`voxel_grades`)."""
+
+    pile_id: str
+    valid_time_ns: int
+    known_time_ns: int
+    geometry: GridGeometry | None
+    volume_m3: float
+    tonnes: float
+    grade: dict[str, float]
+    assayed_fraction: float
+    deposits: list[DepositSummary]
+    cuts: list[CutSummary]
+    counters: dict[str, int]
+    state: F.ProjectorState = field(repr=False)
+    analytes: tuple[str, ...] = ()
+    _weights: list[np.ndarray] | None = field(default=None, repr=False)
+
+    @property
+    def surface_m(self) -> np.ndarray:
+        """The top surface (nx, ny), metres."""
+        return self.state.stack.surface()
+
+    @property
+    def elevation_m(self) -> np.ndarray:
+        """The fused height map (nx, ny), NaN where never seen."""
+        return self.state.height.elevation
+
+    def voxel_grades(self):
+        """``(tonnes (nvx, nvy, nvz), grade (nvx, nvy, nvz, A) %, voxel grid)``."""
+        from ledger.projector.voxels import integrate
+
+        grid = integrate(self.state.stack, self.state.pile.voxel_m, self._weights)
+        tonnes = grid.weighted[..., 0]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            grade = grid.weighted[..., 1:1 + len(self.analytes)] / tonnes[..., None]
+        return tonnes, grade, grid
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "pile_id": self.pile_id, "valid_time_ns": self.valid_time_ns,
+            "known_time_ns": self.known_time_ns, "volume_m3": self.volume_m3,
+            "tonnes": self.tonnes, "grade": self.grade,
+            "assayed_fraction": self.assayed_fraction,
+            "deposits": [d.__dict__ for d in self.deposits],
+            "cuts": [c.__dict__ for c in self.cuts], "counters": self.counters,
+        }
+
+
+# -- the edge: read, fold, join --------------------------------------------------------------
+
+
+def project(store, pile_id: str, valid_time_ns: int | None = None,
+            known_time_ns: int | None = None, *, config: F.FoldConfig | None = None,
+            snapshots: "SnapshotStore | None" = None) -> PileState:
+    """The pile ``pile_id`` as of valid time V, as known at K (default: everything)."""
+    v = FAR_FUTURE_NS if valid_time_ns is None else int(valid_time_ns)
+    k = FAR_FUTURE_NS if known_time_ns is None else int(known_time_ns)
+    config = config or F.FoldConfig(pile_id=pile_id)
+    state, after = None, None
+    if snapshots is not None:
+        found = snapshots.find(store, config, v, k)
+        if found is not None:
+            state, after = found
+    if state is None:
+        state = F.initial_state(config)
+    for event in store.as_of(v, k, types=list(F.GEOMETRY_TYPES), after=after):
+        F.apply(state, event)
+    view = state.copy()
+    F.flush(view)
+    lots, assays = {}, []
+    for event in store.as_of(v, k, types=["lot_declared", "assay"]):
+        msg = _decode(event)
+        if event.type == "lot_declared":
+            lots[msg.lot_id] = dict(msg.planned_grade)
+        else:
+            assays.append(AssayRecord.from_message(msg, event.recorded_time_ns))
+    return summarise(view, lots, assays, valid_time_ns=v, known_time_ns=k)
+
+
+def _decode(event):
+    from schemas.events import decode_payload
+
+    return decode_payload(event.type, event.payload)
+
+
+def analytes_of(lots: dict[str, dict[str, float]], assays: list[AssayRecord]) -> tuple[str, ...]:
+    names = set()
+    for grade in lots.values():
+        names.update(grade)
+    for a in assays:
+        names.update(a.analytes)
+    return tuple([a for a in CANONICAL_ANALYTES if a in names]
+                 + sorted(names - set(CANONICAL_ANALYTES)))
+
+
+class _Join:
+    """Grades of material (lot, deposition times, volumes) as known at K."""
+
+    def __init__(self, lots, assays, known_ns: int, density_default: float) -> None:
+        self.lots = lots
+        self.analytes = analytes_of(lots, assays)
+        effective = effective_assays(assays, known_ns)
+        self.by_lot: dict[str, list[AssayRecord]] = {}
+        for a in effective:
+            self.by_lot.setdefault(a.lot_id, []).append(a)
+        self.density_default = density_default
+
+    def cells(self, lot_id: str, times_ns: np.ndarray):
+        """``(grade (N, A), assayed (N,), density t/m3 (N,))`` for material of a lot."""
+        times = np.asarray(times_ns, np.float64)
+        planned = self.lots.get(lot_id)
+        if planned is None:
+            grade = np.full((times.size, len(self.analytes)), np.nan)
+            return grade, np.zeros(times.size, bool), np.full(times.size, self.density_default)
+        grade, assayed, density = grade_at(lot_id, planned, self.by_lot.get(lot_id, []), times,
+                                           self.analytes)
+        density = np.where(np.isfinite(density) & (density > 0), density, self.density_default)
+        return grade, assayed, density
+
+    def material(self, lot_id: str, times_ns, volumes_m3):
+        """``(tonnes, grade-tonnes (A,), assayed tonnes, graded tonnes)`` of some material."""
+        volumes = np.asarray(volumes_m3, np.float64)
+        if volumes.size == 0:
+            return 0.0, np.zeros(len(self.analytes)), 0.0, 0.0
+        grade, assayed, density = self.cells(lot_id, times_ns)
+        tonnes = volumes * density
+        graded = np.isfinite(grade).all(axis=1)
+        sums = (tonnes[graded, None] * grade[graded]).sum(axis=0)
+        return (float(tonnes.sum()), sums, float(tonnes[assayed].sum()),
+                float(tonnes[graded].sum()))
+
+
+def _grade(sums: np.ndarray, graded_t: float, analytes) -> dict[str, float]:
+    if graded_t <= 0:
+        return {a: math.nan for a in analytes}
+    return {a: float(s / graded_t) for a, s in zip(analytes, sums)}
+
+
+def summarise(state: F.ProjectorState, lots, assays, *, valid_time_ns: int,
+              known_time_ns: int) -> PileState:
+    """Totals, deposits and cuts of a folded state, grades joined as known at K."""
+    pile = state.pile
+    if pile is None:
+        return PileState(state.config.pile_id, valid_time_ns, known_time_ns, None, 0.0, 0.0, {},
+                         0.0, [], [], dict(state.counters), state)
+    join = _Join(lots, assays, known_time_ns, pile.default_bulk_density_t_m3)
+    analytes = join.analytes
+    stack = state.stack
+    area = pile.geometry.cell_area_m2
+    deposits, weights = [], []
+    tot_t, tot_sums, tot_assayed, tot_graded, tot_v = 0.0, np.zeros(len(analytes)), 0.0, 0.0, 0.0
+    for k in range(1, stack.n_deposits + 1):
+        info = stack.info(k)
+        thick = stack.thickness(k)
+        times = stack.deposition_time_ns(k)
+        w = np.zeros(pile.geometry.shape + (1 + len(analytes),))
+        mask = thick > 0
+        volume = float(thick[mask].sum() * area)
+        if mask.any():
+            grade, assayed, density = join.cells(info.lot_id, times[mask])
+            tonnes_cells = thick[mask] * area * density
+            w[mask, 0] = density
+            w[mask, 1:] = density[:, None] * np.nan_to_num(grade)
+            t, sums, a_t, g_t = join.material(info.lot_id, times[mask], thick[mask] * area)
+        else:
+            t, sums, a_t, g_t = 0.0, np.zeros(len(analytes)), 0.0, 0.0
+        weights.append(w)
+        deposits.append(DepositSummary(k, info.pass_id, info.lot_id, info.flagged, volume, t,
+                                       _grade(sums, g_t, analytes), a_t / t if t > 0 else 0.0))
+        tot_t += t
+        tot_sums += sums
+        tot_assayed += a_t
+        tot_graded += g_t
+        tot_v += volume
+    cuts = [_cut_summary(c, stack, join, analytes) for c in state.cuts]
+    return PileState(pile.pile_id, valid_time_ns, known_time_ns, pile.geometry, tot_v, tot_t,
+                     _grade(tot_sums, tot_graded, analytes),
+                     tot_assayed / tot_t if tot_t > 0 else 0.0, deposits, cuts,
+                     dict(state.counters), state, analytes, weights)
+
+
+def _cut_summary(cut: F.CutRecord, stack, join: _Join, analytes) -> CutSummary:
+    per_deposit: dict[int, list] = {}
+    tonnes, sums, assayed_t, graded_t, volume = 0.0, np.zeros(len(analytes)), 0.0, 0.0, 0.0
+    for removal in cut.removals:
+        for d in removal.deposits:
+            t, s, a_t, g_t = join.material(d.info.lot_id, d.deposition_time_ns, d.cell_volume_m3)
+            entry = per_deposit.setdefault(d.index, [d.info, 0.0, 0.0])
+            entry[1] += d.volume_m3
+            entry[2] += t
+            tonnes += t
+            sums += s
+            assayed_t += a_t
+            graded_t += g_t
+            volume += d.volume_m3
+    deposits = [{"deposit": k, "pass_id": info.pass_id, "lot_id": info.lot_id,
+                 "flagged": info.flagged, "volume_m3": v, "tonnes": t}
+                for k, (info, v, t) in sorted(per_deposit.items())]
+    return CutSummary(cut.cut_id, cut.bench_id, cut.start_ns, cut.end_ns, volume, tonnes,
+                      cut.belt_tonnes, _grade(sums, graded_t, analytes),
+                      assayed_t / tonnes if tonnes > 0 else 0.0, cut.predicted_m3,
+                      cut.residual_m3, cut.returned_m3, deposits)
+
+
+# -- snapshots --------------------------------------------------------------------------------
+
+
+class SnapshotStore:
+    """Geometric fold states kept in their own DuckDB file, keyed by what they include.
+
+    A snapshot row: pile id, the fold config, the position ``(valid ns, global seq)``
+    folded to, the ledger head (global seq) and its recorded time when it was taken, and
+    the pickled state.  It is a cache: deleting the file loses nothing.
+    """
+
+    def __init__(self, path: str | Path) -> None:
+        import duckdb
+
+        self.path = str(path)
+        self._con = duckdb.connect(self.path)
+        self._con.execute(
+            "CREATE TABLE IF NOT EXISTS snapshots (pile_id VARCHAR, config VARCHAR, "
+            "valid_ns BIGINT, global_seq BIGINT, head_seq BIGINT, known_ns BIGINT, "
+            "state BLOB)")
+
+    def close(self) -> None:
+        self._con.close()
+
+    def __enter__(self) -> "SnapshotStore":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def save(self, state: F.ProjectorState, head_seq: int, known_ns: int) -> None:
+        """Keep ``state`` (folded from ``as_of(..., K=known_ns)`` with the head at ``head_seq``)."""
+        valid_ns, gseq = state.high_water
+        blob = pickle.dumps(state.copy(), protocol=pickle.HIGHEST_PROTOCOL)
+        self._con.execute("INSERT INTO snapshots VALUES (?, ?, ?, ?, ?, ?, ?)",
+                          [state.config.pile_id, repr(state.config), valid_ns, gseq, head_seq,
+                           known_ns, blob])
+
+    def count(self) -> int:
+        return self._con.execute("SELECT count(*) FROM snapshots").fetchone()[0]
+
+    def find(self, store, config: F.FoldConfig, valid_ns: int, known_ns: int):
+        """``(state, position)`` of the latest usable snapshot for (V, K), or None."""
+        rows = self._con.execute(
+            "SELECT valid_ns, global_seq, head_seq, known_ns, state FROM snapshots "
+            "WHERE pile_id = ? AND config = ? AND valid_ns <= ? AND known_ns <= ? "
+            "ORDER BY valid_ns DESC, global_seq DESC",
+            [config.pile_id, repr(config), valid_ns, known_ns]).fetchall()
+        for v_s, g_s, head_s, _k_s, blob in rows:
+            if _unchanged_since(store, v_s, g_s, head_s, known_ns):
+                return pickle.loads(blob), (v_s, g_s)
+        return None
+
+
+def _unchanged_since(store, valid_ns: int, gseq: int, head_seq: int, known_ns: int) -> bool:
+    """No geometry event at or before (valid_ns, gseq) arrived after ``head_seq`` by K."""
+    for event in store.read(head_seq + 1, types=list(F.GEOMETRY_TYPES)):
+        if event.recorded_time_ns > known_ns:
+            return True
+        if (event.valid_time_ns, event.global_seq) <= (valid_ns, gseq):
+            return False
+    return True
+
+
+def build_snapshots(store, snapshots: SnapshotStore, pile_id: str, *, every_ns: int,
+                    known_ns: int | None = None, config: F.FoldConfig | None = None) -> int:
+    """Fold what the ledger knew at ``known_ns`` (default: now), saving a snapshot every
+    ``every_ns`` of valid time; returns how many were saved."""
+    config = config or F.FoldConfig(pile_id=pile_id)
+    head = store.head()
+    if known_ns is None or known_ns >= head.recorded_time_ns:
+        head_seq, known = head.global_seq, head.recorded_time_ns
+    else:  # the last event recorded by then (recorded time never decreases along seq)
+        head_seq, known = -1, int(known_ns)
+        for event in store.read():
+            if event.recorded_time_ns > known:
+                break
+            head_seq = event.global_seq
+    state = F.initial_state(config)
+    next_mark = None
+    saved = 0
+    for event in store.as_of(FAR_FUTURE_NS, known, types=list(F.GEOMETRY_TYPES)):
+        if next_mark is None:
+            next_mark = event.valid_time_ns + every_ns
+        if event.valid_time_ns >= next_mark:
+            snapshots.save(state, head_seq, known)
+            saved += 1
+            next_mark = event.valid_time_ns + every_ns
+        F.apply(state, event)
+    return saved
+
+
+def removal_m3(removals: list[Removal]) -> float:
+    return float(sum(r.volume_m3 for r in removals))
