@@ -705,3 +705,24 @@ def test_grade_at_planned_fallback_nan_times_and_missing_analytes():
     with pytest.raises(ValueError):
         grade_at("L", PLANNED, [a], np.zeros((2, 2)), ANALYTES)
     assert grade_at("L", PLANNED, [a], np.zeros(0), ANALYTES)[0].shape == (0, 3)
+
+
+def test_raise_deposit_fills_a_lower_band_only_where_the_bands_above_are_empty():
+    g = GridGeometry(0.0, 0.0, 1.0, 3, 1)
+    stack = LayerStack.empty(g, 0.0)
+    stack = stack.open_deposit(DepositInfo(1, "P1", "A", 0))
+    stack, _ = stack.raise_to(np.array([[1.0], [1.0], [1.0]]), 10)
+    stack = stack.open_deposit(DepositInfo(2, "P2", "B", 100))
+    stack, _ = stack.raise_to(np.array([[np.nan], [1.5], [np.nan]]), 110)  # P2 only in cell 1
+    before = stack.total_volume_m3()
+    new, raised = stack.raise_deposit(1, np.array([[1.4], [2.0], [np.nan]]), 50)
+    # cell 0: band 2 empty -> band 1 grows to 1.4; cell 1: band 2 holds material -> untouched
+    assert raised[:, 0].tolist() == [True, False, False]
+    assert new.thickness(1)[:, 0].tolist() == pytest.approx([1.4, 1.0, 1.0])
+    assert new.thickness(2)[:, 0].tolist() == pytest.approx([0.0, 0.5, 0.0])
+    assert new.total_volume_m3() == pytest.approx(before + 0.4)
+    # deposition time of cell 0's band 1: thickness-weighted mean of 10 (1.0 m) and 50 (0.4 m)
+    assert new.deposition_time_ns(1)[0, 0] == pytest.approx((10 * 1.0 + 50 * 0.4) / 1.4)
+    assert stack.thickness(1)[0, 0] == 1.0  # the old stack is unchanged
+    surfaces = new.surfaces()
+    assert np.all(np.diff(surfaces, axis=0) >= 0)  # still monotone

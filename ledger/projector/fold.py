@@ -41,7 +41,7 @@ from schemas.events import decode_payload, timestamp_ns
 from ledger.projector import georef, heightmap, profile
 from ledger.projector.envelope import Reclaimer, cut_floor
 from ledger.projector.grades import AssayRecord
-from ledger.projector.grid import GridGeometry
+from ledger.projector.grid import GridGeometry, cell_centres
 from ledger.projector.layers import DepositInfo, LayerStack, Removal
 
 __all__ = ["FoldConfig", "PileInfo", "PassRecord", "CutRecord", "ProjectorState",
@@ -86,6 +86,10 @@ class FoldConfig:
         Agreeing out-of-gate observations before a sparsely seen cell changes.
     strong_points : int
         A cell with at least this many points in one batch changes at once.
+    attribute_by_crossing : bool
+        Give a rise to the passes whose stacker crossed the cell since it was last seen
+        (from ``stack_started``'s start/end along the rail), deposited when it crossed;
+        False: to the pass active when the rise is seen.
     fill_gap_cells : int
         Unseen runs of at most this many cells between seen cells are interpolated
         (linearly) before the stack follows the height map; 0 = no filling.
@@ -101,6 +105,7 @@ class FoldConfig:
     gate_sigma: float = 3.0
     change_count: int = 3
     strong_points: int = 3
+    attribute_by_crossing: bool = True
     fill_gap_cells: int = 16
 
 
@@ -126,6 +131,8 @@ class PassRecord:
     deposit_index: int
     ended_ns: int | None = None
     belt_tonnes: float | None = None
+    start_y_m: float = math.nan
+    end_y_m: float = math.nan
 
 
 @dataclass
@@ -262,7 +269,9 @@ def _on_stack_started(state: ProjectorState, event, msg) -> None:
     state.stack = state.stack.open_deposit(
         DepositInfo(index, msg.pass_id, msg.lot_id, event.valid_time_ns))
     state.passes[msg.pass_id] = PassRecord(msg.pass_id, msg.lot_id, msg.machine_id,
-                                           event.valid_time_ns, index)
+                                           event.valid_time_ns, index,
+                                           start_y_m=float(msg.start_y_m),
+                                           end_y_m=float(msg.end_y_m))
     state.active_pass = msg.pass_id
 
 
@@ -387,6 +396,7 @@ def _process_scans(state: ProjectorState, *, until_ns: int | None = None,
         if len(points) == 0:
             continue
         obs = heightmap.rasterize(state.pile.geometry, points)
+        seen_before_ns = state.height.grid["last_update_ns"].copy()
         # A cell seen by several points of this batch that agree is strong evidence of
         # a change on its own (a stacked layer rises between two patrols, so waiting
         # for agreeing patrols would never accept it); a cell seen by a point or two
@@ -397,7 +407,7 @@ def _process_scans(state: ProjectorState, *, until_ns: int | None = None,
                 state.height, _stats = heightmap.fuse(
                     state.height, _subset(obs, subset), int(t.max()), state.point_sd_m,
                     gate_sigma=state.config.gate_sigma, change_count=change_count)
-        _follow_height(state, int(t.max()), drops=False)
+        _follow_height(state, int(t.max()), drops=False, seen_before_ns=seen_before_ns)
 
 
 def _subset(obs, mask: np.ndarray):
@@ -407,7 +417,8 @@ def _subset(obs, mask: np.ndarray):
                                       pick(obs.x_offset_m), pick(obs.y_offset_m))
 
 
-def _follow_height(state: ProjectorState, t_ns: int, *, drops: bool = True) -> None:
+def _follow_height(state: ProjectorState, t_ns: int, *, drops: bool = True,
+                   seen_before_ns: np.ndarray | None = None) -> None:
     """Move the layer stack's top to the height map where they differ beyond the margin.
 
     Rises follow at once.  Drops follow only when ``drops`` (at a cut, or at the end of
@@ -428,6 +439,9 @@ def _follow_height(state: ProjectorState, t_ns: int, *, drops: bool = True) -> N
             + state.margin_m
         up = np.isfinite(elevation) & (elevation > top + margin)
         down = np.isfinite(elevation) & (elevation < top - margin)
+    if up.any() and seen_before_ns is not None and state.config.attribute_by_crossing:
+        up = _rise_to_crossing_passes(state, np.where(up, elevation, np.nan), seen_before_ns,
+                                      t_ns) & up
     if up.any():
         if state.active_pass is None and not _settling_last_pass(state):
             info = state.stack.deposits[-1] if state.stack.n_deposits else None
@@ -471,6 +485,76 @@ def _lower_height(height, floor_m: np.ndarray, sd_m: float):
         if name in grid:
             grid[name][lowered] = np.nan
     return type(height)(grid)
+
+
+def _crossing_ns(record: PassRecord, y_m: np.ndarray, now_ns: int,
+                 typical_s: float | None) -> np.ndarray:
+    """When the stacker of a pass passed each position along the rail (UTC ns, float).
+
+    The stacker moves from ``start_y_m`` to ``end_y_m`` at a steady speed between the
+    pass's start and end; a pass still running ends, by assumption, after the typical
+    duration of the passes before it (or now when none ended yet).
+    """
+    t0 = float(record.started_ns)
+    if record.ended_ns is not None:
+        t1 = float(record.ended_ns)
+    elif typical_s is not None:
+        t1 = t0 + typical_s * 1e9
+    else:
+        t1 = float(max(now_ns, record.started_ns + 1))
+    span = record.end_y_m - record.start_y_m
+    if not math.isfinite(span) or span == 0:
+        return np.full(y_m.shape, t0)
+    frac = np.clip((y_m - record.start_y_m) / span, 0.0, 1.0)
+    return t0 + frac * (t1 - t0)
+
+
+def _rise_to_crossing_passes(state: ProjectorState, surface: np.ndarray,
+                             seen_before_ns: np.ndarray, t_ns: int) -> np.ndarray:
+    """Give each risen cell's material to the passes whose stacker crossed it since it
+    was last seen, in equal shares, deposited when the stacker crossed; returns the
+    cells still risen (no such pass, or a later deposit already holds material there).
+    """
+    passes = sorted(state.passes.values(), key=lambda p: p.deposit_index)
+    if not passes:
+        return np.isfinite(surface)
+    ended = [(p.ended_ns - p.started_ns) / 1e9 for p in passes if p.ended_ns is not None]
+    typical = float(np.median(ended)) if ended else None
+    _x, y = cell_centres(state.pile.geometry)
+    prev = np.where(np.isfinite(seen_before_ns), seen_before_ns, -np.inf)
+    cands = []
+    for record in passes:
+        crossing = _crossing_ns(record, y, t_ns, typical)
+        cands.append((record, crossing, (crossing > prev) & (crossing <= t_ns)))
+    count = sum(c[2].astype(int) for c in cands)
+    risen = np.isfinite(surface)
+    top = state.stack.surface()
+    rise = np.where(risen, surface - top, 0.0)
+    done = 0
+    for record, crossing, hit in cands:
+        cells = hit & risen & (count > 0)
+        if not cells.any():
+            continue
+        level = np.where(cells, top + rise * (_share_index(cands, record, cells) / np.maximum(count, 1)),
+                         np.nan)
+        state.stack, raised = state.stack.raise_deposit(record.deposit_index, level,
+                                                        np.where(cells, crossing, np.nan))
+        done += int(raised.sum())
+    if done:
+        state.count("rises_by_crossing", done)
+    # what is left: cells not fully raised (a later deposit already held material)
+    with np.errstate(invalid="ignore"):
+        return risen & (surface > state.stack.surface())
+
+
+def _share_index(cands, record, cells) -> np.ndarray:
+    """1-based position of ``record`` among each cell's candidate passes (for the shares)."""
+    position = np.zeros(cells.shape)
+    for other, _crossing, hit in cands:
+        position += hit
+        if other is record:
+            break
+    return position
 
 
 def _deposition_ns(state: ProjectorState, t_ns: int) -> int:

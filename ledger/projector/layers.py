@@ -320,6 +320,57 @@ class LayerStack:
                            self._times[:-1] + (_frozen(new_time),), self._infos, epoch)
         return stack, float(np.sum(add) * self._geometry.cell_area_m2)
 
+    def raise_deposit(self, k: int, surface_m, t_ns) -> tuple["LayerStack", np.ndarray]:
+        """Add material to deposit ``k`` where every band above it is empty.
+
+        In cells where the surface is above the top and deposits ``k+1 .. n`` have no
+        material, surfaces ``S(k) .. S(n)`` rise to it together, so the new material
+        lies in band ``k`` (material stacked by an earlier pass, seen late).  Other
+        cells are left alone.
+
+        Parameters
+        ----------
+        k : int
+            The deposit (1-based).
+        surface_m : array_like, shape (nx, ny)
+            Observed surface (m); NaN = no observation.
+        t_ns : int or array_like, shape (nx, ny)
+            When the material arrived (UTC ns), per cell or for all.
+
+        Returns
+        -------
+        stack : LayerStack
+        raised : ndarray of bool, shape (nx, ny)
+            The cells that received material.
+        """
+        self._check_k(k)
+        surf = _check_layer(self._geometry, surface_m, "surface_m")
+        top = self._surfaces[-1]
+        empty_above = np.ones(self._geometry.shape, bool)
+        for j in range(k + 1, self.n_deposits + 1):
+            empty_above &= self._surfaces[j] <= self._surfaces[j - 1]
+        with np.errstate(invalid="ignore"):
+            up = (surf > top) & empty_above
+        if not up.any():
+            return self, up
+        t = np.broadcast_to(np.asarray(t_ns, dtype=np.float64), self._geometry.shape)
+        epoch = int(np.nanmin(t[up])) if self._epoch_ns is None else self._epoch_ns
+        t_rel = t[up] - float(epoch)
+        lower = self._surfaces[k - 1]
+        old = (self._surfaces[k] - lower)[up]
+        add = surf[up] - top[up]
+        surfaces = list(self._surfaces)
+        for j in range(k, self.n_deposits + 1):
+            new = surfaces[j].copy()
+            new[up] = surf[up]
+            surfaces[j] = _frozen(new)
+        times = list(self._times)
+        new_time = times[k - 1].copy()
+        t_old = new_time[up]
+        new_time[up] = np.where(old > 0, (t_old * old + t_rel * add) / (old + add), t_rel)
+        times[k - 1] = _frozen(new_time)
+        return LayerStack(self._geometry, tuple(surfaces), tuple(times), self._infos, epoch), up
+
     def clamp(self, floor_m) -> tuple["LayerStack", Removal]:
         """Lower every surface above a floor to it: ``S(k) = min(S(k), floor)`` for k >= 1.
 
