@@ -61,6 +61,11 @@ def run(scenario: str, seed: int, out: Path, duration_h: float | None = None) ->
             "prepare_s": prepared, "project_s": project_s}
 
 
+def _t(tonnes: float) -> str:
+    """Tonnes with four significant digits (bench-scale cuts weigh grams)."""
+    return f"{tonnes:,.1f}" if abs(tonnes) >= 100 else f"{tonnes:.4g}"
+
+
 def report(result: dict) -> bool:
     state, truth = result["state"], result["truth"]
     world = truth["world"]
@@ -89,8 +94,8 @@ def report(result: dict) -> bool:
         d_fe = fe - c["grade"]["Fe"]
         good = abs(t_err) <= TARGET_CUT_PCT and abs(d_fe) <= TARGET_FE_PP
         ok &= good
-        print(f"{c['cut_id']:<8} {mine.tonnes:>10,.3f} {c['true_tonnes']:>10,.3f} {t_err:>+7.2f} "
-              f"{mine.tonnes_scale:>10,.3f} {fe:>8.2f} {c['grade']['Fe']:>8.2f} {d_fe:>+6.2f} "
+        print(f"{c['cut_id']:<8} {_t(mine.tonnes):>10} {_t(c['true_tonnes']):>10} {t_err:>+7.2f} "
+              f"{_t(mine.tonnes_scale):>10} {fe:>8.2f} {c['grade']['Fe']:>8.2f} {d_fe:>+6.2f} "
               f"{mine.assayed_fraction:>7.2f} {mine.residual_m3:>+9.3f}  "
               f"{'PASS' if good else 'MISS'}")
     print("counters: " + ", ".join(f"{k} {v:,}" for k, v in sorted(state.counters.items())))

@@ -90,6 +90,9 @@ class FoldConfig:
         Give a rise to the passes whose stacker crossed the cell since it was last seen
         (from ``stack_started``'s start/end along the rail), deposited when it crossed;
         False: to the pass active when the rise is seen.
+    slump_in_place : bool
+        Rises outside a pass after a cut are slumped material: counted as the cut's
+        ``returned_m3`` but not added (the face it came from is still in the stack).
     fill_gap_cells : int
         Unseen runs of at most this many cells between seen cells are interpolated
         (linearly) before the stack follows the height map; 0 = no filling.
@@ -106,6 +109,7 @@ class FoldConfig:
     change_count: int = 3
     strong_points: int = 3
     attribute_by_crossing: bool = True
+    slump_in_place: bool = True
     fill_gap_cells: int = 16
 
 
@@ -442,6 +446,17 @@ def _follow_height(state: ProjectorState, t_ns: int, *, drops: bool = True,
     if up.any() and seen_before_ns is not None and state.config.attribute_by_crossing:
         up = _rise_to_crossing_passes(state, np.where(up, elevation, np.nan), seen_before_ns,
                                       t_ns) & up
+    slump = (state.config.slump_in_place and state.active_pass is None and bool(state.cuts)
+             and not _settling_last_pass(state))
+    if up.any() and slump:
+        # Material rising outside a pass after a cut slid into the cut's hole from its
+        # face.  The face's drop is spread thin and mostly under the noise margin, so
+        # adding the toe would count the slid material twice: the stack keeps it where
+        # it was (same material, a few metres up the face) and the rise is only counted.
+        with np.errstate(invalid="ignore"):
+            state.cuts[-1].returned_m3 += float(
+                np.sum(np.where(up, elevation - top, 0.0)) * state.pile.geometry.cell_area_m2)
+        up = np.zeros_like(up)
     if up.any():
         if state.active_pass is None and not _settling_last_pass(state):
             info = state.stack.deposits[-1] if state.stack.n_deposits else None
