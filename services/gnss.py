@@ -54,7 +54,6 @@ from __future__ import annotations
 
 import argparse
 import math
-import time
 from dataclasses import dataclass, field
 
 import serial
@@ -62,6 +61,7 @@ from foxglove_schemas_protobuf.LocationFix_pb2 import LocationFix
 
 from schemas.events import is_valid_source, set_timestamp_ns
 from services.protocols import nmea
+from services.serial_device import DevicePipeline, run_serial_service
 from services.service import (
     DEFAULT_SITE,
     DEFAULT_STATUS_PERIOD_S,
@@ -69,7 +69,6 @@ from services.service import (
     SiteTime,
     Stopper,
     ZenohOptions,
-    log,
 )
 
 __all__ = [
@@ -277,38 +276,30 @@ def config_from_args(args: argparse.Namespace) -> Config:
 # -- the service --------------------------------------------------------------------------
 
 
-class _FixPipeline:
+class _FixPipeline(DevicePipeline):
     """Bytes in, fixes out: the NMEA reader, the date logic and the counters."""
 
     def __init__(self, config: Config, runtime: ServiceRuntime, site_time: SiteTime) -> None:
+        super().__init__(runtime, site_time)
         self.config = config
-        self.runtime = runtime
-        self.status = runtime.status
-        self.site_time = site_time
         self.publisher = runtime.publisher(config.source)
         self.publisher.declare("location_fix")
         self.reader = nmea.NmeaReader()
-        self._checksum_errors = 0
-        self._garbage_bytes = 0
-        self._clock_logged = False
+
+    def start(self, port: serial.Serial) -> None:
+        config = self.config
+        self.runtime.log("reading", device=config.device, baud=config.baud, source=config.source,
+                         frame_id=config.frame_id, clock=config.clock, uere_m=config.uere_m,
+                         epoch=self.publisher.epoch)
 
     def feed(self, data: bytes, arrived_s: float) -> None:
         """Bytes that arrived at local monotonic time ``arrived_s``."""
         sentences = self.reader.feed(data)
-        self._sync_reader_counters()
+        self.sync_counters(self.reader, "checksum_errors", "garbage_bytes")
         if sentences:
             self.status.add("sentences", len(sentences))
         for sentence in sentences:
             self._sentence(sentence, arrived_s)
-
-    def _sync_reader_counters(self) -> None:
-        reader = self.reader
-        if reader.checksum_errors != self._checksum_errors:
-            self.status.add("checksum_errors", reader.checksum_errors - self._checksum_errors)
-            self._checksum_errors = reader.checksum_errors
-        if reader.garbage_bytes != self._garbage_bytes:
-            self.status.add("garbage_bytes", reader.garbage_bytes - self._garbage_bytes)
-            self._garbage_bytes = reader.garbage_bytes
 
     def _sentence(self, sentence: str, arrived_s: float) -> None:
         kind = sentence[1:sentence.find(",")] if "," in sentence else sentence[1:]
@@ -325,7 +316,7 @@ class _FixPipeline:
         if gga.quality == 0:
             self.status.add("no_fix")
             return
-        now_ns = self._site_ns(arrived_s)
+        now_ns = self.site_ns(arrived_s)
         if now_ns is None:
             self.status.add("waiting_for_clock")
             return
@@ -337,30 +328,6 @@ class _FixPipeline:
         self.publisher.publish(msg)
         self.status.add("published")
 
-    def _site_ns(self, monotonic_s: float) -> int | None:
-        """Site time of a local monotonic reading, or None before the site clock is known."""
-        if not self.site_time.ready.is_set():
-            return None
-        if not self._clock_logged and self.site_time.mode == "site":
-            self._clock_logged = True
-            self.runtime.log("site clock ready", speed=self.site_time.speed)
-        return self.site_time.at(monotonic_s)
-
-    def check_clock(self) -> None:
-        """Log ``site clock ready`` as soon as the clock is known (also while idle)."""
-        if not self._clock_logged and self.site_time.ready.is_set():
-            self._site_ns(time.monotonic())
-
-
-def _read_chunk(port: serial.Serial) -> bytes:
-    """Wait up to the port's timeout for a byte, then take everything already waiting."""
-    data = port.read(1)
-    if data:
-        waiting = port.in_waiting
-        if waiting:
-            data += port.read(waiting)
-    return data
-
 
 def main(config: Config, *, stopper: Stopper | None = None) -> int:
     """Run the GNSS service until the device ends or SIGINT/SIGTERM.
@@ -371,50 +338,6 @@ def main(config: Config, *, stopper: Stopper | None = None) -> int:
         0 on a clean stop (signal or device closed), 2 if the device cannot be opened or
         the Zenoh session cannot start.
     """
-    import zenoh
-
-    stopper = stopper or Stopper()  # installed first: SIGTERM during start-up stops cleanly
-    try:
-        port = serial.Serial(config.device, config.baud, timeout=config.read_timeout_s)
-    except (serial.SerialException, OSError, ValueError) as exc:
-        log(SERVICE, "cannot open device", level="error", device=config.device,
-            error=str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__)
-        return 2
-    with port:
-        runtime = ServiceRuntime(SERVICE, config.site, config.zenoh, name=config.source,
-                                 status_period_s=config.status_period_s, stopper=stopper)
-        try:
-            runtime.open(error_keys=ERROR_KEYS, announce=False)
-        except zenoh.ZError as exc:
-            log(SERVICE, "cannot open zenoh session", level="error", error=str(exc))
-            return 2
-        with runtime:
-            site_time = SiteTime(config.clock)
-            site_time.follow(runtime.session, config.site)
-            try:
-                _run(config, port, runtime, site_time)
-            finally:
-                site_time.close()
-    return 0
-
-
-def _run(config: Config, port: serial.Serial, runtime: ServiceRuntime,
-         site_time: SiteTime) -> None:
-    """The read loop.  The liveliness token is declared once the port is open, the clock
-    followed and the publisher declared: "token present" means "reading"."""
-    pipeline = _FixPipeline(config, runtime, site_time)
-    runtime.announce()
-    runtime.log("reading", device=config.device, baud=config.baud, source=config.source,
-                frame_id=config.frame_id, clock=config.clock, uere_m=config.uere_m,
-                epoch=pipeline.publisher.epoch)
-    stopper = runtime.stopper
-    while not stopper.is_set():
-        try:
-            data = _read_chunk(port)
-        except (serial.SerialException, OSError) as exc:
-            runtime.log("device closed", device=config.device, error=str(exc))
-            break
-        if data:
-            pipeline.feed(data, time.monotonic())
-        else:
-            pipeline.check_clock()
+    return run_serial_service(SERVICE, config, error_keys=ERROR_KEYS, stopper=stopper,
+                              make_pipeline=lambda runtime, site_time:
+                              _FixPipeline(config, runtime, site_time))

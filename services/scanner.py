@@ -79,6 +79,7 @@ from foxglove_schemas_protobuf.LaserScan_pb2 import LaserScan
 
 from schemas.events import is_valid_source, set_timestamp_ns
 from services.protocols import lms200
+from services.serial_device import DevicePipeline, run_serial_service
 from services.service import (
     DEFAULT_SITE,
     DEFAULT_STATUS_PERIOD_S,
@@ -86,7 +87,6 @@ from services.service import (
     SiteTime,
     Stopper,
     ZenohOptions,
-    log,
 )
 
 __all__ = [
@@ -388,24 +388,26 @@ def config_from_args(args: argparse.Namespace) -> Config:
 # -- the service --------------------------------------------------------------------------
 
 
-class _ScanPipeline:
+class _ScanPipeline(DevicePipeline):
     """Bytes in, scans out: the reader, the arrival bookkeeping and the counters."""
 
     def __init__(self, config: Config, runtime: ServiceRuntime, site_time: SiteTime) -> None:
+        super().__init__(runtime, site_time)
         self.config = config
-        self.runtime = runtime
-        self.status = runtime.status
-        self.site_time = site_time
         self.publisher = runtime.publisher(config.source)
         self.publisher.declare("scan")
         self.reader = lms200.TelegramReader()
         self._pending = b""  # the reader's unconsumed bytes (tail of the stream)
         self._window_end_s = time.monotonic()  # monotonic time the last byte arrived
         self._previous_read_s = self._window_end_s  # ... and the read before that one
-        self._crc_errors = 0
-        self._garbage_bytes = 0
         self._fields: dict[int, ScanField | None] = {}
-        self._clock_logged = False
+
+    def start(self, port: serial.Serial) -> None:
+        config = self.config
+        self.runtime.log("reading", device=config.device, baud=config.baud, source=config.source,
+                         frame_id=config.frame_id, clock=config.clock, epoch=self.publisher.epoch)
+        if config.send_start:
+            _send_start(port, self.runtime)
 
     def feed(self, data: bytes, arrived_s: float) -> None:
         """Bytes that arrived at local monotonic time ``arrived_s``."""
@@ -420,39 +422,20 @@ class _ScanPipeline:
         """
         if self.reader.buffered_bytes:
             self._handle(self._pending, self.reader.flush())
-        if not self._clock_logged and self.site_time.ready.is_set():
-            self._site_ns(time.monotonic())
+        self.log_clock_when_ready()
 
     def _handle(self, window: bytes, telegrams: list[bytes]) -> None:
         buffered = self.reader.buffered_bytes
         self._pending = window[len(window) - buffered:] if buffered else b""
-        self._sync_reader_counters()
+        self.sync_counters(self.reader, "crc_errors", "garbage_bytes")
         if not telegrams:
             return
         self.status.add("telegrams", len(telegrams))
         ends = telegram_end_offsets(window, telegrams)
-        window_end_ns = self._site_ns(self._window_end_s)
-        not_before_ns = None if window_end_ns is None else self._site_ns(self._previous_read_s)
+        window_end_ns = self.site_ns(self._window_end_s)
+        not_before_ns = None if window_end_ns is None else self.site_ns(self._previous_read_s)
         for telegram, end in zip(telegrams, ends):
             self._telegram(telegram, window_end_ns, len(window) - end, not_before_ns)
-
-    def _sync_reader_counters(self) -> None:
-        reader = self.reader
-        if reader.crc_errors != self._crc_errors:
-            self.status.add("crc_errors", reader.crc_errors - self._crc_errors)
-            self._crc_errors = reader.crc_errors
-        if reader.garbage_bytes != self._garbage_bytes:
-            self.status.add("garbage_bytes", reader.garbage_bytes - self._garbage_bytes)
-            self._garbage_bytes = reader.garbage_bytes
-
-    def _site_ns(self, monotonic_s: float) -> int | None:
-        """Site time of a local monotonic reading, or None before the site clock is known."""
-        if not self.site_time.ready.is_set():
-            return None
-        if not self._clock_logged and self.site_time.mode == "site":
-            self._clock_logged = True
-            self.runtime.log("site clock ready", speed=self.site_time.speed)
-        return self.site_time.at(monotonic_s)
 
     def _telegram(self, telegram: bytes, window_end_ns: int | None, bytes_behind: int,
                   not_before_ns: int | None) -> None:
@@ -501,11 +484,6 @@ class _ScanPipeline:
         self.status.add(counter)
 
 
-def _open_port(config: Config) -> serial.Serial:
-    """Open the serial port (raises serial.SerialException or OSError)."""
-    return serial.Serial(config.device, config.baud, timeout=config.read_timeout_s)
-
-
 def _send_start(port: serial.Serial, runtime: ServiceRuntime) -> None:
     """Send the start-continuous-output command once; never wait for its answer.
 
@@ -520,16 +498,6 @@ def _send_start(port: serial.Serial, runtime: ServiceRuntime) -> None:
     runtime.log("sent start continuous output", command=lms200.START_CONTINUOUS.hex())
 
 
-def _read_chunk(port: serial.Serial) -> bytes:
-    """Wait up to the port's timeout for a byte, then take everything already waiting."""
-    data = port.read(1)
-    if data:
-        waiting = port.in_waiting
-        if waiting:
-            data += port.read(waiting)
-    return data
-
-
 def main(config: Config, *, stopper: Stopper | None = None) -> int:
     """Run the scanner service until the device ends or SIGINT/SIGTERM.
 
@@ -539,51 +507,6 @@ def main(config: Config, *, stopper: Stopper | None = None) -> int:
         0 on a clean stop (signal or device closed), 2 if the device cannot be opened or
         the Zenoh session cannot start.
     """
-    import zenoh
-
-    stopper = stopper or Stopper()  # installed first: SIGTERM during start-up stops cleanly
-    try:
-        port = _open_port(config)
-    except (serial.SerialException, OSError, ValueError) as exc:
-        log(SERVICE, "cannot open device", level="error", device=config.device,
-            error=str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__)
-        return 2
-    with port:
-        runtime = ServiceRuntime(SERVICE, config.site, config.zenoh, name=config.source,
-                                 status_period_s=config.status_period_s, stopper=stopper)
-        try:
-            runtime.open(error_keys=ERROR_KEYS, announce=False)
-        except zenoh.ZError as exc:
-            log(SERVICE, "cannot open zenoh session", level="error", error=str(exc))
-            return 2
-        with runtime:
-            site_time = SiteTime(config.clock)
-            site_time.follow(runtime.session, config.site)
-            try:
-                _run(config, port, runtime, site_time)
-            finally:
-                site_time.close()
-    return 0
-
-
-def _run(config: Config, port: serial.Serial, runtime: ServiceRuntime,
-         site_time: SiteTime) -> None:
-    """The read loop.  The liveliness token is declared once the port is open, the clock
-    followed and the publisher declared: "token present" means "reading"."""
-    pipeline = _ScanPipeline(config, runtime, site_time)
-    runtime.announce()
-    runtime.log("reading", device=config.device, baud=config.baud, source=config.source,
-                frame_id=config.frame_id, clock=config.clock, epoch=pipeline.publisher.epoch)
-    if config.send_start:
-        _send_start(port, runtime)
-    stopper = runtime.stopper
-    while not stopper.is_set():
-        try:
-            data = _read_chunk(port)
-        except (serial.SerialException, OSError) as exc:
-            runtime.log("device closed", device=config.device, error=str(exc))
-            break
-        if data:
-            pipeline.feed(data, time.monotonic())
-        else:
-            pipeline.idle()
+    return run_serial_service(SERVICE, config, error_keys=ERROR_KEYS, stopper=stopper,
+                              make_pipeline=lambda runtime, site_time:
+                              _ScanPipeline(config, runtime, site_time))

@@ -37,14 +37,6 @@ SITE_OF_SCENARIO = "capelambert"
 MACHINE = "bwr1"
 
 
-def _fresh(path: Path) -> Path:
-    for suffix in ("", ".wal"):
-        candidate = Path(str(path) + suffix)
-        if candidate.exists():
-            candidate.unlink()
-    return path
-
-
 def _say(text: str) -> None:
     print(text, flush=True)
 
@@ -248,6 +240,8 @@ def run_yard_demo(out_dir: Path, *, seed: int = 1, speed: float = 40.0, idle_spe
     started = time.monotonic()
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
+    from services.demo import _fresh  # demo imports this module lazily: no cycle
+
     ledger_path = _fresh(out_dir / "ledger.duckdb")
     sim_dir = out_dir / "sim"
     live = f"stockpile/{site}/@live"

@@ -16,31 +16,25 @@ import math
 import os
 import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 
 import numpy as np
 import pytest
-import zenoh
-import zenoh.ext as zext
 
 from ledger.times import parse_time_ns as parse_time
 from schemas.events import (
-    encode_attachment,
-    event_from_sample,
-    key_expr,
     make_event,
-    set_timestamp_ns,
     timestamp_ns,
 )
-from schemas.stockpile.v1 import events_pb2 as pb
 from schemas.validate import check_event
 from services import gnss as G
 from services.protocols import nmea as N
 from services.service import parse_logfmt
 from services.sim.pty import PtyDevice
 from tests.zenoh_helpers import (
+    EventSink,
+    SiteClock,
     client_args,
     log_lines,
     open_router,
@@ -76,75 +70,6 @@ def _bad_checksum(sentence: str) -> bytes:
 
 
 # -------------------------------------------------------------------------- Zenoh side
-
-
-class FixSink:
-    """A real subscriber on the site's location fixes: decoded events, in arrival order."""
-
-    def __init__(self, session: zenoh.Session, source: str = G.DEFAULT_SOURCE) -> None:
-        self.events: list = []
-        self._cond = threading.Condition()
-        self._subscriber = zext.declare_advanced_subscriber(
-            session, key_expr(SITE, "location_fix", source), self._on_sample,
-            history=zext.HistoryConfig(detect_late_publishers=True),
-            recovery=zext.RecoveryConfig(heartbeat=True))
-
-    def _on_sample(self, sample) -> None:
-        attachment = sample.attachment.to_bytes() if sample.attachment is not None else None
-        event = event_from_sample(str(sample.key_expr), sample.payload.to_bytes(), attachment)
-        with self._cond:
-            self.events.append(event)
-            self._cond.notify_all()
-
-    def wait_for(self, n: int, process: subprocess.Popen, timeout_s: float = TIMEOUT_S) -> list:
-        """Block until ``n`` events arrived (fail early if the service died)."""
-        deadline = time.monotonic() + timeout_s
-        with self._cond:
-            while len(self.events) < n:
-                remaining = deadline - time.monotonic()
-                assert process.poll() is None, f"service exited with {process.returncode}"
-                assert remaining > 0, f"got {len(self.events)} of {n} fixes in {timeout_s} s"
-                self._cond.wait(min(remaining, 0.5))
-            return list(self.events)
-
-    def close(self) -> None:
-        self._subscriber.undeclare()
-
-
-class SiteClock:
-    """A site clock source, like the simulator's: ``clock`` events every ``period_s``,
-    running in real time from ``start_ns`` (site UTC ns); ``site_ns(monotonic_ns)`` is its
-    time at a local monotonic reading."""
-
-    def __init__(self, session: zenoh.Session, start_ns: int, period_s: float = 0.1) -> None:
-        self.session, self.start_ns, self.period_s = session, start_ns, period_s
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, daemon=True)
-        self._origin_ns = 0
-
-    def site_ns(self, monotonic_ns: int) -> int:
-        return self.start_ns + (monotonic_ns - self._origin_ns)
-
-    def _run(self) -> None:
-        seq = 0
-        while True:
-            msg = pb.Clock()
-            set_timestamp_ns(msg.time, self.site_ns(time.monotonic_ns()))
-            event = make_event(msg, source="sim.clock", epoch=1, seq=seq)
-            self.session.put(key_expr(SITE, "clock", "sim.clock"), event.payload,
-                             attachment=encode_attachment(1, seq, event.valid_time_ns))
-            seq += 1
-            if self._stop.wait(self.period_s):  # the clock's period, not a synchronisation
-                return
-
-    def __enter__(self) -> "SiteClock":
-        self._origin_ns = time.monotonic_ns()
-        self._thread.start()
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self._stop.set()
-        self._thread.join()
 
 
 @pytest.fixture()
@@ -198,7 +123,7 @@ def test_every_good_fix_published_once_and_bad_sentences_counted(router, tmp_pat
     bad_field = _sentence("GPGGA,123519,99x7.038,N,01131.000,E,1,08,0.9,545.4,M,46.9,M,,")
     noise = b"\x00\xffnoise on the line\r\n"
 
-    sink = FixSink(session)
+    sink = EventSink(session, SITE, "location_fix", G.DEFAULT_SOURCE, TIMEOUT_S)
     log = tmp_path / "gnss.log"
     sent: list[int] = []  # time of each good fix, UTC ns
     with PtyDevice(write_timeout_s=TIMEOUT_S) as dev:
@@ -267,7 +192,7 @@ def test_site_clock_dates_fixes_across_midnight(router, tmp_path):
     session, endpoint = router
     log = tmp_path / "gnss.log"
     site_ns = parse_time("2030-03-31T23:59:59Z")  # the site clock, far from the wall clock
-    sink = FixSink(session)
+    sink = EventSink(session, SITE, "location_fix", G.DEFAULT_SOURCE, TIMEOUT_S)
     dev = PtyDevice(write_timeout_s=TIMEOUT_S)
     process = _start_gnss(dev, endpoint, log, "--clock", "site")
 
@@ -280,7 +205,7 @@ def test_site_clock_dates_fixes_across_midnight(router, tmp_path):
         dev.write(fix("23:59:58.00"))  # before any clock event: the date is unknown
         wait_until(lambda: any(line.get("waiting_for_clock") == "1" for line in log_lines(log)),
                    TIMEOUT_S, "the fix counted as waiting_for_clock")
-        with SiteClock(session, site_ns):
+        with SiteClock(session, SITE, site_ns):
             wait_until(lambda: any(line.get("msg") == "site clock ready"
                                    for line in log_lines(log)),
                        TIMEOUT_S, "the service to follow the site clock")

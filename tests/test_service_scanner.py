@@ -16,24 +16,16 @@ import os
 import select
 import subprocess
 import sys
-import threading
 import time
 
 import numpy as np
 import pytest
-import zenoh
-import zenoh.ext as zext
 
 from ledger.times import parse_time_ns
 from schemas.events import (
-    encode_attachment,
-    event_from_sample,
-    key_expr,
     make_event,
-    set_timestamp_ns,
     timestamp_ns,
 )
-from schemas.stockpile.v1 import events_pb2 as pb
 from schemas.validate import check_event
 from services import scanner as S
 from services.protocols import lms200 as L
@@ -41,6 +33,8 @@ from services.service import parse_logfmt
 from services.sim.pty import PtyDevice
 from services.sim.sensors import beam_angles_rad
 from tests.zenoh_helpers import (
+    EventSink,
+    SiteClock,
     client_args,
     log_lines,
     open_router,
@@ -79,75 +73,6 @@ def _garbage(rng: np.random.Generator, max_len: int) -> bytes:
 
 
 # -------------------------------------------------------------------------- Zenoh side
-
-
-class ScanSink:
-    """A real subscriber on the site's scans: decoded events, in arrival order."""
-
-    def __init__(self, session: zenoh.Session, source: str = S.DEFAULT_SOURCE) -> None:
-        self.events: list = []
-        self._cond = threading.Condition()
-        self._subscriber = zext.declare_advanced_subscriber(
-            session, key_expr(SITE, "scan", source), self._on_sample,
-            history=zext.HistoryConfig(detect_late_publishers=True),
-            recovery=zext.RecoveryConfig(heartbeat=True))
-
-    def _on_sample(self, sample) -> None:
-        attachment = sample.attachment.to_bytes() if sample.attachment is not None else None
-        event = event_from_sample(str(sample.key_expr), sample.payload.to_bytes(), attachment)
-        with self._cond:
-            self.events.append(event)
-            self._cond.notify_all()
-
-    def wait_for(self, n: int, process: subprocess.Popen, timeout_s: float = TIMEOUT_S) -> list:
-        """Block until ``n`` events arrived (fail early if the service died)."""
-        deadline = time.monotonic() + timeout_s
-        with self._cond:
-            while len(self.events) < n:
-                remaining = deadline - time.monotonic()
-                assert process.poll() is None, f"service exited with {process.returncode}"
-                assert remaining > 0, f"got {len(self.events)} of {n} scans in {timeout_s} s"
-                self._cond.wait(min(remaining, 0.5))
-            return list(self.events)
-
-    def close(self) -> None:
-        self._subscriber.undeclare()
-
-
-class SiteClock:
-    """A site clock source, like the simulator's: ``clock`` events every ``period_s``,
-    running in real time from ``start_ns`` (site UTC ns); ``site_ns(monotonic_ns)`` is its
-    time at a local monotonic reading."""
-
-    def __init__(self, session: zenoh.Session, start_ns: int, period_s: float = 0.1) -> None:
-        self.session, self.start_ns, self.period_s = session, start_ns, period_s
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, daemon=True)
-        self._origin_ns = 0
-
-    def site_ns(self, monotonic_ns: int) -> int:
-        return self.start_ns + (monotonic_ns - self._origin_ns)
-
-    def _run(self) -> None:
-        seq = 0
-        while True:
-            msg = pb.Clock()
-            set_timestamp_ns(msg.time, self.site_ns(time.monotonic_ns()))
-            event = make_event(msg, source="sim.clock", epoch=1, seq=seq)
-            self.session.put(key_expr(SITE, "clock", "sim.clock"), event.payload,
-                             attachment=encode_attachment(1, seq, event.valid_time_ns))
-            seq += 1
-            if self._stop.wait(self.period_s):  # the clock's period, not a synchronisation
-                return
-
-    def __enter__(self) -> "SiteClock":
-        self._origin_ns = time.monotonic_ns()
-        self._thread.start()
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self._stop.set()
-        self._thread.join()
 
 
 @pytest.fixture()
@@ -212,7 +137,7 @@ def test_intact_telegrams_published_once_in_order_and_bad_bytes_counted(router, 
     intact_bytes = sum(len(t) for _, _, t in expected) + len(ack)
     total_bytes = sum(len(c) for c in chunks)
 
-    sink = ScanSink(session)
+    sink = EventSink(session, SITE, "scan", S.DEFAULT_SOURCE, TIMEOUT_S)
     with PtyDevice(write_timeout_s=TIMEOUT_S) as dev:
         process = _start_scanner(dev, endpoint, tmp_path)
         try:
@@ -286,7 +211,7 @@ def test_valid_time_is_arrival_minus_transfer_and_field_comes_from_the_count(rou
     baud = 9600
     tolerance_ns = 200_000_000
     rng = _rng("scanner valid time")
-    sink = ScanSink(session)
+    sink = EventSink(session, SITE, "scan", S.DEFAULT_SOURCE, TIMEOUT_S)
     writes: list[tuple[int, int, np.ndarray]] = []  # (wall ns after the write, bytes, values)
     dev = PtyDevice(write_timeout_s=TIMEOUT_S)
     process = _start_scanner(dev, endpoint, tmp_path, "--baud", str(baud), "--send-start")
@@ -338,7 +263,7 @@ def test_site_clock_waits_for_the_clock_then_maps_arrival_onto_site_time(router,
     site0_ns = parse_time_ns("2030-03-31T12:00:00Z")  # far from the wall clock
     log = tmp_path / "scanner.log"
     telegram = L.encode_measurement(_random_values(_rng("scanner site clock"), 201))
-    sink = ScanSink(session)
+    sink = EventSink(session, SITE, "scan", S.DEFAULT_SOURCE, TIMEOUT_S)
     dev = PtyDevice(write_timeout_s=TIMEOUT_S)
     process = _start_scanner(dev, endpoint, tmp_path, "--clock", "site", "--baud", str(baud),
                              "--status-period", "0.2")
@@ -347,7 +272,7 @@ def test_site_clock_waits_for_the_clock_then_maps_arrival_onto_site_time(router,
         dev.write(telegram)  # no clock yet: its valid time is unknown
         wait_until(lambda: any(line.get("waiting_for_clock") == "1" for line in log_lines(log)),
                    TIMEOUT_S, "the scan counted as waiting_for_clock")
-        with SiteClock(session, site0_ns) as clock:
+        with SiteClock(session, SITE, site0_ns) as clock:
             wait_until(lambda: any(line.get("msg") == "site clock ready"
                                    for line in log_lines(log)),
                        TIMEOUT_S, "the service to follow the site clock")

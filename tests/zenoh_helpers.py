@@ -13,7 +13,16 @@ from pathlib import Path
 from typing import Callable
 
 import zenoh
+import zenoh.ext as zext
 
+from schemas import pb
+from schemas.events import (
+    encode_attachment,
+    event_from_sample,
+    key_expr,
+    make_event,
+    set_timestamp_ns,
+)
 from services.service import ZenohOptions, parse_logfmt
 
 PYTHON = sys.executable
@@ -85,3 +94,78 @@ def wait_liveliness(session: zenoh.Session, key: str, timeout_s: float) -> None:
             raise AssertionError(f"no liveliness token {key} within {timeout_s} s")
     finally:
         sub.undeclare()
+
+
+class EventSink:
+    """A real subscriber on one type and source of a site's events: decoded, in arrival order."""
+
+    def __init__(self, session: zenoh.Session, site: str, type_name: str, source: str,
+                 timeout_s: float = 20.0) -> None:
+        self.type_name, self.timeout_s = type_name, timeout_s
+        self.events: list = []
+        self._cond = threading.Condition()
+        self._subscriber = zext.declare_advanced_subscriber(
+            session, key_expr(site, type_name, source), self._on_sample,
+            history=zext.HistoryConfig(detect_late_publishers=True),
+            recovery=zext.RecoveryConfig(heartbeat=True))
+
+    def _on_sample(self, sample) -> None:
+        attachment = sample.attachment.to_bytes() if sample.attachment is not None else None
+        event = event_from_sample(str(sample.key_expr), sample.payload.to_bytes(), attachment)
+        with self._cond:
+            self.events.append(event)
+            self._cond.notify_all()
+
+    def wait_for(self, n: int, process: subprocess.Popen, timeout_s: float | None = None) -> list:
+        """Block until ``n`` events arrived (fail early if the service died)."""
+        timeout_s = self.timeout_s if timeout_s is None else timeout_s
+        deadline = time.monotonic() + timeout_s
+        with self._cond:
+            while len(self.events) < n:
+                remaining = deadline - time.monotonic()
+                assert process.poll() is None, f"service exited with {process.returncode}"
+                assert remaining > 0, (f"got {len(self.events)} of {n} {self.type_name} events in "
+                                         f"{timeout_s} s")
+                self._cond.wait(min(remaining, 0.5))
+            return list(self.events)
+
+    def close(self) -> None:
+        self._subscriber.undeclare()
+
+
+class SiteClock:
+    """A site clock source, like the simulator's: ``clock`` events every ``period_s``,
+    running in real time from ``start_ns`` (site UTC ns); ``site_ns(monotonic_ns)`` is its
+    time at a local monotonic reading."""
+
+    def __init__(self, session: zenoh.Session, site: str, start_ns: int,
+                 period_s: float = 0.1) -> None:
+        self.session, self.site = session, site
+        self.start_ns, self.period_s = start_ns, period_s
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._origin_ns = 0
+
+    def site_ns(self, monotonic_ns: int) -> int:
+        return self.start_ns + (monotonic_ns - self._origin_ns)
+
+    def _run(self) -> None:
+        seq = 0
+        while True:
+            msg = pb.Clock()
+            set_timestamp_ns(msg.time, self.site_ns(time.monotonic_ns()))
+            event = make_event(msg, source="sim.clock", epoch=1, seq=seq)
+            self.session.put(key_expr(self.site, "clock", "sim.clock"), event.payload,
+                             attachment=encode_attachment(1, seq, event.valid_time_ns))
+            seq += 1
+            if self._stop.wait(self.period_s):  # the clock's period, not a synchronisation
+                return
+
+    def __enter__(self) -> "SiteClock":
+        self._origin_ns = time.monotonic_ns()
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._stop.set()
+        self._thread.join()

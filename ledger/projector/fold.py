@@ -50,8 +50,6 @@ __all__ = ["FoldConfig", "PileInfo", "PassRecord", "CutRecord", "ProjectorState"
 #: event types that change the geometric state (assays and lots only feed the join)
 GEOMETRY_TYPES = ("pile_declared", "machine_declared", "stack_started", "stack_ended",
                   "frame_transform", "scan", "reclaim_cut")
-#: every type the fold reads
-FOLD_TYPES = GEOMETRY_TYPES + ("lot_declared", "assay")
 
 DEFAULT_CELL_M = 0.25
 DEFAULT_VOXEL_M = 1.0
@@ -607,11 +605,3 @@ def _last_event_ns(state: ProjectorState) -> int:
     times = [p.ended_ns or p.started_ns for p in state.passes.values()]
     times += [c.end_ns for c in state.cuts]
     return max(times) if times else -(2 ** 62)
-
-
-def removal_volume(removals: list[Removal]) -> float:
-    return float(sum(r.volume_m3 for r in removals))
-
-
-def _isfinite(x: float) -> bool:
-    return math.isfinite(x)

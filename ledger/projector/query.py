@@ -25,7 +25,6 @@ import numpy as np
 from ledger.projector import fold as F
 from ledger.projector.grades import AssayRecord, effective_assays, grade_at
 from ledger.projector.grid import GridGeometry
-from ledger.projector.layers import Removal
 
 __all__ = ["DepositSummary", "CutSummary", "PileState", "project", "SnapshotStore",
            "CANONICAL_ANALYTES"]
@@ -184,12 +183,15 @@ class _Join:
         density = np.where(np.isfinite(density) & (density > 0), density, self.density_default)
         return grade, assayed, density
 
-    def material(self, lot_id: str, times_ns, volumes_m3):
-        """``(tonnes, grade-tonnes (A,), assayed tonnes, graded tonnes)`` of some material."""
+    def material(self, lot_id: str, times_ns, volumes_m3, cells=None):
+        """``(tonnes, grade-tonnes (A,), assayed tonnes, graded tonnes)`` of some material.
+
+        ``cells``: the :meth:`cells` result for these times, when the caller has it.
+        """
         volumes = np.asarray(volumes_m3, np.float64)
         if volumes.size == 0:
             return 0.0, np.zeros(len(self.analytes)), 0.0, 0.0
-        grade, assayed, density = self.cells(lot_id, times_ns)
+        grade, assayed, density = cells if cells is not None else self.cells(lot_id, times_ns)
         tonnes = volumes * density
         graded = np.isfinite(grade).all(axis=1)
         sums = (tonnes[graded, None] * grade[graded]).sum(axis=0)
@@ -224,11 +226,11 @@ def summarise(state: F.ProjectorState, lots, assays, *, valid_time_ns: int,
         mask = thick > 0
         volume = float(thick[mask].sum() * area)
         if mask.any():
-            grade, assayed, density = join.cells(info.lot_id, times[mask])
-            tonnes_cells = thick[mask] * area * density
+            cells = join.cells(info.lot_id, times[mask])
+            grade, _assayed, density = cells
             w[mask, 0] = density
             w[mask, 1:] = density[:, None] * np.nan_to_num(grade)
-            t, sums, a_t, g_t = join.material(info.lot_id, times[mask], thick[mask] * area)
+            t, sums, a_t, g_t = join.material(info.lot_id, times[mask], thick[mask] * area, cells)
         else:
             t, sums, a_t, g_t = 0.0, np.zeros(len(analytes)), 0.0, 0.0
         weights.append(w)
@@ -359,7 +361,3 @@ def build_snapshots(store, snapshots: SnapshotStore, pile_id: str, *, every_ns: 
             next_mark = event.valid_time_ns + every_ns
         F.apply(state, event)
     return saved
-
-
-def removal_m3(removals: list[Removal]) -> float:
-    return float(sum(r.volume_m3 for r in removals))
