@@ -23,6 +23,13 @@ Sections
    Target: >= 1,000,000 scan points per second through all stages.  Also prints the
    peak memory of the pipeline (tracemalloc, a separate untimed run) and the process's
    peak RSS.
+2. :func:`section_voxels` -- voxel tonnes and grades of a full-scale pile (60 deposits).
+   Target: <= 1 s.
+3. :func:`section_as_of` -- ``project(V, K)`` on a 24-hour full-scale ledger (the
+   simulator's ``full-scale`` scenario with scan events, imported), from the latest usable
+   snapshot, beside the same query folded from the first event.  Target: <= 2 s from a
+   snapshot.  The ledger is built once into ``--ledger-dir`` (about an hour of simulation
+   on one core; ``--quick`` uses 2 hours of the ``demo`` scenario instead).
 """
 
 from __future__ import annotations
@@ -259,19 +266,99 @@ def section_voxels(args) -> Section:
          f"stack volume {total:,.0f} m3; 5 analytes + density per cell and deposit"], ok)
 
 
-SECTIONS = [section_georef_fuse, section_voxels]
+def _ledger_for_as_of(args) -> tuple[Path, str]:
+    """The imported simulator ledger for section 3 (built into ``--ledger-dir`` once)."""
+    import subprocess
+
+    scenario, hours = ("demo", 2.0) if args.quick else ("full-scale", 24.0)
+    out = Path(args.ledger_dir) / f"{scenario}-{hours:g}h-seed1"
+    ledger = out.with_suffix(".duckdb")
+    if not ledger.exists():
+        if not (out / "events.jsonl").exists() or not (out / "truth.json").exists():
+            print(f"  simulating {hours:g} h of {scenario!r} with scan events into {out} "
+                  "(once; progress on stderr)", flush=True)
+            subprocess.run([sys.executable, "-m", "services.cli", "sim", "--scenario", scenario,
+                            "--seed", "1", "--speed", "0", "--scan-events", "truth",
+                            "--duration", str(hours), "--out", str(out)],
+                           check=True, stdout=subprocess.DEVNULL)
+        print(f"  importing into {ledger}", flush=True)
+        subprocess.run([sys.executable, "-m", "services.cli", "ledger", "import",
+                        str(out / "events.jsonl"), "--ledger", str(ledger), "--clock", "events"],
+                       check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    return ledger, scenario
+
+
+def section_as_of(args) -> Section:
+    """``project(V, K)`` on a 24-hour full-scale ledger, from a snapshot vs from scratch."""
+    from ledger import open_ledger
+    from ledger.projector.query import SnapshotStore, build_snapshots, project
+
+    ledger, scenario = _ledger_for_as_of(args)
+    snap_path = ledger.with_name(ledger.stem + "-snapshots.duckdb")
+    pile = "P1"
+    rows, ok, notes = [], True, []
+    with open_ledger(ledger, read_only=True) as store:
+        head = store.head()
+        events = head.global_seq + 1
+        first = next(iter(store.read(0, 1))).valid_time_ns
+        last = max(e.valid_time_ns for e in store.read(max(0, head.global_seq - 2000)))
+        hours = (last - first) / 3.6e12
+        if not snap_path.exists():
+            t0 = time.perf_counter()
+            with SnapshotStore(snap_path) as snaps:
+                saved = build_snapshots(store, snaps, pile, every_ns=int(3600 * NS_PER_S))
+            notes.append(f"snapshots: {saved} (one per site hour) built in "
+                         f"{time.perf_counter() - t0:.1f} s into {snap_path.name}")
+        queries = [("the end, everything known", None, None),
+                   ("1 h before the end, known then", last - 3600 * NS_PER_S,
+                    head.recorded_time_ns - 3600 * NS_PER_S),
+                   ("half way, known now", first + (last - first) // 2, None)]
+        with SnapshotStore(snap_path) as snaps:
+            for label, v, k in queries:
+                tracemalloc.start()
+                t0 = time.perf_counter()
+                fast = project(store, pile, v, k, snapshots=snaps)
+                seconds = time.perf_counter() - t0
+                _cur, peak = tracemalloc.get_traced_memory()
+                tracemalloc.stop()
+                t0 = time.perf_counter()
+                slow = project(store, pile, v, k)
+                scratch = time.perf_counter() - t0
+                same = (math.isclose(fast.tonnes, slow.tonnes, rel_tol=1e-9)
+                        and len(fast.cuts) == len(slow.cuts))
+                good = seconds <= 2.0 and same
+                ok &= good
+                rows.append([label, f"{fast.tonnes:,.0f}", str(len(fast.cuts)),
+                             f"{seconds:.2f}", f"{scratch:.1f}", f"{scratch / seconds:.0f}x",
+                             f"{peak / 2**20:.0f} MiB", "yes" if same else "NO",
+                             "PASS" if good else "MISS"])
+    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    notes.insert(0, f"{scenario}: {events:,} events over {hours:.1f} site hours; "
+                    f"target <= 2 s from a snapshot; process peak RSS {rss:,.0f} MiB")
+    return Section("as-of query (V, K) from a snapshot vs folded from the first event",
+                   ["query", "tonnes", "cuts", "snapshot s", "scratch s", "speed-up",
+                    "peak memory", "same", "verdict"], rows, notes, ok)
+
+
+SECTIONS = [section_georef_fuse, section_voxels, section_as_of]
 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--seed", type=int, default=0, help="seed of the simulated range noise")
     ap.add_argument("--quick", action="store_true", help="smaller inputs (smoke run)")
+    ap.add_argument("--ledger-dir", default="bench/out",
+                    help="where section 3 keeps its simulated ledger (default %(default)s)")
+    ap.add_argument("--section", type=int, action="append",
+                    help="run only these sections (1-based; repeatable)")
     args = ap.parse_args(argv)
     pinned = pin_one_core()
     print(f"projector benchmarks: seed={args.seed}, numpy {np.__version__}, {pinned}"
           + (", quick" if args.quick else ""))
     ok = True
     for number, section in enumerate(SECTIONS, start=1):
+        if args.section and number not in args.section:
+            continue
         result = section(args)
         print_section(number, result)
         ok &= result.ok

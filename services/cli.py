@@ -26,8 +26,9 @@ def build_parser() -> argparse.ArgumentParser:
     from ledger import cli as ledger_cli
     from ledger.projector import cli as project_cli
     from services import demo
-    from services import run_config, service_cli
+    from services import plan_cli, run_config, service_cli
     from services.sim import cli as sim_cli
+    from replay import cli as replay_cli  # record, replay, export-mcap (issue 7)
 
     parser = _Parser(
         prog="stockpile",
@@ -42,6 +43,8 @@ def build_parser() -> argparse.ArgumentParser:
     sim_cli.register(sub)
     service_cli.register(sub)
     run_config.register(sub)
+    plan_cli.register(sub)
+    replay_cli.register(sub)
     return parser
 
 

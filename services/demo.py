@@ -174,7 +174,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
     from services.yard_demo import run_yard_demo
 
     return run_yard_demo(Path(args.out), seed=args.seed, speed=args.speed,
-                         idle_speed=args.idle_speed, duration_h=args.duration)
+                         idle_speed=args.idle_speed, duration_h=args.duration,
+                         record=Path(args.record) if args.record else None)
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -189,6 +190,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    "(default 2000)")
     p.add_argument("--duration", type=float, metavar="SITE_HOURS",
                    help="stop the scenario after this many site hours (default: to the end)")
+    p.add_argument("--record", metavar="OUT.mcap",
+                   help="also record the live session to MCAP (stockpile service recorder)")
     p.add_argument("--in-process", action="store_true",
                    help="simulate and import the events file, without the services")
     p.add_argument("--sample", action="store_true",

@@ -57,7 +57,7 @@ def run(session, *, site: str, source: str, type_name: str, rate_hz: float, dura
     publisher = EventPublisher(session, site, source, cache_samples=cache_samples)
     publisher.declare(type_name)
     if wait_subscriber_s > 0:
-        _wait_match(publisher, type_name, wait_subscriber_s)
+        publisher.wait_matched(type_name, wait_subscriber_s)
     rng = np.random.default_rng(seed)
     # pre-build a pool of messages so building them does not limit the rate
     pool = [make_message(type_name, i, rng, beams) for i in range(min(1000, max(1, int(rate_hz))))]
@@ -83,22 +83,6 @@ def run(session, *, site: str, source: str, type_name: str, rate_hz: float, dura
               "elapsed_s": elapsed, "rate_hz": n / elapsed if elapsed > 0 else 0.0,
               "stamps": stamps}
     return report, publisher
-
-
-def _wait_match(publisher: EventPublisher, type_name: str, timeout_s: float) -> None:
-    pub = publisher._publisher(type_name)  # noqa: SLF001 - the generator owns its publisher
-    import zenoh
-
-    plain = publisher.session.declare_publisher(pub.key_expr,
-                                                congestion_control=zenoh.CongestionControl.BLOCK)
-    matched = threading.Event()
-    listener = plain.declare_matching_listener(lambda s: s.matching and matched.set())
-    try:
-        if not (plain.matching_status.matching or matched.wait(timeout_s)):
-            raise TimeoutError(f"no subscriber matched {pub.key_expr} in {timeout_s:g} s")
-    finally:
-        listener.undeclare()
-        plain.undeclare()
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -51,6 +51,8 @@ SERVICE_MODULES: dict[str, str] = {
     "gnss": "services.gnss",
     "localizer": "services.localizer",
     "ledger": "services.ledger_service",
+    "projector": "services.projector_service",
+    "recorder": "replay.record",
 }
 
 DEFAULT_SITE = "demo"
@@ -347,6 +349,27 @@ class EventPublisher:
                 cache_samples=self.cache_samples, priority=self.priority)
             self._publishers[type_name] = publisher
         return publisher
+
+    def wait_matched(self, type_name: str, timeout_s: float) -> None:
+        """Block until a subscriber matches this source's key for ``type_name``.
+
+        An event published before any subscriber matched reaches it only through the
+        publisher's cache (on the subscriber's next history query); waiting first makes
+        the first event live.  Raises :class:`TimeoutError` after ``timeout_s``.
+        """
+        import zenoh
+
+        key = self._publisher(type_name).key_expr
+        plain = self.session.declare_publisher(key,
+                                               congestion_control=zenoh.CongestionControl.BLOCK)
+        matched = threading.Event()
+        listener = plain.declare_matching_listener(lambda s: s.matching and matched.set())
+        try:
+            if not (plain.matching_status.matching or matched.wait(timeout_s)):
+                raise TimeoutError(f"no subscriber matched {key} in {timeout_s:g} s")
+        finally:
+            listener.undeclare()
+            plain.undeclare()
 
     def declare(self, *type_names: str) -> None:
         """Declare the keys up front (so subscribers can match before the first event)."""

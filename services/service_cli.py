@@ -17,21 +17,27 @@ SUMMARIES = {
     "gnss": "read NMEA GGA from a serial port, publish location fixes",
     "localizer": "fuse joint readings and GNSS fixes (UKF), publish joint estimates and poses",
     "ledger": "the single writer of the ledger: subscribe, append in batches, serve reads",
+    "projector": "follow the ledger service and keep a live projection of one pile",
+    "recorder": "record the site's events to MCAP files, rotating by size or time",
 }
 
 
+def _modules() -> dict[str, str]:
+    return dict(SERVICE_MODULES)
+
+
 def _run(args: argparse.Namespace) -> int:
-    module = importlib.import_module(SERVICE_MODULES[args.service])
+    module = importlib.import_module(_modules()[args.service])
     return int(module.main(module.config_from_args(args)) or 0)
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser("service", help="start one service of the yard (scanner, gnss, "
-                              "localizer, ledger)",
+                              "localizer, ledger, projector, recorder)",
                               description=__doc__.splitlines()[0])
     sub = p.add_subparsers(dest="service", metavar="NAME", required=True,
                            parser_class=type(p))
-    for name, module_name in SERVICE_MODULES.items():
+    for name, module_name in _modules().items():
         sp = sub.add_parser(name, help=SUMMARIES.get(name, ""), description=SUMMARIES.get(name))
         try:
             module = importlib.import_module(module_name)

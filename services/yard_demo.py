@@ -215,6 +215,20 @@ def pile_book(store) -> dict[str, Any]:
             "assays": len(assays), "superseded": len(superseded)}
 
 
+def _wait_recorded(recorder, events: int, timeout_s: float) -> None:
+    """Block until the recorder's status line counts ``events`` recorded events."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        counts = [int(r.get("recorded", 0)) for r in recorder.log_records()
+                  if r.get("msg") == "status"]
+        if counts and counts[-1] >= events:
+            return
+        if time.monotonic() > deadline:
+            raise TimeoutError(f"the recorder holds {counts[-1] if counts else 0} of {events} "
+                               f"events after {timeout_s:g} s")
+        time.sleep(0.2)
+
+
 def _wait_done(sim, timeout_s: float, every_s: float = 15.0) -> str:
     """Wait for the simulator's ``done:`` line, echoing its latest progress line meanwhile."""
     deadline = time.monotonic() + timeout_s
@@ -235,8 +249,13 @@ def _wait_done(sim, timeout_s: float, every_s: float = 15.0) -> str:
 
 def run_yard_demo(out_dir: Path, *, seed: int = 1, speed: float = 40.0, idle_speed: float = 2000.0,
                   duration_h: float | None = None, scenario: str = "demo",
-                  site: str = SITE_OF_SCENARIO) -> int:
-    """Run the yard end to end; print the summary; return 0 when every check holds."""
+                  site: str = SITE_OF_SCENARIO, record: Path | None = None) -> int:
+    """Run the yard end to end; print the summary; return 0 when every check holds.
+
+    ``record`` (off by default) also runs ``stockpile service recorder`` writing the
+    site's events to that MCAP file (site-clock log times); it is stopped once it holds
+    as many events as the ledger.
+    """
     started = time.monotonic()
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -252,6 +271,10 @@ def run_yard_demo(out_dir: Path, *, seed: int = 1, speed: float = 40.0, idle_spe
         yard.start("ledger", ["service", "ledger", "--ledger", str(ledger_path), "--clock", "events",
                               *common])
         yard.wait_live("ledger")
+        if record is not None:
+            yard.start("recorder", ["service", "recorder", "--out", str(record), "--clock", "site",
+                                    "--site", site, "--status-period", "1", *yard.client_args])
+            yard.wait_live("recorder")
         yard.start("localizer", ["service", "localizer", "--machine", MACHINE, *common])
         sim_args = ["sim", "--scenario", scenario, "--seed", str(seed), "--out", str(sim_dir),
                     "--pty", "--zenoh", "--speed", str(speed), "--idle-speed", str(idle_speed),
@@ -289,7 +312,12 @@ def run_yard_demo(out_dir: Path, *, seed: int = 1, speed: float = 40.0, idle_spe
         rc_localizer = yard.stop("localizer")
         published.update(yard.children["localizer"].published())
         wait_ledgered(client, published, 120)
+        if record is not None:
+            _wait_recorded(yard.children["recorder"], client.stats()["events"], 60)
+            rc_recorder = yard.stop("recorder")
         rc = {"localizer": rc_localizer, "sim": yard.stop("sim"), "ledger": yard.stop("ledger")}
+        if record is not None:
+            rc["recorder"] = rc_recorder
         rc.update({n: yard.children[n].process.returncode for n in ("scanner", "gnss")})
 
     with open_ledger(ledger_path, read_only=True) as store:

@@ -4,3 +4,37 @@ import os
 
 # keep hypothesis' example database out of the work tree
 os.environ.setdefault("HYPOTHESIS_STORAGE_DIRECTORY", "/tmp/stockpile-hypothesis")
+
+import subprocess  # noqa: E402
+import sys  # noqa: E402
+
+import pytest  # noqa: E402
+
+
+@pytest.fixture(scope="session")
+def small_yard_sim(tmp_path_factory):
+    """A short simulated yard shared by the projector tests (one stacking pass, seed 2).
+
+    ``stockpile sim --scenario demo --duration 0.19 --scan-events truth``: real scans and
+    scanner poses as events; returns the output directory (``events.jsonl``, truth).
+    """
+    out = tmp_path_factory.mktemp("small-yard") / "sim"
+    subprocess.run([sys.executable, "-m", "services.cli", "sim", "--scenario", "demo",
+                    "--seed", "2", "--duration", "0.19", "--speed", "0", "--scan-events",
+                    "truth", "--out", str(out)], check=True, capture_output=True, timeout=300)
+    return out
+
+
+@pytest.fixture(scope="session")
+def process_demo(tmp_path_factory):
+    """One short process demo shared by the end-to-end and the recording tests.
+
+    ``stockpile demo --duration 0.2 --speed 30 --seed 3 --record live.mcap``: every service
+    a separate process, the recorder beside the ledger.  Returns ``(out_dir, completed)``.
+    """
+    out = tmp_path_factory.mktemp("process-demo") / "demo"
+    run = subprocess.run(
+        [sys.executable, "-m", "services.cli", "demo", "--out", str(out), "--seed", "3",
+         "--duration", "0.2", "--speed", "30", "--record", str(out / "live.mcap")],
+        capture_output=True, text=True, timeout=600)
+    return out, run

@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 
 import pytest
 
@@ -12,12 +10,8 @@ from ledger import open_ledger
 
 
 @pytest.mark.slow
-def test_demo_runs_every_service_and_the_ledger_holds_each_event_exactly_once(tmp_path):
-    out = tmp_path / "demo"
-    run = subprocess.run(
-        [sys.executable, "-m", "services.cli", "demo", "--out", str(out), "--seed", "3",
-         "--duration", "0.2", "--speed", "30"],
-        capture_output=True, text=True, timeout=600)
+def test_demo_runs_every_service_and_the_ledger_holds_each_event_exactly_once(process_demo):
+    out, run = process_demo
     assert run.returncode == 0, run.stdout[-3000:] + run.stderr[-3000:]
     summary = json.loads((out / "summary.json").read_text())
     assert summary["ok"] and summary["verify_ok"] and summary["open_gaps"] == 0

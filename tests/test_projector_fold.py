@@ -38,11 +38,8 @@ def _stamp(msg, name: str, t_ns: int):
 
 
 @pytest.fixture(scope="module")
-def yard(tmp_path_factory) -> dict:
-    out = tmp_path_factory.mktemp("yard") / "sim"
-    subprocess.run([sys.executable, "-m", "services.cli", "sim", "--scenario", "demo",
-                    "--seed", "2", "--duration", "0.19", "--speed", "0", "--scan-events", "truth",
-                    "--out", str(out)], check=True, capture_output=True, timeout=300)
+def yard(small_yard_sim) -> dict:
+    out = small_yard_sim
     events = [decode_line(line) for line in (out / "events.jsonl").read_text().splitlines()]
     assert all(isinstance(e, Event) for e in events)
     machine = next(decode_payload(e.type, e.payload) for e in events

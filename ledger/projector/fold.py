@@ -38,10 +38,10 @@ import numpy as np
 
 from schemas.events import decode_payload, timestamp_ns
 
-from ledger.projector import georef, heightmap, profile
+from ledger.projector import georef, heightmap, profile, slump
 from ledger.projector.envelope import Reclaimer, cut_floor
 from ledger.projector.grades import AssayRecord
-from ledger.projector.grid import GridGeometry, cell_centres
+from ledger.projector.grid import GridGeometry
 from ledger.projector.layers import DepositInfo, LayerStack, Removal
 
 __all__ = ["FoldConfig", "PileInfo", "PassRecord", "CutRecord", "ProjectorState",
@@ -94,6 +94,23 @@ class FoldConfig:
     fill_gap_cells : int
         Unseen runs of at most this many cells between seen cells are interpolated
         (linearly) before the stack follows the height map; 0 = no filling.
+    pad_m : float or None
+        The grid extends this far beyond the declared footprint on every side (the toes
+        of a pile's ends and flanks run out past it), metres; None: a tenth of the
+        footprint's longer side.
+    repose_deg : float or None
+        Angle of repose of the ore (deg); None: estimated from the observed slopes
+        (:func:`ledger.projector.slump.estimate_repose_deg`), 35 deg until enough are seen.
+    slump_after_cut : bool
+        After a cut, the face it left slides to the angle of repose in the model
+        (mass and composition conserved; :func:`ledger.projector.slump.slump`).
+    complete_unseen : bool
+        At a pass end, a cut and a query's end, cells below the repose cone of the seen
+        surface (a flank hidden behind the crest) rise to it, the material given to the
+        passes that crossed them since they were last seen.
+    relax_slack : float
+        Faces steeper than ``(1 + relax_slack) * tan(repose)`` slide (a little slack keeps
+        the estimated angle's error from creeping standing flanks).
     """
 
     pile_id: str
@@ -109,6 +126,11 @@ class FoldConfig:
     attribute_by_crossing: bool = True
     slump_in_place: bool = True
     fill_gap_cells: int = 16
+    pad_m: float | None = None
+    repose_deg: float | None = None
+    slump_after_cut: bool = True
+    complete_unseen: bool = True
+    relax_slack: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -151,6 +173,7 @@ class CutRecord:
     predicted_m3: float = 0.0
     residual_m3: float = 0.0
     returned_m3: float = 0.0
+    slumped_m3: float = 0.0
 
 
 @dataclass
@@ -182,6 +205,7 @@ class ProjectorState:
     flagged_loss_m3: float = 0.0
     point_sd_m: float = 0.05       # resolved from the config and the pile
     margin_m: float = 0.02
+    tan_repose: float = math.nan   # last estimate of tan(angle of repose)
     counters: dict[str, int] = field(default_factory=dict)
     high_water: tuple[int, int] = (-(2 ** 62), -1)   # (valid ns, global seq) folded so far
 
@@ -229,6 +253,7 @@ def flush(state: ProjectorState) -> ProjectorState:
     """Fuse every waiting scan that has a pose and settle drops (at a query's end)."""
     _process_scans(state, final=True)
     if state.stack is not None:
+        _complete_unseen(state, state.high_water[0])
         _follow_height(state, state.high_water[0])
     return state
 
@@ -239,8 +264,10 @@ def _on_pile(state: ProjectorState, event, msg) -> None:
             state.count("pile_redeclared_ignored")
         return
     cell = msg.cell_m or DEFAULT_CELL_M
-    geometry = GridGeometry.covering(msg.origin_x_m, msg.origin_y_m, msg.width_m, msg.length_m,
-                                     cell)
+    pad = (0.1 * max(msg.width_m, msg.length_m) if state.config.pad_m is None
+           else max(0.0, float(state.config.pad_m)))
+    geometry = GridGeometry.covering(msg.origin_x_m - pad, msg.origin_y_m - pad,
+                                     msg.width_m + 2 * pad, msg.length_m + 2 * pad, cell)
     voxel = msg.voxel_m or DEFAULT_VOXEL_M
     # the voxel edge must be a whole number of cells
     voxel = max(cell, round(voxel / cell) * cell)
@@ -281,6 +308,7 @@ def _on_stack_ended(state: ProjectorState, event, msg) -> None:
     if msg.pile_id != state.config.pile_id:
         return
     _process_scans(state, until_ns=event.valid_time_ns)
+    _complete_unseen(state, event.valid_time_ns)
     record = state.passes.get(msg.pass_id)
     if record is not None:
         record.ended_ns = event.valid_time_ns
@@ -321,6 +349,7 @@ def _on_reclaim_cut(state: ProjectorState, event, msg) -> None:
     # every scan taken up to the cut's end watched the bank before or during the cut:
     # fuse them before the cut is applied, never after
     _process_scans(state, until_ns=timestamp_ns(msg.end_time))
+    _complete_unseen(state, timestamp_ns(msg.start_time))
     machine = state.machines.get(msg.machine_id)
     record = CutRecord(msg.cut_id, msg.bench_id, msg.machine_id, timestamp_ns(msg.start_time),
                        timestamp_ns(msg.end_time), float(msg.tonnes))
@@ -329,11 +358,16 @@ def _on_reclaim_cut(state: ProjectorState, event, msg) -> None:
     else:
         floor = cut_floor(state.pile.geometry, machine, msg.travel_m, msg.luff_rad,
                           msg.slew_start_rad, msg.slew_end_rad)
+        before = state.stack.surface()
         state.stack, removal = state.stack.clamp(floor)
         record.removals.append(removal)
         record.predicted_m3 = removal.volume_m3
-        # the height map learns the cut too: the scans after it confirm or correct it
-        state.height = _lower_height(state.height, floor, state.point_sd_m)
+        if state.config.slump_after_cut and removal.volume_m3 > 0:
+            record.slumped_m3 = _slump_face(state, floor)
+        # the height map learns the cut (and the slide) too: the scans after it confirm
+        # or correct it
+        state.height = _predict_height(state.height, state.stack.surface(), before,
+                                       state.point_sd_m)
     state.cuts.append(record)
     # the scans that watched this cut dig (valid before its end) saw what it took
     # below the envelope: that is the cut's too
@@ -409,7 +443,9 @@ def _process_scans(state: ProjectorState, *, until_ns: int | None = None,
                 state.height, _stats = heightmap.fuse(
                     state.height, _subset(obs, subset), int(t.max()), state.point_sd_m,
                     gate_sigma=state.config.gate_sigma, change_count=change_count)
-        _follow_height(state, int(t.max()), drops=False, seen_before_ns=seen_before_ns)
+        _follow_height(state, int(t.max()), drops=False, seen_before_ns=seen_before_ns,
+                       region=_around(obs.ix, obs.iy, state.config.fill_gap_cells + 1,
+                                      state.pile.geometry))
 
 
 def _subset(obs, mask: np.ndarray):
@@ -419,8 +455,14 @@ def _subset(obs, mask: np.ndarray):
                                       pick(obs.x_offset_m), pick(obs.y_offset_m))
 
 
+def _around(ix: np.ndarray, iy: np.ndarray, pad: int, geometry: GridGeometry):
+    """The block of cells holding (ix, iy), padded by ``pad`` cells: (slice, slice)."""
+    return (slice(max(0, int(ix.min()) - pad), min(geometry.nx, int(ix.max()) + pad + 1)),
+            slice(max(0, int(iy.min()) - pad), min(geometry.ny, int(iy.max()) + pad + 1)))
+
+
 def _follow_height(state: ProjectorState, t_ns: int, *, drops: bool = True,
-                   seen_before_ns: np.ndarray | None = None) -> None:
+                   seen_before_ns: np.ndarray | None = None, region=None) -> None:
     """Move the layer stack's top to the height map where they differ beyond the margin.
 
     Rises follow at once.  Drops follow only when ``drops`` (at a cut, or at the end of
@@ -429,11 +471,24 @@ def _follow_height(state: ProjectorState, t_ns: int, *, drops: bool = True,
     rather than be charged to the one before.
     """
     elevation = state.height.elevation
+    if region is not None:
+        # only the block a batch of scans saw can have risen (rises only: drops wait)
+        block = elevation[region]
+        elevation = np.full(elevation.shape, np.nan)
+        elevation[region] = block
     if state.config.fill_gap_cells:
         # an unseen strip between seen cells (between two scan lines, behind a crest)
         # is interpolated rather than left at the ground
-        elevation = heightmap.fill_holes(elevation, method="linear",
-                                         max_gap_cells=state.config.fill_gap_cells)
+        if region is not None:
+            elevation[region] = heightmap.fill_holes(
+                elevation[region], method="linear", max_gap_cells=state.config.fill_gap_cells)
+        else:
+            elevation = heightmap.fill_holes(elevation, method="linear",
+                                             max_gap_cells=state.config.fill_gap_cells)
+    if drops and state.config.complete_unseen:
+        # a cell below the repose cone of the seen surface was not seen lately: it is no
+        # lower than the cone (and was raised to it), not a drop
+        elevation = np.fmax(elevation, _cone(state, elevation))
     variance = state.height.variance
     top = state.stack.surface()
     with np.errstate(invalid="ignore"):
@@ -478,8 +533,9 @@ def _follow_height(state: ProjectorState, t_ns: int, *, drops: bool = True,
             state.flagged_loss_m3 += removal.volume_m3
 
 
-def _lower_height(height, floor_m: np.ndarray, sd_m: float):
-    """The height map after a cut: cells above the envelope floor drop to it.
+def _predict_height(height, new_top_m: np.ndarray, old_top_m: np.ndarray, sd_m: float):
+    """The height map after a cut: cells whose stack top the cut (or the slide of its
+    face) moved take the new top.
 
     Their variance becomes one point's (the prediction is as good as a fresh
     observation) and pending change evidence is dropped, so the scans after the cut
@@ -488,16 +544,89 @@ def _lower_height(height, floor_m: np.ndarray, sd_m: float):
     grid = height.copy().grid
     elevation = grid["elevation"]
     with np.errstate(invalid="ignore"):
-        lowered = np.isfinite(floor_m) & np.isfinite(elevation) & (elevation > floor_m)
-    if not lowered.any():
+        moved = (np.abs(new_top_m - old_top_m) > 1e-9) & (
+            np.isfinite(elevation) | (new_top_m > old_top_m))
+    if not moved.any():
         return height
-    elevation[lowered] = floor_m[lowered]
-    grid["variance"][lowered] = sd_m * sd_m
-    grid["pending_count"][lowered] = 0.0
+    elevation[moved] = new_top_m[moved]
+    grid["variance"][moved] = sd_m * sd_m
+    grid["pending_count"][moved] = 0.0
     for name in ("pending_z", "pending_var", "pending_x_offset_m", "pending_y_offset_m"):
         if name in grid:
-            grid[name][lowered] = np.nan
+            grid[name][moved] = np.nan
     return type(height)(grid)
+
+
+# -- the angle of repose: slides after a cut, flanks hidden behind the crest ------------------
+
+
+def _tan_repose(state: ProjectorState) -> float:
+    """tan(angle of repose): configured, else estimated from the seen slopes (35 deg
+    until enough are seen; the last good estimate is kept)."""
+    if state.config.repose_deg is not None:
+        return math.tan(math.radians(state.config.repose_deg))
+    deg = slump.estimate_repose_deg(state.height.elevation, state.pile.geometry.cell_m)
+    if math.isfinite(deg):
+        state.tan_repose = math.tan(math.radians(deg))
+    return state.tan_repose if math.isfinite(state.tan_repose) else math.tan(math.radians(35.0))
+
+
+def _cone(state: ProjectorState, elevation: np.ndarray) -> np.ndarray:
+    """The repose cone under the seen surface (NaN where no seen cell reaches)."""
+    # the same slope as the slide's: a face left standing at it is not lifted again
+    tan = _tan_repose(state) * (1.0 + state.config.relax_slack)
+    return slump.repose_floor(elevation, state.pile.geometry.cell_m, tan)
+
+
+def _complete_unseen(state: ProjectorState, t_ns: int) -> None:
+    """Raise the stack to the repose cone of the seen surface where it is below it.
+
+    A flank hidden behind the crest keeps its last seen (older, lower) height in the
+    height map; the pile there is at least as high as the cone.  Its material goes to
+    the passes that crossed the cell since it was last seen.
+    """
+    if not state.config.complete_unseen or state.stack is None or state.stack.n_deposits == 0:
+        return
+    elevation = state.height.elevation
+    if state.config.fill_gap_cells:
+        elevation = heightmap.fill_holes(elevation, method="linear",
+                                         max_gap_cells=state.config.fill_gap_cells)
+    if not np.isfinite(elevation).any():
+        return
+    cone = _cone(state, elevation)
+    top = state.stack.surface()
+    margin = state.config.margin_sigma * np.sqrt(
+        np.nan_to_num(state.height.variance, nan=state.point_sd_m ** 2)) + state.margin_m
+    with np.errstate(invalid="ignore"):
+        lift = (cone > top + margin) & ~(elevation >= cone - margin)
+    if not lift.any():
+        return
+    level = np.where(lift, cone, np.nan)
+    before = state.stack.total_volume_m3()
+    left = _rise_to_crossing_passes(state, level, state.height.grid["last_update_ns"], t_ns)
+    if left.any() and state.stack.n_deposits:
+        # no pass crossed since the cell was seen: the top deposit's (it stands above it)
+        state.stack, _added = state.stack.raise_to(np.where(left, level, np.nan),
+                                                   _deposition_ns(state, t_ns))
+    state.count("cells_completed", int(lift.sum()))
+    state.count("completed_mm3", int(round((state.stack.total_volume_m3() - before) * 1e3)))
+
+
+def _slump_face(state: ProjectorState, floor_m: np.ndarray) -> float:
+    """Let the face a cut left slide to the angle of repose; returns the volume moved (m3)."""
+    geometry = state.pile.geometry
+    tan = _tan_repose(state) * (1.0 + state.config.relax_slack)
+    top = state.stack.surface()
+    ix, iy = np.nonzero(np.isfinite(floor_m))
+    if ix.size == 0:
+        return 0.0
+    height = float(np.max(top) - np.min(state.stack.ground()))
+    pad = int(math.ceil(height / tan / geometry.cell_m)) + 2
+    region = (slice(max(0, ix.min() - pad), min(geometry.nx, ix.max() + pad + 1)),
+              slice(max(0, iy.min() - pad), min(geometry.ny, iy.max() + pad + 1)))
+    state.stack, moved, _raised = slump.slump(state.stack, tan, region)
+    state.count("slumps")
+    return moved.volume_m3
 
 
 def _crossing_ns(record: PassRecord, y_m: np.ndarray, now_ns: int,
@@ -528,46 +657,44 @@ def _rise_to_crossing_passes(state: ProjectorState, surface: np.ndarray,
     was last seen, in equal shares, deposited when the stacker crossed; returns the
     cells still risen (no such pass, or a later deposit already holds material there).
     """
+    risen = np.isfinite(surface)
     passes = sorted(state.passes.values(), key=lambda p: p.deposit_index)
     if not passes:
-        return np.isfinite(surface)
+        return risen
+    cells = np.flatnonzero(risen)            # work on the risen cells only
+    if cells.size == 0:
+        return risen
     ended = [(p.ended_ns - p.started_ns) / 1e9 for p in passes if p.ended_ns is not None]
     typical = float(np.median(ended)) if ended else None
-    _x, y = cell_centres(state.pile.geometry)
-    prev = np.where(np.isfinite(seen_before_ns), seen_before_ns, -np.inf)
+    geometry = state.pile.geometry
+    iy = cells % geometry.ny
+    y = geometry.origin_y_m + (iy + 0.5) * geometry.cell_m
+    seen = seen_before_ns.ravel()[cells]
+    prev = np.where(np.isfinite(seen), seen, -np.inf)
     cands = []
     for record in passes:
         crossing = _crossing_ns(record, y, t_ns, typical)
         cands.append((record, crossing, (crossing > prev) & (crossing <= t_ns)))
     count = sum(c[2].astype(int) for c in cands)
-    risen = np.isfinite(surface)
-    top = state.stack.surface()
-    rise = np.where(risen, surface - top, 0.0)
-    done = 0
+    top = state.stack.surface().ravel()[cells]
+    rise = surface.ravel()[cells] - top
+    done, position = 0, np.zeros(cells.size)
     for record, crossing, hit in cands:
-        cells = hit & risen & (count > 0)
-        if not cells.any():
+        position += hit
+        if not hit.any():
             continue
-        level = np.where(cells, top + rise * (_share_index(cands, record, cells) / np.maximum(count, 1)),
-                         np.nan)
-        state.stack, raised = state.stack.raise_deposit(record.deposit_index, level,
-                                                        np.where(cells, crossing, np.nan))
+        sel = cells[hit]
+        level = np.full(geometry.shape, np.nan)
+        level.ravel()[sel] = (top + rise * (position / np.maximum(count, 1)))[hit]
+        when = np.full(geometry.shape, np.nan)
+        when.ravel()[sel] = crossing[hit]
+        state.stack, raised = state.stack.raise_deposit(record.deposit_index, level, when)
         done += int(raised.sum())
     if done:
         state.count("rises_by_crossing", done)
     # what is left: cells not fully raised (a later deposit already held material)
     with np.errstate(invalid="ignore"):
         return risen & (surface > state.stack.surface())
-
-
-def _share_index(cands, record, cells) -> np.ndarray:
-    """1-based position of ``record`` among each cell's candidate passes (for the shares)."""
-    position = np.zeros(cells.shape)
-    for other, _crossing, hit in cands:
-        position += hit
-        if other is record:
-            break
-    return position
 
 
 def _deposition_ns(state: ProjectorState, t_ns: int) -> int:

@@ -8,6 +8,8 @@ order of deposition.
 - :meth:`LayerStack.open_deposit` adds a band of zero thickness on top;
 - :meth:`LayerStack.raise_to` puts the material between the top and a higher observed
   surface into the *top* deposit;
+- :meth:`LayerStack.add_material` inserts material of one deposit into its band (slumped
+  material landing on a toe, :mod:`ledger.projector.slump`);
 - :meth:`LayerStack.clamp` lowers every surface above a floor to the floor (a reclaimer cut,
   :func:`ledger.projector.envelope.cut_floor`) and reports what it removed per deposit.
 
@@ -346,12 +348,18 @@ class LayerStack:
         self._check_k(k)
         surf = _check_layer(self._geometry, surface_m, "surface_m")
         top = self._surfaces[-1]
-        empty_above = np.ones(self._geometry.shape, bool)
-        for j in range(k + 1, self.n_deposits + 1):
-            empty_above &= self._surfaces[j] <= self._surfaces[j - 1]
         with np.errstate(invalid="ignore"):
-            up = (surf > top) & empty_above
-        if not up.any():
+            up = surf > top
+        cand = np.flatnonzero(up)
+        if cand.size == 0:
+            return self, up
+        # only where every band above k is empty (checked on the candidate cells only)
+        keep = np.ones(cand.size, bool)
+        for j in range(k + 1, self.n_deposits + 1):
+            keep &= self._surfaces[j].ravel()[cand] <= self._surfaces[j - 1].ravel()[cand]
+        up = np.zeros(self._geometry.shape, bool)
+        up.ravel()[cand[keep]] = True
+        if not keep.any():
             return self, up
         t = np.broadcast_to(np.asarray(t_ns, dtype=np.float64), self._geometry.shape)
         epoch = int(np.nanmin(t[up])) if self._epoch_ns is None else self._epoch_ns
@@ -370,6 +378,52 @@ class LayerStack:
         new_time[up] = np.where(old > 0, (t_old * old + t_rel * add) / (old + add), t_rel)
         times[k - 1] = _frozen(new_time)
         return LayerStack(self._geometry, tuple(surfaces), tuple(times), self._infos, epoch), up
+
+    def add_material(self, k: int, thickness_m, t_ns) -> "LayerStack":
+        """Insert material of deposit ``k`` into every column: its band grows by ``thickness_m``.
+
+        Surfaces ``S(k) .. S(n)`` rise by the thickness, so bands above ``k`` keep their
+        thickness and sit on the new material (material slid down a face lands on a toe
+        whose later bands, if any, are thin; the column keeps its composition).
+
+        Parameters
+        ----------
+        k : int
+            The deposit (1-based).
+        thickness_m : array_like, shape (nx, ny)
+            Added thickness (m, >= 0; NaN or 0 = nothing).
+        t_ns : float or array_like, shape (nx, ny)
+            When the added material was deposited (UTC ns), per cell or for all.
+
+        Returns
+        -------
+        LayerStack
+
+        Raises
+        ------
+        ValueError
+            On a wrong shape or a negative thickness.
+        """
+        self._check_k(k)
+        add = np.nan_to_num(_check_layer(self._geometry, thickness_m, "thickness_m"), nan=0.0)
+        if np.any(add < 0):
+            raise ValueError("thickness_m must be >= 0")
+        cells = add > 0
+        if not cells.any():
+            return self
+        t = np.broadcast_to(np.asarray(t_ns, dtype=np.float64), self._geometry.shape)
+        epoch = int(np.nanmin(t[cells])) if self._epoch_ns is None else self._epoch_ns
+        surfaces = list(self._surfaces)
+        old = (self._surfaces[k] - self._surfaces[k - 1])[cells]
+        for j in range(k, self.n_deposits + 1):
+            surfaces[j] = _frozen(self._surfaces[j] + add)
+        times = list(self._times)
+        new_time = times[k - 1].copy()
+        t_rel = t[cells] - float(epoch)
+        a = add[cells]
+        new_time[cells] = np.where(old > 0, (new_time[cells] * old + t_rel * a) / (old + a), t_rel)
+        times[k - 1] = _frozen(new_time)
+        return LayerStack(self._geometry, tuple(surfaces), tuple(times), self._infos, epoch)
 
     def clamp(self, floor_m) -> tuple["LayerStack", Removal]:
         """Lower every surface above a floor to it: ``S(k) = min(S(k), floor)`` for k >= 1.

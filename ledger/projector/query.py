@@ -268,7 +268,7 @@ def _cut_summary(cut: F.CutRecord, stack, join: _Join, analytes) -> CutSummary:
     return CutSummary(cut.cut_id, cut.bench_id, cut.start_ns, cut.end_ns, volume, tonnes,
                       cut.belt_tonnes, _grade(sums, graded_t, analytes),
                       assayed_t / tonnes if tonnes > 0 else 0.0, cut.predicted_m3,
-                      cut.residual_m3, cut.returned_m3, deposits)
+                      cut.residual_m3, cut.slumped_m3, deposits)
 
 
 # -- snapshots --------------------------------------------------------------------------------

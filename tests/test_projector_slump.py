@@ -1,0 +1,111 @@
+"""The angle of repose kernels: slides conserve mass and composition, the repose cone,
+the repose estimate.  Each is checked against a brute-force or analytic ground truth."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from ledger.projector.grid import GridGeometry
+from ledger.projector.layers import DepositInfo, LayerStack
+from ledger.projector.slump import estimate_repose_deg, relax_surface, repose_floor, slump
+
+CELL = 0.25
+TAN37 = math.tan(math.radians(37.0))
+
+
+def _chamfer_cone_brute(z: np.ndarray, cell_m: float, tan: float) -> np.ndarray:
+    """max over every seen q of z(q) - tan * chamfer distance (O(N^2), a different method)."""
+    nx, ny = z.shape
+    ix, iy = np.nonzero(np.isfinite(z))
+    out = np.full(z.shape, -np.inf)
+    for px in range(nx):
+        for py in range(ny):
+            dx, dy = np.abs(ix - px), np.abs(iy - py)
+            d = (np.maximum(dx, dy) + (math.sqrt(2) - 1) * np.minimum(dx, dy)) * cell_m
+            out[px, py] = np.max(z[ix, iy] - tan * d)
+    return out
+
+
+def test_repose_floor_equals_the_brute_force_cone():
+    seed = 11
+    print("seed", seed)
+    rng = np.random.default_rng(seed)
+    z = np.full((23, 17), np.nan)
+    picks = rng.choice(z.size, 12, replace=False)
+    z.ravel()[picks] = rng.uniform(0, 5, 12)
+    got = repose_floor(z, CELL, TAN37)
+    want = _chamfer_cone_brute(z, CELL, TAN37)
+    np.testing.assert_allclose(got, want, atol=1e-9)
+    seen = np.isfinite(z)
+    assert np.all(got[seen] >= z[seen])
+
+
+def test_repose_floor_leaves_a_settled_pile_alone_and_lifts_a_hidden_flank():
+    x = (np.arange(80) + 0.5) * CELL
+    ridge = np.maximum(0.0, 8.0 - TAN37 * np.abs(x - 10.0))      # a prism at repose
+    z = np.repeat(ridge[:, None], 20, axis=1)
+    np.testing.assert_allclose(repose_floor(z, CELL, TAN37), z, atol=1e-9)
+    hidden = z.copy()
+    hidden[x > 10.5] = 1.0             # the far flank last seen when it was 1 m high
+    lifted = repose_floor(hidden, CELL, TAN37)
+    far = (x > 10.5) & (ridge > 1.0)
+    np.testing.assert_allclose(lifted[far], z[far], atol=0.03)
+
+
+def test_relax_surface_conserves_volume_and_leaves_no_slope_steeper_than_repose():
+    base = np.zeros((40, 30))
+    top = np.zeros((40, 30))
+    top[:, :15] = 6.0                   # a vertical cliff 6 m high
+    out = relax_surface(top, base, CELL, TAN37, tol_m=1e-6)
+    assert out.sum() == pytest.approx(top.sum(), rel=1e-12)
+    assert np.all(out >= base - 1e-12)
+    steepest = max(np.abs(np.diff(out, axis=0)).max(), np.abs(np.diff(out, axis=1)).max())
+    assert steepest <= TAN37 * CELL * 1.01
+    # the cliff's top fell and its foot rose
+    assert out[:, 0].max() < 6.0 and out[:, 29].min() >= 0.0 and out[:, 16].min() > 0.0
+
+
+def test_relax_surface_rejects_bad_input():
+    with pytest.raises(ValueError, match="shape"):
+        relax_surface(np.zeros((3, 3)), np.zeros((3, 4)), CELL, TAN37)
+    with pytest.raises(ValueError, match="tan_repose"):
+        relax_surface(np.zeros((3, 3)), np.zeros((3, 3)), CELL, -1.0)
+    with pytest.raises(ValueError, match="finite"):
+        relax_surface(np.full((3, 3), np.nan), np.zeros((3, 3)), CELL, TAN37)
+
+
+def test_slump_moves_material_with_its_composition():
+    geometry = GridGeometry(0.0, 0.0, CELL, 40, 30)
+    stack = LayerStack.empty(geometry, 0.0)
+    for k, (level, t) in enumerate(((3.0, 100), (6.0, 200)), start=1):
+        stack = stack.open_deposit(DepositInfo(k, f"P{k}", f"L{k}", t))
+        surface = np.full(geometry.shape, np.nan)
+        surface[:, :15] = level
+        stack, _ = stack.raise_to(surface, t)
+    volumes = [stack.volume_m3(k) for k in (1, 2)]
+    settled, moved, raised = slump(stack, TAN37, tol_m=1e-6)
+    assert settled.total_volume_m3() == pytest.approx(stack.total_volume_m3(), rel=1e-9)
+    assert moved.volume_m3 > 1.0
+    assert raised.sum() * geometry.cell_area_m2 == pytest.approx(moved.volume_m3, rel=1e-9)
+    # each deposit keeps its volume: what slid off the top landed at the foot
+    for k, before in zip((1, 2), volumes):
+        assert settled.volume_m3(k) == pytest.approx(before, rel=1e-9)
+    # the foot (beyond the old cliff) holds the slid material's deposits
+    foot = settled.thickness(2)[:, 15:].sum() + settled.thickness(1)[:, 15:].sum()
+    assert foot * geometry.cell_area_m2 == pytest.approx(moved.volume_m3, rel=1e-6)
+
+
+def test_estimate_repose_deg_finds_a_noisy_cone():
+    seed = 5
+    print("seed", seed)
+    rng = np.random.default_rng(seed)
+    x = (np.arange(160) + 0.5) * CELL - 20.0
+    xx, yy = np.meshgrid(x, x, indexing="ij")
+    for deg in (33.0, 37.0):
+        cone = np.maximum(0.0, 12.0 - math.tan(math.radians(deg)) * np.hypot(xx, yy))
+        noisy = cone + rng.normal(0, 0.02, cone.shape)
+        assert estimate_repose_deg(noisy, CELL) == pytest.approx(deg, abs=0.5)
+    assert math.isnan(estimate_repose_deg(np.zeros((50, 50)), CELL))   # flat: no flank
