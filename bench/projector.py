@@ -294,7 +294,8 @@ def section_as_of(args) -> Section:
     from ledger.projector.query import SnapshotStore, build_snapshots, project
 
     ledger, scenario = _ledger_for_as_of(args)
-    snap_path = ledger.with_name(ledger.stem + "-snapshots.duckdb")
+    every_s = 60.0 * args.snapshot_every_min
+    snap_path = ledger.with_name(f"{ledger.stem}-snapshots-{args.snapshot_every_min:g}min.duckdb")
     pile = "P1"
     rows, ok, notes = [], True, []
     with open_ledger(ledger, read_only=True) as store:
@@ -306,8 +307,9 @@ def section_as_of(args) -> Section:
         if not snap_path.exists():
             t0 = time.perf_counter()
             with SnapshotStore(snap_path) as snaps:
-                saved = build_snapshots(store, snaps, pile, every_ns=int(3600 * NS_PER_S))
-            notes.append(f"snapshots: {saved} (one per site hour) built in "
+                saved = build_snapshots(store, snaps, pile, every_ns=int(every_s * NS_PER_S))
+            notes.append(f"snapshots: {saved} (one per {args.snapshot_every_min:g} site min, "
+                         f"{snap_path.stat().st_size / 2**20:,.0f} MiB) built in "
                          f"{time.perf_counter() - t0:.1f} s into {snap_path.name}")
         queries = [("the end, everything known", None, None),
                    ("1 h before the end, known then", last - 3600 * NS_PER_S,
@@ -349,6 +351,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--quick", action="store_true", help="smaller inputs (smoke run)")
     ap.add_argument("--ledger-dir", default="bench/out",
                     help="where section 3 keeps its simulated ledger (default %(default)s)")
+    ap.add_argument("--snapshot-every-min", type=float, default=10.0,
+                    help="section 3: site minutes between snapshots (default %(default)s)")
     ap.add_argument("--section", type=int, action="append",
                     help="run only these sections (1-based; repeatable)")
     args = ap.parse_args(argv)

@@ -29,6 +29,7 @@ def build_parser() -> argparse.ArgumentParser:
     from services import plan_cli, run_config, service_cli
     from services.sim import cli as sim_cli
     from replay import cli as replay_cli  # record, replay, export-mcap (issue 7)
+    from services import audit_cli, dashboard  # audit reports, Rerun dashboard (issue 6)
 
     parser = _Parser(
         prog="stockpile",
@@ -45,6 +46,8 @@ def build_parser() -> argparse.ArgumentParser:
     run_config.register(sub)
     plan_cli.register(sub)
     replay_cli.register(sub)
+    audit_cli.register(sub)
+    dashboard.register(sub)
     return parser
 
 

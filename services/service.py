@@ -52,6 +52,7 @@ SERVICE_MODULES: dict[str, str] = {
     "localizer": "services.localizer",
     "ledger": "services.ledger_service",
     "projector": "services.projector_service",
+    "dashboard": "services.dashboard",
     "recorder": "replay.record",
 }
 

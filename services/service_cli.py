@@ -18,6 +18,7 @@ SUMMARIES = {
     "localizer": "fuse joint readings and GNSS fixes (UKF), publish joint estimates and poses",
     "ledger": "the single writer of the ledger: subscribe, append in batches, serve reads",
     "projector": "follow the ledger service and keep a live projection of one pile",
+    "dashboard": "follow the ledger service and log one pile to Rerun (web viewer, .rrd)",
     "recorder": "record the site's events to MCAP files, rotating by size or time",
 }
 
