@@ -671,23 +671,11 @@ def _rise_to_crossing_passes(state: ProjectorState, surface: np.ndarray,
     y = geometry.origin_y_m + (iy + 0.5) * geometry.cell_m
     seen = seen_before_ns.ravel()[cells]
     prev = np.where(np.isfinite(seen), seen, -np.inf)
-    # the material was there when the evidence of the rise was first seen: a pass that
-    # crossed after that did not bring it
-    since = state.height.grid["changed_since_ns"].ravel()[cells]
-    upto = np.where(np.isfinite(since), np.minimum(since, float(t_ns)), float(t_ns))
     cands = []
     for record in passes:
         crossing = _crossing_ns(record, y, t_ns, typical)
-        cands.append((record, crossing, (crossing > prev) & (crossing <= upto)))
+        cands.append((record, crossing, (crossing > prev) & (crossing <= t_ns)))
     count = sum(c[2].astype(int) for c in cands)
-    if (count == 0).any():
-        # no pass crossed in the window: the last one that crossed before it brought it
-        latest = np.full(cells.size, -np.inf)
-        for _record, crossing, _hit in cands:
-            latest = np.where(crossing <= upto, np.maximum(latest, crossing), latest)
-        orphan = (count == 0) & np.isfinite(latest)
-        cands = [(r, c, h | (orphan & (c == latest))) for r, c, h in cands]
-        count = sum(c[2].astype(int) for c in cands)
     top = state.stack.surface().ravel()[cells]
     rise = surface.ravel()[cells] - top
     done, position = 0, np.zeros(cells.size)

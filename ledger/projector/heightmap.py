@@ -176,10 +176,6 @@ _LAYERS = {
     "y_offset_m": math.nan,       #    relative to the centre (weighted like the heights)
     "pending_x_offset_m": math.nan,
     "pending_y_offset_m": math.nan,
-    "pending_since_ns": math.nan,  # UTC ns when the current change evidence began
-    "changed_since_ns": math.nan,  # UTC ns the height last taken was first seen: the
-                                   # batch for an init or update, the evidence's start
-                                   # for a change
 }
 
 
@@ -366,7 +362,6 @@ def fuse(heightmap: HeightMap, obs: CellObservations, t_ns: int, point_sd_m: flo
     last = layers["last_update_ns"]
     xo, yo = layers["x_offset_m"], layers["y_offset_m"]
     pxo, pyo = layers["pending_x_offset_m"], layers["pending_y_offset_m"]
-    psince, csince = layers["pending_since_ns"], layers["changed_since_ns"]
     t = float(t_ns)
     g2 = float(gate_sigma) ** 2
     r = (point_sd_m ** 2 + zvar) / cnt
@@ -387,7 +382,6 @@ def fuse(heightmap: HeightMap, obs: CellObservations, t_ns: int, point_sd_m: flo
     var[c] = r[new]
     xo[c], yo[c] = ox[new], oy[new]
     last[c] = t
-    csince[c], psince[c] = t, np.nan
     pz[c], pv[c], pc[c], pxo[c], pyo[c] = np.nan, np.nan, 0.0, np.nan, np.nan
 
     # in gate: Kalman step, evidence cleared
@@ -399,7 +393,6 @@ def fuse(heightmap: HeightMap, obs: CellObservations, t_ns: int, point_sd_m: flo
     xo[c] += k * (ox[ingate] - xo[c])
     yo[c] += k * (oy[ingate] - yo[c])
     last[c] = t
-    csince[c], psince[c] = t, np.nan
     pz[c], pv[c], pc[c], pxo[c], pyo[c] = np.nan, np.nan, 0.0, np.nan, np.nan
 
     # out of gate: change evidence
@@ -418,20 +411,17 @@ def fuse(heightmap: HeightMap, obs: CellObservations, t_ns: int, point_sd_m: flo
     ex_new = np.where(agree, pxo[c] + w * (ox[gated] - pxo[c]), ox[gated])
     ey_new = np.where(agree, pyo[c] + w * (oy[gated] - pyo[c]), oy[gated])
     ec_new = np.where(agree, ec + 1.0, 1.0)
-    since_new = np.where(agree, psince[c], t)
     change = ec_new >= change_count
     keep = ~change
     ck = c[keep]
     pz[ck], pv[ck], pc[ck] = ez_new[keep], ev_new[keep], ec_new[keep]
     pxo[ck], pyo[ck] = ex_new[keep], ey_new[keep]
-    psince[ck] = since_new[keep]
     cc = c[change]
     up = ez_new[change] > h[gated][change]
     elev[cc] = ez_new[change]
     var[cc] = ev_new[change]
     xo[cc], yo[cc] = ex_new[change], ey_new[change]
     last[cc] = t
-    csince[cc], psince[cc] = since_new[change], np.nan
     pz[cc], pv[cc], pc[cc], pxo[cc], pyo[cc] = np.nan, np.nan, 0.0, np.nan, np.nan
 
     stats = FuseStats(cells_initialised=int(new.sum()), cells_updated=int(ingate.sum()),
