@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any, Sequence
 
 from ledger.times import format_time_ns, parse_time_ns
+from services.service import json_safe
 
 NS = 1_000_000_000
 _UNITS = {"s": NS, "sec": NS, "m": 60 * NS, "min": 60 * NS, "h": 3600 * NS, "d": 86400 * NS}
@@ -39,19 +40,10 @@ def parse_duration_ns(text: str) -> int:
 # -- output helpers -------------------------------------------------------------------------
 
 
-def _clean(value):
-    """NaN/inf -> None recursively; tuples -> lists (strict JSON)."""
-    if isinstance(value, float):
-        return value if math.isfinite(value) else None
-    if isinstance(value, dict):
-        return {str(k): _clean(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_clean(v) for v in value]
-    return value
 
 
 def _dump(obj: dict[str, Any]) -> None:
-    json.dump(_clean(obj), sys.stdout, indent=1, allow_nan=False)
+    json.dump(json_safe(obj), sys.stdout, indent=1, allow_nan=False)
     print()
 
 

@@ -1530,6 +1530,8 @@ def main(config: Config, *, stopper: Stopper | None = None) -> int:
 
 def _follow(config: Config, runtime, status, client, heads: queue.SimpleQueue, rec) -> None:
     """The live loop: catch up, go live, update until stopped."""
+    from services.projector_service import newest_head
+
     dash = Dashboard(rec, config.pile_id, config)
     seen_gaps: set = set()
     quarantined = [0]
@@ -1586,7 +1588,7 @@ def _follow(config: Config, runtime, status, client, heads: queue.SimpleQueue, r
     last_poll = time.monotonic()
     stop = runtime.stopper
     while not stop.is_set():
-        target = _newest_head(heads, 0.05)
+        target = newest_head(heads, 0.05)
         try:
             if target is not None and target > dash.seq:
                 read_to(target, updates=False)
@@ -1605,16 +1607,3 @@ def _follow(config: Config, runtime, status, client, heads: queue.SimpleQueue, r
             runtime.log("update failed", level="warn",
                         error=f"{type(exc).__name__}: {exc}")
             stop.wait(0.5)
-
-
-def _newest_head(heads: queue.SimpleQueue, timeout_s: float) -> int | None:
-    try:
-        newest = heads.get(timeout=timeout_s)
-    except queue.Empty:
-        return None
-    while True:
-        try:
-            newest = max(newest, heads.get_nowait())
-        except queue.Empty:
-            return newest
-

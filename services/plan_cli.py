@@ -14,6 +14,7 @@ import re
 import sys
 
 from ledger.times import format_time_ns, parse_time_ns
+from services.service import json_safe
 
 EXIT_OK, EXIT_NO_PLAN = 0, 1
 _BOUND = re.compile(r"^\s*([A-Za-z][A-Za-z0-9_]*)\s*(>=|<=)\s*([-+0-9.eE]+)\s*$")
@@ -35,15 +36,6 @@ def parse_bounds(texts: list[str]) -> dict[str, tuple[float | None, float | None
     return {k: (v[0], v[1]) for k, v in out.items()}
 
 
-def _clean(value):
-    """NaN -> None, tuples -> lists, recursively (JSON has no NaN)."""
-    if isinstance(value, float):
-        return value if math.isfinite(value) else None
-    if isinstance(value, dict):
-        return {str(k): _clean(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_clean(v) for v in value]
-    return value
 
 
 def _declarations(store, v: int, k: int, pile_id: str, machine_id: str):
@@ -234,7 +226,7 @@ def print_plan(out: dict) -> None:
 def cmd_plan_reclaim(args: argparse.Namespace) -> int:
     out = make_plan(args)
     if args.json:
-        json.dump(_clean(out), sys.stdout, indent=1)
+        json.dump(json_safe(out), sys.stdout, indent=1)
         print()
     else:
         print_plan(out)

@@ -32,7 +32,7 @@ from ledger.projector import fold as F
 from ledger.projector.grades import AssayRecord
 from ledger.projector.query import PileState, summarise
 from schemas.events import decode_payload
-from services.service import DEFAULT_SITE, ServiceRuntime, Stopper, ZenohOptions
+from services.service import DEFAULT_SITE, ServiceRuntime, Stopper, ZenohOptions, json_safe
 
 SERVICE = "projector"
 DEFAULT_REORDER_S = 5.0
@@ -161,18 +161,9 @@ def _summary_json(projection: LiveProjection, rebuilds: int) -> bytes:
     state = projection.summary()
     body = state.to_json()
     body.update(ledger_seq=projection.ledger_seq, rebuilds=rebuilds)
-    return json.dumps(_clean(body), allow_nan=False).encode()
+    return json.dumps(json_safe(body), allow_nan=False).encode()
 
 
-def _clean(value):
-    """NaN -> None recursively (strict JSON)."""
-    if isinstance(value, float) and value != value:
-        return None
-    if isinstance(value, dict):
-        return {k: _clean(v) for k, v in value.items()}
-    if isinstance(value, list):
-        return [_clean(v) for v in value]
-    return value
 
 
 def catch_up(client, projection: LiveProjection, head_seq: int, log=None) -> int:
@@ -198,7 +189,7 @@ def rebuild(client, projection: LiveProjection) -> int:
     return catch_up(client, projection, head)
 
 
-def _newest_head(heads: queue.SimpleQueue, timeout_s: float) -> int | None:
+def newest_head(heads: queue.SimpleQueue, timeout_s: float) -> int | None:
     """The newest committed head announced (waiting up to ``timeout_s`` for one), or None."""
     try:
         newest = heads.get(timeout=timeout_s)
@@ -253,7 +244,7 @@ def main(config: Config, *, stopper: Stopper | None = None) -> int:
             dirty, last_pub = True, 0.0
             stop = runtime.stopper
             while not stop.is_set():
-                target = _newest_head(heads, 0.05)
+                target = newest_head(heads, 0.05)
                 try:
                     if target is not None and target > projection.ledger_seq:
                         status.add("records", catch_up(client, projection, target))

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import signal
 import sys
 import threading
@@ -302,6 +303,17 @@ def declare_ledger_publisher(session, key: str, *, cache_samples: int = DEFAULT_
             heartbeat=HEARTBEAT_PERIOD_S, sporadic_heartbeat=None),
         publisher_detection=True,
     )
+
+
+def json_safe(value):
+    """NaN and inf -> None, tuples -> lists, keys -> str, recursively (strict JSON)."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {str(k): json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [json_safe(v) for v in value]
+    return value
 
 
 class EventPublisher:
