@@ -110,13 +110,13 @@ def _start_loadgens(tmp_path: Path, endpoint: str, *, n: int, rate: float, durat
 @pytest.mark.parametrize("cache_samples", [60_000, 1_000], ids=["cache-covers-outage",
                                                                  "cache-too-small"])
 def test_sigkill_mid_run_loses_nothing_or_records_the_exact_gaps(tmp_path, cache_samples):
-    """4 publishers x 2,000 events/s x 20 s; the ledger service is SIGKILLed mid-run.
+    """4 publishers x 2,000 events/s x 12 s; the ledger service is SIGKILLed mid-run.
 
     With a publisher cache larger than the outage every event must end in the ledger
     exactly once; with a small cache the unrecoverable ones must be exactly the open
     gaps, and nothing else may be missing.
     """
-    n_pub, rate, duration_s = 4, 2000.0, 20.0
+    n_pub, rate, duration_s = 4, 2000.0, 12.0
     router, endpoint = open_router()
     seen: Counter[str] = Counter()
     lock = threading.Lock()

@@ -124,7 +124,7 @@ def _same(a, b) -> None:
         assert np.array_equal(a.surface_m, b.surface_m, equal_nan=True)
 
 
-@settings(max_examples=6, deadline=None, suppress_health_check=list(HealthCheck))
+@settings(max_examples=4, deadline=None, suppress_health_check=list(HealthCheck))
 @given(data=st.data())
 def test_snapshot_accelerated_project_equals_a_brute_force_fold(yard, tmp_path_factory, data):
     events = yard["events"]
