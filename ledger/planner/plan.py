@@ -244,15 +244,8 @@ def evaluate_landings(stack: LayerStack, machine: PlannerMachine, *, n_cuts: int
     -------
     LandingTable
     """
-    geometry = stack.geometry
-    surface = np.array(stack.surface(), dtype=np.float64)
-    params = (params or PlanParams()).resolved(machine, surface, geometry.cell_m)
-    ground = np.asarray(stack.ground())
-    cells = cell_set(geometry, surface, ground, 0.0)
-    cands = landing_candidates(geometry, surface, ground, machine, spacing_m=params.spacing_m,
-                               normal_window_m=params.normal_window_m,
-                               min_bite_m=params.min_bite_m, bench_floor_m=bench_floor_m)
-    s1 = _stage1(surface, cells, machine, cands, params)
+    surface, params, cells, cands, s1 = _screened_candidates(stack, machine, params,
+                                                             bench_floor_m)
     survivors = np.flatnonzero(s1.ok)
     if sample is not None and len(survivors) > sample:
         pick = np.unique(np.round(np.linspace(0, len(survivors) - 1, int(sample))).astype(int))
@@ -268,6 +261,20 @@ def evaluate_landings(stack: LayerStack, machine: PlannerMachine, *, n_cuts: int
         checked[i] = True
         valid[i] = bool(cuts) and all(c.ok for c in cuts)
     return LandingTable(cands, s1.cuts, s1.ok, checked, valid, benches, params, machine)
+
+
+def _screened_candidates(stack: LayerStack, machine: PlannerMachine,
+                         params: PlanParams | None, bench_floor_m: float | None):
+    """``(surface, params, cells, candidates, stage-1 result)`` of a pile's landings."""
+    geometry = stack.geometry
+    surface = np.array(stack.surface(), dtype=np.float64)
+    params = (params or PlanParams()).resolved(machine, surface, geometry.cell_m)
+    ground = np.asarray(stack.ground())
+    cells = cell_set(geometry, surface, ground, 0.0)
+    cands = landing_candidates(geometry, surface, ground, machine, spacing_m=params.spacing_m,
+                               normal_window_m=params.normal_window_m,
+                               min_bite_m=params.min_bite_m, bench_floor_m=bench_floor_m)
+    return surface, params, cells, cands, _stage1(surface, cells, machine, cands, params)
 
 
 def plan_reclaim(stack: LayerStack, machine: PlannerMachine, *, n_cuts: int = 10,
@@ -299,15 +306,8 @@ def plan_reclaim(stack: LayerStack, machine: PlannerMachine, *, n_cuts: int = 10
         raise TypeError(f"machine must be a PlannerMachine, got {type(machine).__name__}")
     if isinstance(n_cuts, bool) or not isinstance(n_cuts, (int, np.integer)) or n_cuts < 1:
         raise ValueError(f"n_cuts must be an integer >= 1, got {n_cuts!r}")
-    geometry = stack.geometry
-    surface = np.array(stack.surface(), dtype=np.float64)
-    params = (params or PlanParams()).resolved(machine, surface, geometry.cell_m)
-    ground = np.asarray(stack.ground())
-    cells = cell_set(geometry, surface, ground, 0.0)
-    cands = landing_candidates(geometry, surface, ground, machine, spacing_m=params.spacing_m,
-                               normal_window_m=params.normal_window_m,
-                               min_bite_m=params.min_bite_m, bench_floor_m=bench_floor_m)
-    s1 = _stage1(surface, cells, machine, cands, params)
+    surface, params, cells, cands, s1 = _screened_candidates(stack, machine, params,
+                                                             bench_floor_m)
     rejected: dict[str, int] = {}
     for c in s1.cuts:
         for reason in (("no material",) if c.empty else c.reasons):
