@@ -15,13 +15,16 @@ import pytest  # noqa: E402
 def small_yard_sim(tmp_path_factory):
     """A short simulated yard shared by the projector tests (one stacking pass, seed 2).
 
-    ``stockpile sim --scenario demo --duration 0.19 --scan-events truth``: real scans and
-    scanner poses as events; returns the output directory (``events.jsonl``, truth).
+    ``stockpile sim --scenario demo --duration 0.19 --scan-events truth --assay-window
+    1200``: real scans and scanner poses as events, the lab's windows as long as a pass (one
+    assay per pass, which the audit tests supersede and delay); returns the output
+    directory (``events.jsonl``, truth).
     """
     out = tmp_path_factory.mktemp("small-yard") / "sim"
     subprocess.run([sys.executable, "-m", "services.cli", "sim", "--scenario", "demo",
                     "--seed", "2", "--duration", "0.19", "--speed", "0", "--scan-events",
-                    "truth", "--out", str(out)], check=True, capture_output=True, timeout=300)
+                    "truth", "--assay-window", "1200", "--out", str(out)],
+                   check=True, capture_output=True, timeout=300)
     return out
 
 

@@ -155,6 +155,31 @@ def test_snapshot_accelerated_project_equals_a_brute_force_fold(yard, tmp_path_f
     store.close()
 
 
+def test_a_snapshot_taken_knowing_everything_serves_an_earlier_known_time(yard, tmp_path):
+    # every event arrives a minute after its valid time: a snapshot holds only events
+    # recorded by about its position, so it serves a K an hour before the head
+    events = yard["events"]
+    store = _ledger(events, [60 * S] * len(events))
+    rows = list(store.read())
+    head_k = max(r.recorded_time_ns for r in rows)
+    t0 = min(r.valid_time_ns for r in rows)
+    t1 = max(r.valid_time_ns for r in rows)
+    with SnapshotStore(tmp_path / "s.duckdb") as snaps:
+        assert build_snapshots(store, snaps, PILE, every_ns=60 * S) > 0
+        v = t0 + (t1 - t0) * 3 // 4
+        k = v + 120 * S
+        assert k < head_k
+        found = snaps.find(store, F.FoldConfig(pile_id=PILE), v, k)
+        assert found is not None, "a snapshot with all its events recorded by K is usable"
+        _state, (v_s, _g) = found
+        assert v_s <= v
+        # not usable for a K before its own events were recorded
+        earlier = snaps.find(store, F.FoldConfig(pile_id=PILE), v, v_s - 61 * S)
+        assert earlier is None or earlier[1][0] < v_s
+        _same(project(store, PILE, v, k, snapshots=snaps), _brute_force(rows, v, k))
+    store.close()
+
+
 def test_a_past_cut_changes_grade_exactly_when_its_assay_arrives(yard):
     events = yard["events"]
     delays = [0] * len(events)

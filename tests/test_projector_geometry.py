@@ -477,6 +477,41 @@ def test_fuse_accepts_a_stacked_layer_after_change_count_looks(change_count):
     assert (hm.grid["last_update_ns"] == float(T0_NS + (100 + change_count - 1) * NS)).all()
 
 
+def test_fuse_dates_an_accepted_change_from_its_first_sighting():
+    g = GridGeometry(0.0, 0.0, 0.25, 4, 3)
+    sd = 0.05
+    hm = _settled(g, 2.0, sd)
+    assert (hm.grid["observed_ns"] == hm.grid["last_update_ns"]).all()
+    for k in range(3):
+        hm, _st = fuse(hm, _constant_obs(g, 2.5, sd), T0_NS + (100 + k) * NS, sd, change_count=3)
+        if k < 2:
+            assert (hm.grid["pending_since_ns"] == float(T0_NS + 100 * NS)).all()
+    np.testing.assert_allclose(hm.elevation, 2.5, atol=1e-9)
+    # the layer was there from the first look; it was confirmed at the third
+    assert (hm.grid["observed_ns"] == float(T0_NS + 100 * NS)).all()
+    assert (hm.grid["last_update_ns"] == float(T0_NS + 102 * NS)).all()
+    assert np.isnan(hm.grid["pending_since_ns"]).all()
+
+
+def test_accept_rises_takes_held_rises_and_keeps_held_drops():
+    from ledger.projector.heightmap import accept_rises
+
+    g = GridGeometry(0.0, 0.0, 0.25, 4, 2)
+    sd = 0.05
+    hm = _settled(g, 2.0, sd)
+    obs = _constant_obs(g, 2.6, sd)
+    obs.z_mean_m[: g.ny] = 1.4          # the first row of cells sees a drop
+    hm, st = fuse(hm, obs, T0_NS + 50 * NS, sd, change_count=3)
+    assert st.cells_gated == g.nx * g.ny and st.cells_changed_up == 0
+    out, accepted = accept_rises(hm)
+    assert accepted.sum() == (g.nx - 1) * g.ny and not accepted[0].any()
+    np.testing.assert_allclose(out.elevation[1:], 2.6, atol=1e-9)
+    np.testing.assert_allclose(out.elevation[0], 2.0, atol=1e-9)     # a drop waits
+    assert (out.grid["pending_count"][0] == 1).all() and (out.grid["pending_count"][1:] == 0).all()
+    assert (out.grid["observed_ns"][1:] == float(T0_NS + 50 * NS)).all()
+    np.testing.assert_allclose(hm.elevation, 2.0, atol=1e-9)          # the input is unchanged
+
+
 def test_fuse_accepts_a_reclaim_cut():
     g = GridGeometry(0.0, 0.0, 0.25, 3, 3)
     sd = 0.05

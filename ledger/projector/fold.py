@@ -78,6 +78,9 @@ class FoldConfig:
         this many sigma of the fused height (plus ``margin_m``).
     margin_m : float or None
         Fixed part of that margin, metres (None: 0.4 x ``point_sd_m``).
+    process_sd_m : float or None
+        Random-walk creep of a cell's height per observation in the fusion, metres
+        (None: 0.2 x ``point_sd_m``, 1 cm at a yard, 3 mm at a laboratory pile).
     gate_sigma : float
         Mahalanobis gate of the height fusion.
     change_count : int
@@ -105,12 +108,15 @@ class FoldConfig:
         After a cut, the face it left slides to the angle of repose in the model
         (mass and composition conserved; :func:`ledger.projector.slump.slump`).
     complete_unseen : bool
-        At a pass end, a cut and a query's end, cells below the repose cone of the seen
+        When the next pass starts, at a cut and at a query's end, cells below the repose cone of the seen
         surface (a flank hidden behind the crest) rise to it, the material given to the
         passes that crossed them since they were last seen.
     relax_slack : float
         Faces steeper than ``(1 + relax_slack) * tan(repose)`` slide (a little slack keeps
         the estimated angle's error from creeping standing flanks).
+    accept_rises_at_pass_start : bool
+        When a pass starts, rises sighted but not yet confirmed (``change_count``) are
+        accepted and given to the passes before it (:func:`heightmap.accept_rises`).
     """
 
     pile_id: str
@@ -120,6 +126,7 @@ class FoldConfig:
     max_scan_wait_ns: int = 10_000_000_000
     margin_sigma: float = 3.0
     margin_m: float | None = None
+    process_sd_m: float | None = None
     gate_sigma: float = 3.0
     change_count: int = 3
     strong_points: int = 3
@@ -131,6 +138,7 @@ class FoldConfig:
     slump_after_cut: bool = True
     complete_unseen: bool = True
     relax_slack: float = 0.0
+    accept_rises_at_pass_start: bool = True
 
 
 @dataclass(frozen=True)
@@ -205,6 +213,7 @@ class ProjectorState:
     flagged_loss_m3: float = 0.0
     point_sd_m: float = 0.05       # resolved from the config and the pile
     margin_m: float = 0.02
+    process_sd_m: float = 0.01     # the height map's creep per observation (resolved)
     tan_repose: float = math.nan   # last estimate of tan(angle of repose)
     counters: dict[str, int] = field(default_factory=dict)
     high_water: tuple[int, int] = (-(2 ** 62), -1)   # (valid ns, global seq) folded so far
@@ -277,6 +286,8 @@ def _on_pile(state: ProjectorState, event, msg) -> None:
     state.point_sd_m = (config.point_sd_m if config.point_sd_m is not None
                         else (0.015 if cell < 0.05 else 0.05))
     state.margin_m = config.margin_m if config.margin_m is not None else 0.4 * state.point_sd_m
+    state.process_sd_m = (config.process_sd_m if config.process_sd_m is not None
+                          else 0.2 * state.point_sd_m)
     state.height = heightmap.HeightMap.empty(geometry)
     state.stack = LayerStack.empty(geometry, float(msg.ground_z_m))
 
@@ -294,6 +305,21 @@ def _on_stack_started(state: ProjectorState, event, msg) -> None:
     if msg.pile_id != state.config.pile_id or state.stack is None:
         return
     _process_scans(state)
+    if state.config.accept_rises_at_pass_start:
+        # a rise sighted before this pass pours but not yet confirmed is the passes'
+        # before it: confirmed later it could not be told from this pass's layer
+        seen_before_ns = state.height.grid["last_update_ns"].copy()
+        state.height, accepted = heightmap.accept_rises(state.height)
+        if accepted.any():
+            state.count("rises_accepted_at_pass_start", int(accepted.sum()))
+            ix, iy = np.nonzero(accepted)
+            _follow_height(state, event.valid_time_ns, drops=False,
+                           seen_before_ns=seen_before_ns,
+                           region=_around(ix, iy, state.config.fill_gap_cells + 1,
+                                          state.pile.geometry))
+    # the passes before this one are complete now (a scanner trailing the stacker saw
+    # the last one's end after it ended): hidden flanks rise to the repose cone
+    _complete_unseen(state, event.valid_time_ns)
     index = state.stack.n_deposits + 1
     state.stack = state.stack.open_deposit(
         DepositInfo(index, msg.pass_id, msg.lot_id, event.valid_time_ns))
@@ -308,7 +334,6 @@ def _on_stack_ended(state: ProjectorState, event, msg) -> None:
     if msg.pile_id != state.config.pile_id:
         return
     _process_scans(state, until_ns=event.valid_time_ns)
-    _complete_unseen(state, event.valid_time_ns)
     record = state.passes.get(msg.pass_id)
     if record is not None:
         record.ended_ns = event.valid_time_ns
@@ -442,7 +467,8 @@ def _process_scans(state: ProjectorState, *, until_ns: int | None = None,
             if subset.any():
                 state.height, _stats = heightmap.fuse(
                     state.height, _subset(obs, subset), int(t.max()), state.point_sd_m,
-                    gate_sigma=state.config.gate_sigma, change_count=change_count)
+                    gate_sigma=state.config.gate_sigma, change_count=change_count,
+                    process_sd_m=state.process_sd_m)
         _follow_height(state, int(t.max()), drops=False, seen_before_ns=seen_before_ns,
                        region=_around(obs.ix, obs.iy, state.config.fill_gap_cells + 1,
                                       state.pile.geometry))
@@ -486,9 +512,10 @@ def _follow_height(state: ProjectorState, t_ns: int, *, drops: bool = True,
             elevation = heightmap.fill_holes(elevation, method="linear",
                                              max_gap_cells=state.config.fill_gap_cells)
     if drops and state.config.complete_unseen:
-        # a cell below the repose cone of the seen surface was not seen lately: it is no
-        # lower than the cone (and was raised to it), not a drop
-        elevation = np.fmax(elevation, _cone(state, elevation))
+        # a cell below the repose cone of the seen surface that a pass crossed since it
+        # was seen is no lower than the cone (and was raised to it), not a drop
+        cone = _cone(state, elevation)
+        elevation = np.where(_stale(state, t_ns), np.fmax(elevation, cone), elevation)
     variance = state.height.variance
     top = state.stack.surface()
     with np.errstate(invalid="ignore"):
@@ -498,7 +525,7 @@ def _follow_height(state: ProjectorState, t_ns: int, *, drops: bool = True,
         down = np.isfinite(elevation) & (elevation < top - margin)
     if up.any() and seen_before_ns is not None and state.config.attribute_by_crossing:
         up = _rise_to_crossing_passes(state, np.where(up, elevation, np.nan), seen_before_ns,
-                                      t_ns) & up
+                                      t_ns, observed_ns=state.height.grid["observed_ns"]) & up
     slump = (state.config.slump_in_place and state.active_pass is None and bool(state.cuts)
              and not _settling_last_pass(state))
     if up.any() and slump:
@@ -551,7 +578,8 @@ def _predict_height(height, new_top_m: np.ndarray, old_top_m: np.ndarray, sd_m: 
     elevation[moved] = new_top_m[moved]
     grid["variance"][moved] = sd_m * sd_m
     grid["pending_count"][moved] = 0.0
-    for name in ("pending_z", "pending_var", "pending_x_offset_m", "pending_y_offset_m"):
+    for name in ("pending_z", "pending_var", "pending_x_offset_m", "pending_y_offset_m",
+                 "pending_since_ns"):
         if name in grid:
             grid[name][moved] = np.nan
     return type(height)(grid)
@@ -598,7 +626,8 @@ def _complete_unseen(state: ProjectorState, t_ns: int) -> None:
     margin = state.config.margin_sigma * np.sqrt(
         np.nan_to_num(state.height.variance, nan=state.point_sd_m ** 2)) + state.margin_m
     with np.errstate(invalid="ignore"):
-        lift = (cone > top + margin) & ~(elevation >= cone - margin)
+        # a cell seen since the last pass crossed it is as measured, whatever the cone
+        lift = (cone > top + margin) & ~(elevation >= cone - margin) & _stale(state, t_ns)
     if not lift.any():
         return
     level = np.where(lift, cone, np.nan)
@@ -610,6 +639,26 @@ def _complete_unseen(state: ProjectorState, t_ns: int) -> None:
                                                    _deposition_ns(state, t_ns))
     state.count("cells_completed", int(lift.sum()))
     state.count("completed_mm3", int(round((state.stack.total_volume_m3() - before) * 1e3)))
+
+
+def _stale(state: ProjectorState, t_ns: int) -> np.ndarray:
+    """Cells (nx, ny) never seen, or crossed by a pass's stacker since last seen by ``t_ns``."""
+    geometry = state.pile.geometry
+    seen = state.height.grid["last_update_ns"]
+    stale = ~np.isfinite(seen)
+    passes = list(state.passes.values())
+    if not passes:
+        return stale
+    ended = [(p.ended_ns - p.started_ns) / 1e9 for p in passes if p.ended_ns is not None]
+    typical = float(np.median(ended)) if ended else None
+    y = geometry.origin_y_m + (np.arange(geometry.ny) + 0.5) * geometry.cell_m
+    last_crossing = np.full(geometry.ny, -np.inf)
+    for record in passes:
+        crossing = _crossing_ns(record, y, t_ns, typical)
+        crossing = np.where(crossing <= t_ns, crossing, -np.inf)
+        last_crossing = np.maximum(last_crossing, crossing)
+    with np.errstate(invalid="ignore"):
+        return stale | (seen < last_crossing[None, :])
 
 
 def _slump_face(state: ProjectorState, floor_m: np.ndarray) -> float:
@@ -652,10 +701,15 @@ def _crossing_ns(record: PassRecord, y_m: np.ndarray, now_ns: int,
 
 
 def _rise_to_crossing_passes(state: ProjectorState, surface: np.ndarray,
-                             seen_before_ns: np.ndarray, t_ns: int) -> np.ndarray:
+                             seen_before_ns: np.ndarray, t_ns: int,
+                             observed_ns: np.ndarray | None = None) -> np.ndarray:
     """Give each risen cell's material to the passes whose stacker crossed it since it
     was last seen, in equal shares, deposited when the stacker crossed; returns the
     cells still risen (no such pass, or a later deposit already holds material there).
+
+    The crossings counted end at ``t_ns``, or earlier where ``observed_ns`` (the height
+    map's layer) says the new level was first seen earlier: a rise sighted before a pass
+    started and confirmed after is not that pass's material.
     """
     risen = np.isfinite(surface)
     passes = sorted(state.passes.values(), key=lambda p: p.deposit_index)
@@ -671,10 +725,13 @@ def _rise_to_crossing_passes(state: ProjectorState, surface: np.ndarray,
     y = geometry.origin_y_m + (iy + 0.5) * geometry.cell_m
     seen = seen_before_ns.ravel()[cells]
     prev = np.where(np.isfinite(seen), seen, -np.inf)
+    upto = np.full(cells.size, float(t_ns))
+    if observed_ns is not None:
+        upto = np.fmin(upto, observed_ns.ravel()[cells])
     cands = []
     for record in passes:
         crossing = _crossing_ns(record, y, t_ns, typical)
-        cands.append((record, crossing, (crossing > prev) & (crossing <= t_ns)))
+        cands.append((record, crossing, (crossing > prev) & (crossing <= upto)))
     count = sum(c[2].astype(int) for c in cands)
     top = state.stack.surface().ravel()[cells]
     rise = surface.ravel()[cells] - top

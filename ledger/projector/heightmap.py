@@ -176,6 +176,8 @@ _LAYERS = {
     "y_offset_m": math.nan,       #    relative to the centre (weighted like the heights)
     "pending_x_offset_m": math.nan,
     "pending_y_offset_m": math.nan,
+    "pending_since_ns": math.nan,  # UTC ns of the first observation of the change evidence
+    "observed_ns": math.nan,      # UTC ns when the elevation's level was first observed
 }
 
 
@@ -195,6 +197,11 @@ class HeightMap:
         points behind ``elevation`` (weighted as the heights were); ``elevation`` is the
         height *there*.  :meth:`centred_elevation` moves it to the centre.
     pending_x_offset_m, pending_y_offset_m : the same for the change evidence
+    pending_since_ns : UTC ns of the first observation of the change evidence (NaN = none)
+    observed_ns : UTC ns when the cell was first seen at its current level: the time of
+        its last initialisation or in-gate update, or for an accepted change the first
+        observation of the change evidence (a change seen once and confirmed later was
+        there from the first sighting).
 
     Use :meth:`empty` to create one and :func:`fuse` to update it (it returns a new map).
     """
@@ -362,6 +369,7 @@ def fuse(heightmap: HeightMap, obs: CellObservations, t_ns: int, point_sd_m: flo
     last = layers["last_update_ns"]
     xo, yo = layers["x_offset_m"], layers["y_offset_m"]
     pxo, pyo = layers["pending_x_offset_m"], layers["pending_y_offset_m"]
+    since, seen_at = layers["pending_since_ns"], layers["observed_ns"]
     t = float(t_ns)
     g2 = float(gate_sigma) ** 2
     r = (point_sd_m ** 2 + zvar) / cnt
@@ -382,7 +390,8 @@ def fuse(heightmap: HeightMap, obs: CellObservations, t_ns: int, point_sd_m: flo
     var[c] = r[new]
     xo[c], yo[c] = ox[new], oy[new]
     last[c] = t
-    pz[c], pv[c], pc[c], pxo[c], pyo[c] = np.nan, np.nan, 0.0, np.nan, np.nan
+    seen_at[c] = t
+    pz[c], pv[c], pc[c], pxo[c], pyo[c], since[c] = np.nan, np.nan, 0.0, np.nan, np.nan, np.nan
 
     # in gate: Kalman step, evidence cleared
     c = lin[ingate]
@@ -393,7 +402,8 @@ def fuse(heightmap: HeightMap, obs: CellObservations, t_ns: int, point_sd_m: flo
     xo[c] += k * (ox[ingate] - xo[c])
     yo[c] += k * (oy[ingate] - yo[c])
     last[c] = t
-    pz[c], pv[c], pc[c], pxo[c], pyo[c] = np.nan, np.nan, 0.0, np.nan, np.nan
+    seen_at[c] = t
+    pz[c], pv[c], pc[c], pxo[c], pyo[c], since[c] = np.nan, np.nan, 0.0, np.nan, np.nan, np.nan
 
     # out of gate: change evidence
     c = lin[gated]
@@ -411,23 +421,60 @@ def fuse(heightmap: HeightMap, obs: CellObservations, t_ns: int, point_sd_m: flo
     ex_new = np.where(agree, pxo[c] + w * (ox[gated] - pxo[c]), ox[gated])
     ey_new = np.where(agree, pyo[c] + w * (oy[gated] - pyo[c]), oy[gated])
     ec_new = np.where(agree, ec + 1.0, 1.0)
+    since_new = np.where(agree & np.isfinite(since[c]), since[c], t)
     change = ec_new >= change_count
     keep = ~change
     ck = c[keep]
     pz[ck], pv[ck], pc[ck] = ez_new[keep], ev_new[keep], ec_new[keep]
     pxo[ck], pyo[ck] = ex_new[keep], ey_new[keep]
+    since[ck] = since_new[keep]
     cc = c[change]
     up = ez_new[change] > h[gated][change]
     elev[cc] = ez_new[change]
     var[cc] = ev_new[change]
     xo[cc], yo[cc] = ex_new[change], ey_new[change]
     last[cc] = t
+    seen_at[cc] = since_new[change]
     pz[cc], pv[cc], pc[cc], pxo[cc], pyo[cc] = np.nan, np.nan, 0.0, np.nan, np.nan
+    since[cc] = np.nan
 
     stats = FuseStats(cells_initialised=int(new.sum()), cells_updated=int(ingate.sum()),
                       cells_gated=int(keep.sum()), cells_changed_up=int(up.sum()),
                       cells_changed_down=int((~up).sum()))
     return out, stats
+
+
+def accept_rises(heightmap: HeightMap) -> tuple[HeightMap, np.ndarray]:
+    """Accept the held change evidence that lies above the elevation.
+
+    Used at a boundary after which the evidence could no longer be told apart from
+    what comes next (a new stacking pass starts pouring): a rise sighted before the
+    boundary but not yet confirmed by enough observations becomes the elevation, as
+    first observed when it was first sighted (``observed_ns`` and ``last_update_ns`` =
+    ``pending_since_ns``).  Held evidence below the elevation is kept waiting.
+
+    Returns
+    -------
+    (HeightMap, ndarray of bool (nx, ny))
+        The new map and the cells whose evidence was accepted.
+    """
+    out = heightmap.copy()
+    g = out.grid
+    with np.errstate(invalid="ignore"):
+        rise = (g["pending_count"] > 0) & (g["pending_z"] > g["elevation"])
+    if not rise.any():
+        return out, rise
+    g["elevation"][rise] = g["pending_z"][rise]
+    g["variance"][rise] = g["pending_var"][rise]
+    g["x_offset_m"][rise] = g["pending_x_offset_m"][rise]
+    g["y_offset_m"][rise] = g["pending_y_offset_m"][rise]
+    g["last_update_ns"][rise] = g["pending_since_ns"][rise]
+    g["observed_ns"][rise] = g["pending_since_ns"][rise]
+    for name, fill in (("pending_z", math.nan), ("pending_var", math.nan),
+                       ("pending_count", 0.0), ("pending_x_offset_m", math.nan),
+                       ("pending_y_offset_m", math.nan), ("pending_since_ns", math.nan)):
+        g[name][rise] = fill
+    return out, rise
 
 
 # --------------------------------------------------------------------------------------

@@ -6,10 +6,12 @@ The edge of the projector: it reads the ledger (``as_of``), runs the pure fold
 
 Snapshots hold the geometric state after folding every geometry event up to a
 position ``(valid ns, global seq)`` as known when the ledger's head was ``head_seq``.
-One is usable for a query (V, K) when its position is at or before V and no geometry
-event at or before its position was recorded after it (a late scan or cut makes the
-snapshot unusable for any K past that event's arrival, never silently wrong): the
-check reads only the events appended after the snapshot.
+One is usable for a query (V, K) when its position is at or before V, every event
+folded into it was recorded by K (so a snapshot taken with everything known also
+serves an earlier K), and no geometry event at or before its position was recorded
+after it by K (a late scan or cut makes the snapshot unusable for any K past that
+event's arrival, never silently wrong): the check reads only the events appended
+after the snapshot.
 """
 
 from __future__ import annotations
@@ -278,9 +280,12 @@ class SnapshotStore:
     """Geometric fold states kept in their own DuckDB file, keyed by what they include.
 
     A snapshot row: pile id, the fold config, the position ``(valid ns, global seq)``
-    folded to, the ledger head (global seq) and its recorded time when it was taken, and
-    the pickled state.  It is a cache: deleting the file loses nothing.
+    folded to, the ledger head (global seq) and its recorded time when it was taken, the
+    latest recorded time of the events folded in, and the pickled state.  It is a
+    cache: deleting the file loses nothing (a file of an older layout is ignored).
     """
+
+    TABLE = "snapshots_v2"
 
     def __init__(self, path: str | Path) -> None:
         import duckdb
@@ -288,9 +293,9 @@ class SnapshotStore:
         self.path = str(path)
         self._con = duckdb.connect(self.path)
         self._con.execute(
-            "CREATE TABLE IF NOT EXISTS snapshots (pile_id VARCHAR, config VARCHAR, "
+            f"CREATE TABLE IF NOT EXISTS {self.TABLE} (pile_id VARCHAR, config VARCHAR, "
             "valid_ns BIGINT, global_seq BIGINT, head_seq BIGINT, known_ns BIGINT, "
-            "state BLOB)")
+            "folded_recorded_ns BIGINT, state BLOB)")
 
     def close(self) -> None:
         self._con.close()
@@ -301,22 +306,28 @@ class SnapshotStore:
     def __exit__(self, *exc) -> None:
         self.close()
 
-    def save(self, state: F.ProjectorState, head_seq: int, known_ns: int) -> None:
-        """Keep ``state`` (folded from ``as_of(..., K=known_ns)`` with the head at ``head_seq``)."""
+    def save(self, state: F.ProjectorState, head_seq: int, known_ns: int,
+             folded_recorded_ns: int | None = None) -> None:
+        """Keep ``state`` (folded from ``as_of(..., K=known_ns)`` with the head at ``head_seq``).
+
+        ``folded_recorded_ns``: the latest recorded time of the events folded into it
+        (default ``known_ns``: then it serves no query known before ``known_ns``).
+        """
         valid_ns, gseq = state.high_water
+        folded = known_ns if folded_recorded_ns is None else min(folded_recorded_ns, known_ns)
         blob = pickle.dumps(state.copy(), protocol=pickle.HIGHEST_PROTOCOL)
-        self._con.execute("INSERT INTO snapshots VALUES (?, ?, ?, ?, ?, ?, ?)",
+        self._con.execute(f"INSERT INTO {self.TABLE} VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
                           [state.config.pile_id, repr(state.config), valid_ns, gseq, head_seq,
-                           known_ns, blob])
+                           known_ns, folded, blob])
 
     def count(self) -> int:
-        return self._con.execute("SELECT count(*) FROM snapshots").fetchone()[0]
+        return self._con.execute(f"SELECT count(*) FROM {self.TABLE}").fetchone()[0]
 
     def find(self, store, config: F.FoldConfig, valid_ns: int, known_ns: int):
         """``(state, position)`` of the latest usable snapshot for (V, K), or None."""
         rows = self._con.execute(
-            "SELECT valid_ns, global_seq, head_seq, known_ns, state FROM snapshots "
-            "WHERE pile_id = ? AND config = ? AND valid_ns <= ? AND known_ns <= ? "
+            f"SELECT valid_ns, global_seq, head_seq, known_ns, state FROM {self.TABLE} "
+            "WHERE pile_id = ? AND config = ? AND valid_ns <= ? AND folded_recorded_ns <= ? "
             "ORDER BY valid_ns DESC, global_seq DESC",
             [config.pile_id, repr(config), valid_ns, known_ns]).fetchall()
         for v_s, g_s, head_s, _k_s, blob in rows:
@@ -352,12 +363,14 @@ def build_snapshots(store, snapshots: SnapshotStore, pile_id: str, *, every_ns: 
     state = F.initial_state(config)
     next_mark = None
     saved = 0
+    folded_recorded = -(2 ** 62)
     for event in store.as_of(FAR_FUTURE_NS, known, types=list(F.GEOMETRY_TYPES)):
         if next_mark is None:
             next_mark = event.valid_time_ns + every_ns
         if event.valid_time_ns >= next_mark:
-            snapshots.save(state, head_seq, known)
+            snapshots.save(state, head_seq, known, folded_recorded)
             saved += 1
             next_mark = event.valid_time_ns + every_ns
         F.apply(state, event)
+        folded_recorded = max(folded_recorded, event.recorded_time_ns)
     return saved

@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 from services.sim.scenario import SCENARIOS, scenario_by_name
@@ -25,6 +27,10 @@ def run_sim(args: argparse.Namespace) -> int:
     from services.sim.runner import Simulation
 
     scenario = scenario_by_name(args.scenario)
+    if args.assay_window is not None:
+        if not (args.assay_window > 0 and math.isfinite(args.assay_window)):
+            raise ValueError(f"--assay-window must be > 0 seconds, got {args.assay_window}")
+        scenario = replace(scenario, assay_window_s=args.assay_window)
     out = Path(args.out or f"sim-out/{args.scenario}-seed{args.seed}")
     sinks: list = []
     ptys: dict[str, object] = {}
@@ -117,6 +123,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                               "with their errors. Writes events, raw device streams and truth.")
     p.add_argument("--scenario", choices=sorted(SCENARIOS), default="demo", help="default demo")
     p.add_argument("--seed", type=int, default=1, help="random seed (default 1)")
+    p.add_argument("--assay-window", type=float, metavar="SECONDS",
+                   help="the lab's sampling window (default: the scenario's; demo 60 s)")
     p.add_argument("--duration", type=float, metavar="SITE_HOURS",
                    help="stop after this many hours of site time (default: until the last assay)")
     p.add_argument("--idle-speed", type=float, default=0.0, metavar="X",

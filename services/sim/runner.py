@@ -83,6 +83,7 @@ SCANNER_IN_WHEEL = np.array([[0.0, 1.0, 0.0],
 CHUNK_S = 30.0           # stacking is released in chunks of this much site time
 CUT_SUBSWEEPS = 8        # a cut removes material in this many steps of its slew
 MOVE_SPEED_M_S = 0.5     # travel speed between cuts and while patrolling
+PATROL_LAG_S = 2 * CHUNK_S  # the scanner trails the stacker by this much while it stacks
 SLEW_STEP_RAD = math.radians(0.5)
 #: values of ``Simulation.scan_events`` / ``--scan-events`` (see the module docstring)
 SCAN_EVENTS = ("off", "truth", "encoders")
@@ -327,7 +328,9 @@ class Simulation:
         at(t0, "encoder", None)
         at(t0, "gnss", None)
         at(t0, "scan", None)
-        self.stacking_until = plan[-1]["t1"]
+        # the scanner runs on over the last pass's far end after the stacker stops
+        self.stacking_until = plan[-1]["t1"] + int((PATROL_LAG_S + sc.pile_length_m / MOVE_SPEED_M_S)
+                                                   * NS_PER_S)
         self.reclaiming = False
         self.belts = belts
 
@@ -461,12 +464,29 @@ class Simulation:
                               machine_id=sc.stacker_id, pattern=getattr(pb, sc.pattern),
                               start_y_m=p["y0"], end_y_m=p["y1"])
         self.producers["stacker"].emit(_stamp(msg, "time", t))
-        # the reclaimer patrols along the pile with the scanner while the stacker works
-        y_a, y_b = sorted((sc.pile_origin_y_m, sc.pile_origin_y_m + sc.pile_length_m))
-        current = self.motion.at(t)
-        target_y = y_b if (self.stats.passes % 2 == 0) else y_a
-        end = self._patrol_pose(target_y)
-        self.motion = Motion(t, p["t1"], current, end)
+        # The reclaimer patrols along the pile with the scanner, trailing the stacker by
+        # up to PATROL_LAG_S so that it sees every stretch after the pass laid its layer there
+        # (a scanner that met the stacker half way would see half the pile before each
+        # pass and could not tell two passes' layers apart there): it waits at the end
+        # the pass starts from, follows the stacker to the pass's last position, then
+        # runs on over the far end's slope.
+        forward = p["y1"] >= p["y0"]
+        y_lo, y_hi = sc.pile_origin_y_m, sc.pile_origin_y_m + sc.pile_length_m
+        start_end, far_end = (y_lo, y_hi) if forward else (y_hi, y_lo)
+        # the run over the far end's slope ends before the next pass starts pouring
+        run_on_s = abs(far_end - p["y1"]) / MOVE_SPEED_M_S
+        lag_s = max(min(PATROL_LAG_S, sc.pass_gap_s - run_on_s - 10.0), CHUNK_S + 5.0)
+        lag, run_on = int(lag_s * NS_PER_S), int(run_on_s * NS_PER_S)
+        self.motion = Motion(t, t + lag, self.motion.at(t), self._patrol_pose(start_end))
+        at(t + lag, "patrol", (p["t1"] + lag, p["y1"]))
+        at(p["t1"] + lag, "patrol", (p["t1"] + lag + run_on, far_end))
+
+    def _on_patrol(self, t: int, payload, at) -> None:
+        """Move the scanner along the pile to ``target_y`` by ``t_end`` (payload)."""
+        if self.reclaiming:
+            return
+        t_end, target_y = payload
+        self.motion = Motion(t, t_end, self.motion.at(t), self._patrol_pose(target_y))
 
     def _on_chunk(self, t: int, payload, at) -> None:
         p, k, n = payload
@@ -591,6 +611,10 @@ class Simulation:
         for p in c["parts"]:
             for lot, tn in p.tonnes_by_lot.items():
                 by_lot[str(lot)] = by_lot.get(str(lot), 0.0) + tn
+        by_deposit: dict[str, float] = {}
+        for p in c["parts"]:
+            for dep, tn in p.tonnes_by_deposit.items():
+                by_deposit[str(dep)] = by_deposit.get(str(dep), 0.0) + tn
         belt = tonnes * (1.0 + self.rng_belt.normal(0.0, sc.belt_scale_error_frac)) if tonnes > 0 else 0.0
         cut_id = f"B{c['bench'] + 1}-C{c['cut'] + 1:02d}"
         msg = pb.ReclaimCut(pile_id=sc.pile_id, cut_id=cut_id, bench_id=f"B{c['bench'] + 1}",
@@ -603,7 +627,8 @@ class Simulation:
         self.cuts.append({"cut_id": cut_id, "t0_ns": c["t0"], "t1_ns": c["t1"], "travel_m": c["travel"],
                           "luff_rad": c["luff"], "slew_start_rad": c["slew_start"],
                           "slew_end_rad": c["slew_end"], "true_tonnes": tonnes, "belt_tonnes": belt,
-                          "grade": grade, "tonnes_by_lot": by_lot})
+                          "grade": grade, "tonnes_by_lot": by_lot,
+                          "tonnes_by_deposit": by_deposit})
         self.stats.cuts += 1
         at(t + int(30 * NS_PER_S), "reclaim", (c["bench"], c["cut"] + 1, c["travel"]))
 
