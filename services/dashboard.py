@@ -31,6 +31,9 @@ Entities (numbers carry their units in the path):
                                    declared mount) ``frame_transform`` and the kinematics
 ``/site/scan``                     Points3D, the latest scan georeferenced
 ``/site/cuts``                     LineStrips3D, each reclaim cut's footprint at its floor
+``/site/plan``                     LineStrips3D, offline with ``--plan-machine``: the next
+                                   bench's planned cuts, footprints at their floor coloured by
+                                   predicted grade (``/plan/table``: the same as a table)
 ``/series/pile/tonnes_t/{known_then,known_now}``, ``/series/pile/grade_pct/<A>/...``,
 ``/series/pile/assayed_fraction/...``, ``/series/pile/volume_m3``: Scalars
 ``/series/cuts/tonnes_t/{geometry,belt_scale}``, ``/series/cuts/grade_pct/<A>/{at_end,
@@ -123,6 +126,12 @@ class Config:
     geometry_period_s : float
         Live: shortest wall time between two redraws of the surface and voxels (a cut or
         an assay redraws at once).
+    plan_machine : str or None
+        Offline: also plan the next bench of this bucket-wheel reclaimer at the end
+        (``stockpile plan reclaim``) and show its cuts as footprints coloured by predicted
+        grade (``/site/plan``, ``/plan/table``).
+    plan_cuts : int
+        Cuts in that bench.
     """
 
     pile_id: str | None = None
@@ -143,6 +152,8 @@ class Config:
     max_voxels: int = 60_000
     geometry_period_s: float = 5.0
     status_period_s: float = 5.0
+    plan_machine: str | None = None
+    plan_cuts: int = 10
 
     def __post_init__(self) -> None:
         if self.every_s <= 0:
@@ -154,6 +165,8 @@ class Config:
             raise ValueError("--layer-step-m must be positive")
         if self.delta_threshold_pp < 0:
             raise ValueError("--delta-threshold-pp must be >= 0")
+        if self.plan_cuts < 1:
+            raise ValueError("--plan-cuts must be >= 1")
         for name in ("grpc_port", "web_port"):
             if not 0 < int(getattr(self, name)) < 65536:
                 raise ValueError(f"--{name.replace('_', '-')} must be a TCP port")
@@ -884,6 +897,42 @@ class Dashboard:
                 self.rec.log("/site/cuts", rr.LineStrips3D(strips, labels=labels, colors=colours,
                                                            radii=0.15))
 
+    def log_plan(self, plan: dict) -> int:
+        """Show a reclaim plan (:func:`services.plan_cli.make_plan`): each planned cut's
+        footprint at its floor coloured by its predicted grade, and a table; returns the
+        number of cuts shown."""
+        rr = _rr()
+        m = self.machines.get(plan["machine_id"])
+        if m is None or m.reclaimer is None or not plan["cuts"]:
+            return 0
+        analyte = self.config.analyte
+        strips, labels, grades = [], [], []
+        for c in plan["cuts"]:
+            strips.append(cut_outline(m.reclaimer, c["travel_m"], c["luff_rad"],
+                                      c["slew_start_rad"], c["slew_end_rad"]))
+            g = c["grade"].get(analyte, math.nan)
+            grades.append(g)
+            labels.append(f"plan {c['cut']}: {c['tonnes']:,.4g} t, {analyte} {g:.2f} %")
+        # the pile's colour scale, widened to the planned grades (none saturates)
+        lo, hi = self._range(analyte)
+        finite = [g for g in grades if math.isfinite(g)]
+        if finite:
+            lo, hi = min(lo, *finite), max(hi, *finite)
+        self._at(self.next_valid_ns())
+        self.rec.log("/site/plan", rr.LineStrips3D(strips, labels=labels,
+                                                   colors=colour_map(grades, lo, hi), radii=0.2))
+        rows = "\n".join(
+            f"| {c['cut']} | {c['travel_m']:.2f} | {math.degrees(c['slew_start_rad']):.1f} -> "
+            f"{math.degrees(c['slew_end_rad']):.1f} | {c['tonnes']:,.4g} | "
+            f"{c['grade'].get(analyte, math.nan):.2f} | {c['assayed_fraction']:.2f} |"
+            for c in plan["cuts"])
+        self.rec.log("/plan/table", rr.TextDocument(
+            f"### Next bench of pile {self.pile_id} by {plan['machine_id']} (planned)\n\n"
+            f"Footprints coloured by predicted {analyte}: {lo:.3f} % blue to {hi:.3f} % red.\n\n"
+            f"| cut | travel m | slew deg | tonnes | {analyte} % | assayed |\n"
+            f"|---|---|---|---|---|---|\n{rows}", media_type=rr.MediaType.MARKDOWN))
+        return len(strips)
+
     def _range(self, analyte: str) -> tuple[float, float]:
         lo, hi = self.grade_range.get(analyte, (math.nan, math.nan))
         if not (math.isfinite(lo) and math.isfinite(hi)):
@@ -1316,6 +1365,7 @@ class RenderResult:
     tonnes_t: float
     rrd: str | None
     url: str | None = None
+    planned_cuts: int = 0
 
 
 def single_pile(store) -> str:
@@ -1369,7 +1419,7 @@ def render_ledger(path: str, pile_id: str | None, config: Config, *,
             if url:
                 print(f"dashboard: web viewer at {url} (gRPC {uri})", file=sys.stderr,
                       flush=True)
-            result = _render(store, head, pile_id, rec, config, progress, url)
+            result = _render(store, head, pile_id, rec, config, progress, url, str(path))
             if keep_serving is not None and config.serve:
                 print(f"dashboard: serving {url} until interrupted", file=sys.stderr, flush=True)
                 keep_serving.wait()
@@ -1380,7 +1430,8 @@ def render_ledger(path: str, pile_id: str | None, config: Config, *,
     return result
 
 
-def _render(store, head, pile_id: str, rec, config: Config, progress, url) -> RenderResult:
+def _render(store, head, pile_id: str, rec, config: Config, progress, url,
+            ledger_path: str = "") -> RenderResult:
     """Feed every record of ``store`` to a :class:`Dashboard` (the body of render_ledger)."""
     dash = Dashboard(rec, pile_id, config, offline=True)
     source = _StoreSource(store, head.global_seq)
@@ -1409,13 +1460,20 @@ def _render(store, head, pile_id: str, rec, config: Config, progress, url) -> Re
     dash.update()   # everything read (a no-op when the last update already had it all)
     _log_gaps_and_quarantine(dash, gaps, quarantine, seen, dash.known_ns)
     dash.flush_known_now()
+    planned = 0
+    if config.plan_machine:
+        from services.plan_cli import make_plan, plan_args
+
+        plan = make_plan(plan_args(ledger_path, pile_id, config.plan_machine,
+                                   cuts=config.plan_cuts), store)
+        planned = dash.log_plan(plan)
     if progress is not None:
         progress(total, total)
     state = dash._last_state
     return RenderResult(pile_id, records, dash.updates, len(dash.points), dash.rebuilds,
                         head.global_seq, dash.known_ns,
                         float(state.tonnes) if state is not None else math.nan,
-                        config.rrd, url)
+                        config.rrd, url, planned)
 
 
 def _analytes(store) -> tuple[str, ...]:
@@ -1435,7 +1493,8 @@ def cmd_dashboard(args: argparse.Namespace) -> int:
     config = Config(pile_id=args.pile, serve=args.serve, rrd=args.rrd, grpc_port=args.grpc_port,
                     web_port=args.web_port, every_s=_duration_s(args.every),
                     analyte=args.analyte, layers=args.layers, layer_step_m=args.layer_step_m,
-                    delta_threshold_pp=args.delta_threshold_pp, reorder_s=args.reorder_s)
+                    delta_threshold_pp=args.delta_threshold_pp, reorder_s=args.reorder_s,
+                    plan_machine=args.plan_machine, plan_cuts=args.plan_cuts)
     t0 = time.monotonic()
     tty = sys.stderr.isatty()
     last = [0.0]
@@ -1459,6 +1518,7 @@ def cmd_dashboard(args: argparse.Namespace) -> int:
     print(f"dashboard: pile {result.pile_id}: {result.records:,} records, {result.updates} "
           f"updates, {result.history_points} history points, {result.rebuilds} rebuilds, "
           f"{result.tonnes_t:,.1f} t at the end"
+          + (f", {result.planned_cuts} planned cuts" if args.plan_machine else "")
           + (f" -> {result.rrd}" if result.rrd else "")
           + f" ({time.monotonic() - t0:.1f} s)")
     return 0
@@ -1483,6 +1543,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="valid time between history points (default %(default)s)")
     p.add_argument("--progress", action="store_true",
                    help="progress lines on stderr even when it is not a terminal")
+    p.add_argument("--plan-machine", metavar="ID",
+                   help="also plan the next bench of this reclaimer and show its cuts as "
+                   "footprints coloured by predicted grade")
+    p.add_argument("--plan-cuts", type=int, default=10, metavar="N",
+                   help="cuts in the planned bench (default %(default)s)")
     p.set_defaults(func=cmd_dashboard)
 
 

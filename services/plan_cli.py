@@ -76,8 +76,15 @@ def grades_input(store, v: int, k: int):
     return lots, assays
 
 
-def make_plan(args: argparse.Namespace) -> dict:
-    """Read the ledger, plan, predict; the result as one JSON-ready dict."""
+def plan_args(ledger: str, pile: str, machine: str, *, cuts: int = 10) -> argparse.Namespace:
+    """The arguments of ``stockpile plan reclaim`` with its defaults (for callers in code)."""
+    return argparse.Namespace(ledger=ledger, pile=pile, machine=machine, cuts=cuts,
+                              bench_height=None, spacing=None, clearance=None, bound=None,
+                              valid_time=None, known_time=None, all=False)
+
+
+def make_plan(args: argparse.Namespace, store=None) -> dict:
+    """Read the ledger (or the open ``store``), plan, predict; one JSON-ready dict."""
     from ledger import open_ledger
     from ledger.planner.bench import PlanParams
     from ledger.planner.grades import check_bounds, predict_cuts
@@ -100,10 +107,12 @@ def make_plan(args: argparse.Namespace) -> dict:
     known = parse_time_ns(args.known_time) if args.known_time else None
     v = FAR_FUTURE_NS if valid is None else valid
     k = FAR_FUTURE_NS if known is None else known
-    with open_ledger(args.ledger, read_only=True) as store:
-        pile_msg, machine_msg = _declarations(store, v, k, args.pile, args.machine)
-        state = project(store, args.pile, valid, known)
-        lots, assays = grades_input(store, v, k)
+    if store is None:
+        with open_ledger(args.ledger, read_only=True) as opened:
+            return make_plan(args, opened)
+    pile_msg, machine_msg = _declarations(store, v, k, args.pile, args.machine)
+    state = project(store, args.pile, valid, known)
+    lots, assays = grades_input(store, v, k)
     if state.geometry is None or state.state.stack is None:
         raise ValueError(f"pile {args.pile!r} has no projection as of that time")
     machine = PlannerMachine.from_message(machine_msg)

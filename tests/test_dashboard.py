@@ -167,6 +167,38 @@ def test_logged_tonnes_match_the_projector(offline, ledger):
     assert geometry[2] > 0
 
 
+def test_offline_render_shows_the_planned_bench_coloured_by_predicted_grade(ledger, tmp_path):
+    from services.plan_cli import make_plan, plan_args
+
+    out = tmp_path / "plan.rrd"
+    config = Config(rrd=str(out), every_s=3600.0, plan_machine="bwr1", plan_cuts=3)
+    result = render_ledger(str(ledger), None, config)
+    plan = make_plan(plan_args(str(ledger), PILE, "bwr1", cuts=3))
+    assert plan["landing"] is not None and len(plan["cuts"]) == 3
+    assert result.planned_cuts == 3
+    rrd = Rrd(out)
+    assert "LineStrips3D" in rrd.archetypes["/site/plan"]
+    assert "TextDocument" in rrd.archetypes["/plan/table"]
+    (labels,) = [x for _v, _s, x in rrd.rows("/site/plan", "LineStrips3D:labels")]
+    (colours,) = [x for _v, _s, x in rrd.rows("/site/plan", "LineStrips3D:colors")]
+    expected = [f"plan {c['cut']}: {c['tonnes']:,.4g} t, Fe {c['grade']['Fe']:.2f} %"
+                for c in plan["cuts"]]
+    assert labels == expected
+    # each footprint's colour is its predicted Fe on the scale the table states
+    import re
+
+    from services.dashboard import colour_map
+
+    (table,) = [x for _v, _s, x in rrd.rows("/plan/table", "TextDocument:text")]
+    lo, hi = map(float, re.search(r"predicted Fe: ([-0-9.]+) % blue to ([-0-9.]+) % red",
+                                  table[0]).groups())
+    fe = [c["grade"]["Fe"] for c in plan["cuts"]]
+    assert lo <= min(fe) and max(fe) <= hi
+    rgb = colour_map(fe, lo, hi)
+    assert [int(c) >> 8 for c in colours] == [(r << 16) | (g << 8) | b for r, g, b in
+                                              rgb.astype(int).tolist()]
+
+
 def test_log_and_latest_state_only(offline):
     result, rrd = offline
     texts = [t for _v, _s, batch in rrd.rows("/log", "TextLog:text") for t in batch]

@@ -117,6 +117,10 @@ class FoldConfig:
     accept_rises_at_pass_start : bool
         When a pass starts, rises sighted but not yet confirmed (``change_count``) are
         accepted and given to the passes before it (:func:`heightmap.accept_rises`).
+    catch_up_cells : int
+        When a pass starts (and at the first cut or a query's end after the last pass),
+        the stack catches up with rises smaller than a cell's margin
+        where the mean rise over this many x this many cells is significant; < 2: never.
     """
 
     pile_id: str
@@ -139,6 +143,7 @@ class FoldConfig:
     complete_unseen: bool = True
     relax_slack: float = 0.0
     accept_rises_at_pass_start: bool = True
+    catch_up_cells: int = 5
 
 
 @dataclass(frozen=True)
@@ -262,6 +267,8 @@ def flush(state: ProjectorState) -> ProjectorState:
     """Fuse every waiting scan that has a pose and settle drops (at a query's end)."""
     _process_scans(state, final=True)
     if state.stack is not None:
+        if _settling_last_pass(state):
+            _catch_up_rises(state, state.high_water[0])
         _complete_unseen(state, state.high_water[0])
         _follow_height(state, state.high_water[0])
     return state
@@ -318,7 +325,9 @@ def _on_stack_started(state: ProjectorState, event, msg) -> None:
                            region=_around(ix, iy, state.config.fill_gap_cells + 1,
                                           state.pile.geometry))
     # the passes before this one are complete now (a scanner trailing the stacker saw
-    # the last one's end after it ended): hidden flanks rise to the repose cone
+    # the last one's end after it ended): the stack catches up with rises the margin held
+    # back, and hidden flanks rise to the repose cone
+    _catch_up_rises(state, event.valid_time_ns)
     _complete_unseen(state, event.valid_time_ns)
     index = state.stack.n_deposits + 1
     state.stack = state.stack.open_deposit(
@@ -374,6 +383,8 @@ def _on_reclaim_cut(state: ProjectorState, event, msg) -> None:
     # every scan taken up to the cut's end watched the bank before or during the cut:
     # fuse them before the cut is applied, never after
     _process_scans(state, until_ns=timestamp_ns(msg.end_time))
+    if _settling_last_pass(state):   # the first cut after a pass: that pass is complete
+        _catch_up_rises(state, timestamp_ns(msg.start_time))
     _complete_unseen(state, timestamp_ns(msg.start_time))
     machine = state.machines.get(msg.machine_id)
     record = CutRecord(msg.cut_id, msg.bench_id, msg.machine_id, timestamp_ns(msg.start_time),
@@ -641,6 +652,54 @@ def _complete_unseen(state: ProjectorState, t_ns: int) -> None:
     state.count("completed_mm3", int(round((state.stack.total_volume_m3() - before) * 1e3)))
 
 
+def _catch_up_rises(state: ProjectorState, t_ns: int) -> None:
+    """Raise the stack to the height map where it is below it by less than the margin but
+    the cells around agree that it rose.
+
+    Each cell follows a rise only beyond its own noise margin, so a layer thinner than
+    the margin is taken up only partly.  Pooled over ``catch_up_cells`` x
+    ``catch_up_cells`` seen cells the mean rise is known far better: where it exceeds
+    3 sigma of that mean (plus ``margin_m`` / 4), the cells that are above the stack rise
+    to the height map, their material the top deposit's (the pass before the next).
+    """
+    n = int(state.config.catch_up_cells)
+    if n < 2 or state.stack is None or state.stack.n_deposits == 0:
+        return
+    from scipy import ndimage
+
+    elevation = state.height.elevation
+    seen = np.isfinite(elevation)
+    if not seen.any():
+        return
+    top = state.stack.surface()
+    diff = np.where(seen, elevation - top, 0.0)
+    var = np.where(seen, np.nan_to_num(state.height.variance, nan=0.0), 0.0)
+    count = ndimage.uniform_filter(seen.astype(float), n, mode="constant")
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean = ndimage.uniform_filter(diff, n, mode="constant") / count
+        pooled_var = ndimage.uniform_filter(var, n, mode="constant") / count / (count * n * n)
+        up = seen & (diff > 0) & (count * n * n >= 0.5 * n * n) & (
+            mean > 3.0 * np.sqrt(pooled_var) + 0.25 * state.margin_m)
+    if not up.any():
+        return
+    before = state.stack.total_volume_m3()
+    state.stack, _added = state.stack.raise_to(np.where(up, elevation, np.nan),
+                                               _deposition_ns(state, t_ns))
+    state.count("cells_caught_up", int(up.sum()))
+    state.count("caught_up_mm3", int(round((state.stack.total_volume_m3() - before) * 1e3)))
+
+
+def _seen_nearby_ns(state: ProjectorState, seen_ns: np.ndarray) -> np.ndarray:
+    """``seen_ns`` with each never-seen cell given the latest time a cell within
+    ``fill_gap_cells`` of it was seen (NaN where none was)."""
+    from scipy import ndimage
+
+    size = 2 * max(int(state.config.fill_gap_cells), 1) + 1
+    filled = ndimage.maximum_filter(np.where(np.isfinite(seen_ns), seen_ns, -np.inf),
+                                    size=size, mode="constant", cval=-np.inf)
+    return np.where(np.isfinite(seen_ns), seen_ns, np.where(np.isfinite(filled), filled, np.nan))
+
+
 def _stale(state: ProjectorState, t_ns: int) -> np.ndarray:
     """Cells (nx, ny) never seen, or crossed by a pass's stacker since last seen by ``t_ns``."""
     geometry = state.pile.geometry
@@ -724,6 +783,11 @@ def _rise_to_crossing_passes(state: ProjectorState, surface: np.ndarray,
     iy = cells % geometry.ny
     y = geometry.origin_y_m + (iy + 0.5) * geometry.cell_m
     seen = seen_before_ns.ravel()[cells]
+    if not np.isfinite(seen).all():
+        # a cell never seen itself lies between (or beside) seen ones: it was last seen
+        # when they were, not never (else every pass so far would share its rise)
+        seen = np.where(np.isfinite(seen), seen,
+                        _seen_nearby_ns(state, seen_before_ns).ravel()[cells])
     prev = np.where(np.isfinite(seen), seen, -np.inf)
     upto = np.full(cells.size, float(t_ns))
     if observed_ns is not None:

@@ -208,18 +208,20 @@ def drive_bench(world: World, machine: Machine, cuts, t0_ns: int, *,
         report = collisions(world, machine, travel, luff, a0, a1)
         tonnes, volume, slump = 0.0, 0.0, 0.0
         mass = dict.fromkeys(world.analytes, 0.0)
+        parts = []
         for k in range(CUT_SUBSWEEPS):
             a = a0 + (a1 - a0) * k / CUT_SUBSWEEPS
             b = a0 + (a1 - a0) * (k + 1) / CUT_SUBSWEEPS
             t_k = t + cut_duration_ns * (k + 1) // CUT_SUBSWEEPS
-            part = world.reclaim_cut(machine, travel, luff, a, b, int(t_k),
-                                     relax=k == CUT_SUBSWEEPS - 1)
+            part = world.reclaim_cut(machine, travel, luff, a, b, int(t_k), relax=False)
+            parts.append(part)
             tonnes += part.tonnes
             volume += part.volume_m3
-            slump += part.slump_m3
             if part.tonnes > 0:
                 for name in world.analytes:
                     mass[name] += part.tonnes * part.grade[name]
+        world.settle_cut(parts)   # the walls of the whole cut slump once the wheel has passed
+        slump = sum(p.slump_m3 for p in parts)
         grade = {name: (mass[name] / tonnes if tonnes > 0 else math.nan) for name in world.analytes}
         out.append(DrivenCut(travel, luff, a0, a1, tonnes, volume, grade, slump, report))
         t += cut_duration_ns

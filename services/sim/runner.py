@@ -593,11 +593,12 @@ class Simulation:
         c, k = payload
         a = c["slew_start"] + (c["slew_end"] - c["slew_start"]) * k / CUT_SUBSWEEPS
         b = c["slew_start"] + (c["slew_end"] - c["slew_start"]) * (k + 1) / CUT_SUBSWEEPS
-        # the walls of the cut slump once the wheel has passed (after the last step)
         truth = self.world.reclaim_cut(self.machine, c["travel"], c["luff"], a, b, int(t),
-                                       relax=k == CUT_SUBSWEEPS - 1)
+                                       relax=False)
         c["parts"].append(truth)
         if k == CUT_SUBSWEEPS - 1:
+            # the walls of the whole cut slump once the wheel has passed
+            self.world.settle_cut(c["parts"])
             self._finish_cut(t, c, at)
 
     def _finish_cut(self, t: int, c: dict, at) -> None:

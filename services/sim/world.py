@@ -880,6 +880,20 @@ class World:
             truth.slump_lost_tonnes = res["lost_tonnes"]
         return truth
 
+    def settle_cut(self, parts: list[CutTruth]) -> None:
+        """Let the walls of a cut made in sub-sweeps (``reclaim_cut(..., relax=False)``)
+        slump once the wheel has passed, if any sub-sweep took material; the slump is
+        recorded on the last part."""
+        if not parts or sum(p.volume_m3 for p in parts) <= 0:
+            return
+        footprint = np.logical_or.reduce([p.footprint for p in parts])
+        fr = np.flatnonzero(footprint.any(axis=1))
+        fc = np.flatnonzero(footprint.any(axis=0))
+        res = self.settle(bbox=(int(fr[0]) - 1, int(fr[-1]) + 2, int(fc[0]) - 1,
+                                int(fc[-1]) + 2))
+        parts[-1].slump_m3 = res["moved_m3"]
+        parts[-1].slump_lost_tonnes = res["lost_tonnes"]
+
     # ---------------------------------------------------------------- slope failure
     def unstable_columns(self) -> np.ndarray:
         """Bool (ny, nx): columns steeper than repose (beyond tolerance) toward a neighbour
