@@ -293,8 +293,10 @@ class SnapshotStore:
         import duckdb
 
         self.path = str(path)
-        # the rows are large blobs written once: keep DuckDB's buffer small
-        self._con = duckdb.connect(self.path, config={"memory_limit": "1GB"})
+        # the rows are large blobs written once: bound DuckDB's buffer (a checkpoint needs
+        # room for a few of them) and keep it to one thread
+        self._con = duckdb.connect(self.path, config={
+            "memory_limit": "4GB", "threads": 1, "preserve_insertion_order": False})
         self._con.execute(
             f"CREATE TABLE IF NOT EXISTS {self.TABLE} (pile_id VARCHAR, config VARCHAR, "
             "valid_ns BIGINT, global_seq BIGINT, head_seq BIGINT, known_ns BIGINT, "
@@ -350,9 +352,11 @@ def _unchanged_since(store, valid_ns: int, gseq: int, head_seq: int, known_ns: i
 
 
 def build_snapshots(store, snapshots: SnapshotStore, pile_id: str, *, every_ns: int,
-                    known_ns: int | None = None, config: F.FoldConfig | None = None) -> int:
+                    known_ns: int | None = None, config: F.FoldConfig | None = None,
+                    progress=None) -> int:
     """Fold what the ledger knew at ``known_ns`` (default: now), saving a snapshot every
-    ``every_ns`` of valid time; returns how many were saved."""
+    ``every_ns`` of valid time; returns how many were saved.  ``progress(saved, valid_ns)``
+    is called after each snapshot."""
     config = config or F.FoldConfig(pile_id=pile_id)
     head = store.head()
     if known_ns is None or known_ns >= head.recorded_time_ns:
@@ -373,6 +377,8 @@ def build_snapshots(store, snapshots: SnapshotStore, pile_id: str, *, every_ns: 
         if event.valid_time_ns >= next_mark:
             snapshots.save(state, head_seq, known, folded_recorded)
             saved += 1
+            if progress is not None:
+                progress(saved, event.valid_time_ns)
             next_mark = event.valid_time_ns + every_ns
         F.apply(state, event)
         folded_recorded = max(folded_recorded, event.recorded_time_ns)

@@ -124,7 +124,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--scenario", choices=sorted(SCENARIOS), default="demo", help="default demo")
     p.add_argument("--seed", type=int, default=1, help="random seed (default 1)")
     p.add_argument("--assay-window", type=float, metavar="SECONDS",
-                   help="the lab's sampling window (default: the scenario's; demo 60 s)")
+                   help="the lab's sampling window (default: the scenario's: demo 60 s, bench-scale "
+                   "30 s, full-scale 1200 s)")
     p.add_argument("--duration", type=float, metavar="SITE_HOURS",
                    help="stop after this many hours of site time (default: until the last assay)")
     p.add_argument("--idle-speed", type=float, default=0.0, metavar="X",
