@@ -708,8 +708,7 @@ def _stale(state: ProjectorState, t_ns: int) -> np.ndarray:
     passes = list(state.passes.values())
     if not passes:
         return stale
-    ended = [(p.ended_ns - p.started_ns) / 1e9 for p in passes if p.ended_ns is not None]
-    typical = float(np.median(ended)) if ended else None
+    typical = _typical_pass_s(passes)
     y = geometry.origin_y_m + (np.arange(geometry.ny) + 0.5) * geometry.cell_m
     last_crossing = np.full(geometry.ny, -np.inf)
     for record in passes:
@@ -735,6 +734,12 @@ def _slump_face(state: ProjectorState, floor_m: np.ndarray) -> float:
     state.stack, moved, _raised = slump.slump(state.stack, tan, region)
     state.count("slumps")
     return moved.volume_m3
+
+
+def _typical_pass_s(passes) -> float | None:
+    """The median duration of the passes that ended (s), None when none has."""
+    ended = [(p.ended_ns - p.started_ns) / 1e9 for p in passes if p.ended_ns is not None]
+    return float(np.median(ended)) if ended else None
 
 
 def _crossing_ns(record: PassRecord, y_m: np.ndarray, now_ns: int,
@@ -777,8 +782,7 @@ def _rise_to_crossing_passes(state: ProjectorState, surface: np.ndarray,
     cells = np.flatnonzero(risen)            # work on the risen cells only
     if cells.size == 0:
         return risen
-    ended = [(p.ended_ns - p.started_ns) / 1e9 for p in passes if p.ended_ns is not None]
-    typical = float(np.median(ended)) if ended else None
+    typical = _typical_pass_s(passes)
     geometry = state.pile.geometry
     iy = cells % geometry.ny
     y = geometry.origin_y_m + (iy + 0.5) * geometry.cell_m
