@@ -313,8 +313,10 @@ def section_as_of(args) -> Section:
                     progress=lambda n, v: print(
                         f"  snapshot {n} at site hour {(v - first) / 3.6e12:.2f} "
                         f"({time.perf_counter() - t_build:.0f} s)", file=sys.stderr, flush=True))
+            size = snap_path.stat().st_size + sum(
+                f.stat().st_size for f in Path(str(snap_path) + ".d").glob("*.snap"))
             notes.append(f"snapshots: {saved} (one per {args.snapshot_every_min:g} site min, "
-                         f"{snap_path.stat().st_size / 2**20:,.0f} MiB) built in "
+                         f"{size / 2**20:,.0f} MiB) built in "
                          f"{time.perf_counter() - t0:.1f} s into {snap_path.name}")
         queries = [("the end, everything known", None, None),
                    ("1 h before the end, known then", last - 3600 * NS_PER_S,
