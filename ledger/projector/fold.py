@@ -269,8 +269,8 @@ def flush(state: ProjectorState) -> ProjectorState:
     if state.stack is not None:
         if _settling_last_pass(state):
             _catch_up_rises(state, state.high_water[0])
-        _complete_unseen(state, state.high_water[0])
-        _follow_height(state, state.high_water[0])
+        floor = _complete_unseen(state, state.high_water[0])
+        _follow_height(state, state.high_water[0], unseen_floor_m=floor)
     return state
 
 
@@ -499,13 +499,15 @@ def _around(ix: np.ndarray, iy: np.ndarray, pad: int, geometry: GridGeometry):
 
 
 def _follow_height(state: ProjectorState, t_ns: int, *, drops: bool = True,
-                   seen_before_ns: np.ndarray | None = None, region=None) -> None:
+                   seen_before_ns: np.ndarray | None = None, region=None,
+                   unseen_floor_m: np.ndarray | None = None) -> None:
     """Move the layer stack's top to the height map where they differ beyond the margin.
 
     Rises follow at once.  Drops follow only when ``drops`` (at a cut, or at the end of
     a query): a cut is known only when its event arrives at its end time, after the
     scans that watched it dig, so a drop seen by those scans must wait for that cut
-    rather than be charged to the one before.
+    rather than be charged to the one before.  ``unseen_floor_m``: the
+    :func:`_unseen_floor` of the current height map, when the caller has it.
     """
     elevation = state.height.elevation
     if region is not None:
@@ -525,8 +527,9 @@ def _follow_height(state: ProjectorState, t_ns: int, *, drops: bool = True,
     if drops and state.config.complete_unseen:
         # a cell below the repose cone of the seen surface that a pass crossed since it
         # was seen is no lower than the cone (and was raised to it), not a drop
-        cone = _cone(state, elevation)
-        elevation = np.where(_stale(state, t_ns), np.fmax(elevation, cone), elevation)
+        if unseen_floor_m is None:
+            unseen_floor_m = _unseen_floor(state, elevation, t_ns)
+        elevation = np.fmax(elevation, unseen_floor_m)
     variance = state.height.variance
     top = state.stack.surface()
     with np.errstate(invalid="ignore"):
@@ -617,31 +620,37 @@ def _cone(state: ProjectorState, elevation: np.ndarray) -> np.ndarray:
     return slump.repose_floor(elevation, state.pile.geometry.cell_m, tan)
 
 
-def _complete_unseen(state: ProjectorState, t_ns: int) -> None:
+def _unseen_floor(state: ProjectorState, elevation: np.ndarray, t_ns: int) -> np.ndarray:
+    """The repose cone of the (gap-filled) ``elevation`` where a pass crossed a cell since
+    it was last seen, NaN elsewhere: a cell seen since is as measured, whatever the cone."""
+    return np.where(_stale(state, t_ns), _cone(state, elevation), np.nan)
+
+
+def _complete_unseen(state: ProjectorState, t_ns: int) -> np.ndarray | None:
     """Raise the stack to the repose cone of the seen surface where it is below it.
 
     A flank hidden behind the crest keeps its last seen (older, lower) height in the
     height map; the pile there is at least as high as the cone.  Its material goes to
-    the passes that crossed the cell since it was last seen.
+    the passes that crossed the cell since it was last seen.  Returns the
+    :func:`_unseen_floor` it used (None when it had none), for :func:`_follow_height`.
     """
     if not state.config.complete_unseen or state.stack is None or state.stack.n_deposits == 0:
-        return
+        return None
     elevation = state.height.elevation
     if state.config.fill_gap_cells:
         elevation = heightmap.fill_holes(elevation, method="linear",
                                          max_gap_cells=state.config.fill_gap_cells)
     if not np.isfinite(elevation).any():
-        return
-    cone = _cone(state, elevation)
+        return None
+    floor = _unseen_floor(state, elevation, t_ns)
     top = state.stack.surface()
     margin = state.config.margin_sigma * np.sqrt(
         np.nan_to_num(state.height.variance, nan=state.point_sd_m ** 2)) + state.margin_m
     with np.errstate(invalid="ignore"):
-        # a cell seen since the last pass crossed it is as measured, whatever the cone
-        lift = (cone > top + margin) & ~(elevation >= cone - margin) & _stale(state, t_ns)
+        lift = (floor > top + margin) & ~(elevation >= floor - margin)
     if not lift.any():
-        return
-    level = np.where(lift, cone, np.nan)
+        return floor
+    level = np.where(lift, floor, np.nan)
     before = state.stack.total_volume_m3()
     left = _rise_to_crossing_passes(state, level, state.height.grid["last_update_ns"], t_ns)
     if left.any() and state.stack.n_deposits:
@@ -650,6 +659,7 @@ def _complete_unseen(state: ProjectorState, t_ns: int) -> None:
                                                    _deposition_ns(state, t_ns))
     state.count("cells_completed", int(lift.sum()))
     state.count("completed_mm3", int(round((state.stack.total_volume_m3() - before) * 1e3)))
+    return floor
 
 
 def _catch_up_rises(state: ProjectorState, t_ns: int) -> None:
