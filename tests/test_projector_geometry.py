@@ -444,6 +444,22 @@ def test_fuse_first_observation_and_one_kalman_step_by_hand():
     assert hm1.elevation[0, 0] == 1.0
 
 
+def test_fuse_in_place_updates_the_map_itself_with_the_same_result():
+    rng = make_rng(61)
+    g = GridGeometry(0.0, 0.0, 0.5, 12, 9)
+    pure = HeightMap.empty(g)
+    own = HeightMap.empty(g)
+    for k in range(12):
+        obs, _count = flat_obs(rng, g, 2.0 + (0.3 if k >= 6 else 0.0), 0.05)
+        pure, st_pure = fuse(pure, obs, T0_NS + k * NS, 0.05, change_count=2)
+        same, st_own = fuse(own, obs, T0_NS + k * NS, 0.05, change_count=2, inplace=True)
+        assert same is own and st_own == st_pure
+    assert st_pure.cells_observed > 0
+    for name in own.grid.layers:
+        assert np.array_equal(own.grid[name], pure.grid[name], equal_nan=True), name
+    assert np.nanmean(own.elevation) > 2.2         # the 0.3 m rise was accepted
+
+
 def _constant_obs(g, z, sd=0.05, count=4):
     n = g.nx * g.ny
     ix, iy = np.divmod(np.arange(n), g.ny)

@@ -726,3 +726,46 @@ def test_raise_deposit_fills_a_lower_band_only_where_the_bands_above_are_empty()
     assert stack.thickness(1)[0, 0] == 1.0  # the old stack is unchanged
     surfaces = new.surfaces()
     assert np.all(np.diff(surfaces, axis=0) >= 0)  # still monotone
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_raise_deposits_in_one_call_equals_raising_them_one_by_one(seed):
+    print(f"seed={seed}")
+    rng = np.random.default_rng(seed)
+    g = GridGeometry(0.0, 0.0, 1.0, 6, 5)
+    stack = LayerStack.empty(g, 0.0)
+    for k in range(1, 5):
+        stack = stack.open_deposit(DepositInfo(k, f"P{k}", "A", 100 * k))
+        level = stack.surface() + np.where(rng.random(g.shape) < 0.5, rng.random(g.shape), np.nan)
+        stack, _ = stack.raise_to(level, 100 * k + 10)
+    frozen = stack.surfaces()
+    updates = []
+    for k in rng.integers(1, 5, size=4):
+        cells = rng.choice(g.nx * g.ny, size=12, replace=False)
+        z = stack.surface().ravel()[cells] + rng.normal(0.3, 0.3, cells.size)
+        updates.append((int(k), cells, z, 1000.0 + rng.random(cells.size) * 100))
+    one_by_one, raised_each = stack, []
+    for k, cells, z, t in updates:
+        level = np.full(g.shape, np.nan)
+        level.ravel()[cells] = z
+        when = np.zeros(g.shape)
+        when.ravel()[cells] = t
+        one_by_one, raised = one_by_one.raise_deposit(k, level, when)
+        raised_each.append(raised.ravel()[cells])
+    batch, raised_batch = stack.raise_deposits(updates)
+    assert any(r.any() for r in raised_batch) and not all(r.all() for r in raised_batch)
+    for a, b in zip(raised_each, raised_batch):
+        assert a.tolist() == b.tolist()
+    assert np.array_equal(batch.surfaces(), one_by_one.surfaces())
+    for k in range(1, 5):
+        assert np.array_equal(batch.deposition_time_ns(k), one_by_one.deposition_time_ns(k),
+                              equal_nan=True)
+    assert np.array_equal(stack.surfaces(), frozen)   # the stack raised from is unchanged
+    for k in range(1, 5):   # deposit_cells: the same figures as the full-grid accessors
+        cells, thick, times = batch.deposit_cells(k)
+        full = batch.thickness(k).ravel()
+        assert cells.tolist() == np.flatnonzero(full > 0).tolist()
+        assert np.array_equal(thick, full[cells])
+        assert np.array_equal(times, batch.deposition_time_ns(k).ravel()[cells])
+    with pytest.raises(ValueError):
+        stack.raise_deposits([(1, np.array([g.nx * g.ny]), np.array([1.0]), 0.0)])

@@ -269,8 +269,9 @@ def flush(state: ProjectorState) -> ProjectorState:
     if state.stack is not None:
         if _settling_last_pass(state):
             _catch_up_rises(state, state.high_water[0])
-        floor = _complete_unseen(state, state.high_water[0])
-        _follow_height(state, state.high_water[0], unseen_floor_m=floor)
+        filled = _filled_elevation(state)
+        floor = _complete_unseen(state, state.high_water[0], filled)
+        _follow_height(state, state.high_water[0], unseen_floor_m=floor, filled_m=filled)
     return state
 
 
@@ -479,7 +480,7 @@ def _process_scans(state: ProjectorState, *, until_ns: int | None = None,
                 state.height, _stats = heightmap.fuse(
                     state.height, _subset(obs, subset), int(t.max()), state.point_sd_m,
                     gate_sigma=state.config.gate_sigma, change_count=change_count,
-                    process_sd_m=state.process_sd_m)
+                    process_sd_m=state.process_sd_m, inplace=True)
         _follow_height(state, int(t.max()), drops=False, seen_before_ns=seen_before_ns,
                        region=_around(obs.ix, obs.iy, state.config.fill_gap_cells + 1,
                                       state.pile.geometry))
@@ -500,43 +501,51 @@ def _around(ix: np.ndarray, iy: np.ndarray, pad: int, geometry: GridGeometry):
 
 def _follow_height(state: ProjectorState, t_ns: int, *, drops: bool = True,
                    seen_before_ns: np.ndarray | None = None, region=None,
-                   unseen_floor_m: np.ndarray | None = None) -> None:
+                   unseen_floor_m: np.ndarray | None = None,
+                   filled_m: np.ndarray | None = None) -> None:
     """Move the layer stack's top to the height map where they differ beyond the margin.
 
     Rises follow at once.  Drops follow only when ``drops`` (at a cut, or at the end of
     a query): a cut is known only when its event arrives at its end time, after the
     scans that watched it dig, so a drop seen by those scans must wait for that cut
     rather than be charged to the one before.  ``unseen_floor_m``: the
-    :func:`_unseen_floor` of the current height map, when the caller has it.
+    :func:`_unseen_floor` of the current height map, when the caller has it;
+    ``filled_m`` its :func:`_filled_elevation` (with no ``region``).
     """
-    elevation = state.height.elevation
     if region is not None:
+        if drops:
+            raise ValueError("a region is for rises only (drops=False)")
         # only the block a batch of scans saw can have risen (rises only: drops wait)
-        block = elevation[region]
-        elevation = np.full(elevation.shape, np.nan)
-        elevation[region] = block
-    if state.config.fill_gap_cells:
-        # an unseen strip between seen cells (between two scan lines, behind a crest)
-        # is interpolated rather than left at the ground
-        if region is not None:
-            elevation[region] = heightmap.fill_holes(
-                elevation[region], method="linear", max_gap_cells=state.config.fill_gap_cells)
-        else:
+        elevation = state.height.elevation[region]
+        if state.config.fill_gap_cells:
+            # an unseen strip between seen cells (between two scan lines, behind a
+            # crest) is interpolated rather than left at the ground
             elevation = heightmap.fill_holes(elevation, method="linear",
                                              max_gap_cells=state.config.fill_gap_cells)
+    else:
+        region = (slice(None), slice(None))
+        elevation = _filled_elevation(state) if filled_m is None else filled_m
     if drops and state.config.complete_unseen:
         # a cell below the repose cone of the seen surface that a pass crossed since it
         # was seen is no lower than the cone (and was raised to it), not a drop
         if unseen_floor_m is None:
             unseen_floor_m = _unseen_floor(state, elevation, t_ns)
         elevation = np.fmax(elevation, unseen_floor_m)
-    variance = state.height.variance
-    top = state.stack.surface()
+    top = state.stack.surface()[region]
     with np.errstate(invalid="ignore"):
-        margin = state.config.margin_sigma * np.sqrt(np.nan_to_num(variance, nan=0.0)) \
-            + state.margin_m
-        up = np.isfinite(elevation) & (elevation > top + margin)
-        down = np.isfinite(elevation) & (elevation < top - margin)
+        margin = state.config.margin_sigma * np.sqrt(
+            np.nan_to_num(state.height.variance[region], nan=0.0)) + state.margin_m
+        up_r = np.isfinite(elevation) & (elevation > top + margin)
+        down_r = np.isfinite(elevation) & (elevation < top - margin)
+    if not (up_r.any() or (drops and down_r.any())):
+        return
+    shape = state.pile.geometry.shape
+    up, down = np.zeros(shape, bool), np.zeros(shape, bool)
+    up[region], down[region] = up_r, down_r
+    if elevation.shape != shape:
+        block, elevation = elevation, np.full(shape, np.nan)
+        elevation[region] = block
+    top = state.stack.surface()
     if up.any() and seen_before_ns is not None and state.config.attribute_by_crossing:
         up = _rise_to_crossing_passes(state, np.where(up, elevation, np.nan), seen_before_ns,
                                       t_ns, observed_ns=state.height.grid["observed_ns"]) & up
@@ -626,20 +635,27 @@ def _unseen_floor(state: ProjectorState, elevation: np.ndarray, t_ns: int) -> np
     return np.where(_stale(state, t_ns), _cone(state, elevation), np.nan)
 
 
-def _complete_unseen(state: ProjectorState, t_ns: int) -> np.ndarray | None:
+def _filled_elevation(state: ProjectorState) -> np.ndarray:
+    """The height map's elevation with gaps of up to ``fill_gap_cells`` interpolated."""
+    if not state.config.fill_gap_cells:
+        return state.height.elevation
+    return heightmap.fill_holes(state.height.elevation, method="linear",
+                                max_gap_cells=state.config.fill_gap_cells)
+
+
+def _complete_unseen(state: ProjectorState, t_ns: int,
+                     filled_m: np.ndarray | None = None) -> np.ndarray | None:
     """Raise the stack to the repose cone of the seen surface where it is below it.
 
     A flank hidden behind the crest keeps its last seen (older, lower) height in the
     height map; the pile there is at least as high as the cone.  Its material goes to
     the passes that crossed the cell since it was last seen.  Returns the
     :func:`_unseen_floor` it used (None when it had none), for :func:`_follow_height`.
+    ``filled_m``: the :func:`_filled_elevation`, when the caller has it.
     """
     if not state.config.complete_unseen or state.stack is None or state.stack.n_deposits == 0:
         return None
-    elevation = state.height.elevation
-    if state.config.fill_gap_cells:
-        elevation = heightmap.fill_holes(elevation, method="linear",
-                                         max_gap_cells=state.config.fill_gap_cells)
+    elevation = _filled_elevation(state) if filled_m is None else filled_m
     if not np.isfinite(elevation).any():
         return None
     floor = _unseen_floor(state, elevation, t_ns)
@@ -800,8 +816,14 @@ def _rise_to_crossing_passes(state: ProjectorState, surface: np.ndarray,
     if not np.isfinite(seen).all():
         # a cell never seen itself lies between (or beside) seen ones: it was last seen
         # when they were, not never (else every pass so far would share its rise)
-        seen = np.where(np.isfinite(seen), seen,
-                        _seen_nearby_ns(state, seen_before_ns).ravel()[cells])
+        blind = cells[~np.isfinite(seen)]
+        box = _around(blind // geometry.ny, blind % geometry.ny,
+                      max(int(state.config.fill_gap_cells), 1), geometry)
+        nearby = _seen_nearby_ns(state, seen_before_ns[box])
+        bx = blind // geometry.ny - box[0].start
+        by = blind % geometry.ny - box[1].start
+        seen = seen.copy()
+        seen[~np.isfinite(seen)] = nearby[bx, by]
     prev = np.where(np.isfinite(seen), seen, -np.inf)
     upto = np.full(cells.size, float(t_ns))
     if observed_ns is not None:
@@ -813,18 +835,14 @@ def _rise_to_crossing_passes(state: ProjectorState, surface: np.ndarray,
     count = sum(c[2].astype(int) for c in cands)
     top = state.stack.surface().ravel()[cells]
     rise = surface.ravel()[cells] - top
-    done, position = 0, np.zeros(cells.size)
+    position, updates = np.zeros(cells.size), []
     for record, crossing, hit in cands:
         position += hit
-        if not hit.any():
-            continue
-        sel = cells[hit]
-        level = np.full(geometry.shape, np.nan)
-        level.ravel()[sel] = (top + rise * (position / np.maximum(count, 1)))[hit]
-        when = np.full(geometry.shape, np.nan)
-        when.ravel()[sel] = crossing[hit]
-        state.stack, raised = state.stack.raise_deposit(record.deposit_index, level, when)
-        done += int(raised.sum())
+        if hit.any():
+            updates.append((record.deposit_index, cells[hit],
+                            (top + rise * (position / np.maximum(count, 1)))[hit], crossing[hit]))
+    state.stack, raised = state.stack.raise_deposits(updates)
+    done = sum(int(r.sum()) for r in raised)
     if done:
         state.count("rises_by_crossing", done)
     # what is left: cells not fully raised (a later deposit already held material)

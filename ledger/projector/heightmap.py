@@ -279,8 +279,9 @@ class FuseStats:
 
 def fuse(heightmap: HeightMap, obs: CellObservations, t_ns: int, point_sd_m: float, *,
          gate_sigma: float = 3.0, change_count: int = 3,
-         process_sd_m: float = 0.01) -> tuple[HeightMap, FuseStats]:
-    """Fuse one batch of cell observations into a height map (returns a new map).
+         process_sd_m: float = 0.01, inplace: bool = False) -> tuple[HeightMap, FuseStats]:
+    """Fuse one batch of cell observations into a height map (returns a new map, or the
+    same one updated with ``inplace=True``).
 
     Per observed cell (vectorised over cells):
 
@@ -307,7 +308,7 @@ def fuse(heightmap: HeightMap, obs: CellObservations, t_ns: int, point_sd_m: flo
     Parameters
     ----------
     heightmap : HeightMap
-        The prior map (not modified).
+        The prior map (not modified unless ``inplace``).
     obs : CellObservations
         At most one observation per cell (as from :func:`rasterize`), inside the grid.
     t_ns : int
@@ -321,11 +322,14 @@ def fuse(heightmap: HeightMap, obs: CellObservations, t_ns: int, point_sd_m: flo
         Consecutive agreeing out-of-gate observations needed for a change, >= 1.
     process_sd_m : float
         Process noise sd per observation of a cell (m), >= 0.
+    inplace : bool
+        Update ``heightmap`` itself instead of a copy (the fold owns its map; copying
+        a full-scale map's eleven layers cost 10 ms a batch).
 
     Returns
     -------
     heightmap : HeightMap
-        A new map.
+        A new map (``heightmap`` itself with ``inplace=True``).
     stats : FuseStats
 
     Raises
@@ -362,7 +366,7 @@ def fuse(heightmap: HeightMap, obs: CellObservations, t_ns: int, point_sd_m: flo
         if np.unique(lin).size != lin.size:
             raise ValueError("observations must hold at most one row per cell")
 
-    out = heightmap.copy()
+    out = heightmap if inplace else heightmap.copy()
     layers = {k: out.grid[k].reshape(-1) for k in _LAYERS}   # flat views into the copy
     elev, var = layers["elevation"], layers["variance"]
     pz, pv, pc = layers["pending_z"], layers["pending_var"], layers["pending_count"]
@@ -609,28 +613,27 @@ def _bracketed(valid: np.ndarray, limit: float) -> np.ndarray:
 
 def _fill_linear_pass(e: np.ndarray, valid: np.ndarray, limit: float):
     """One pass of axis-wise linear filling; returns (filled copy, newly filled mask)."""
-    num = np.zeros_like(e)
-    den = np.zeros_like(e)
-    ix = np.arange(e.shape[0])[:, None]
-    iy = np.arange(e.shape[1])[None, :]
-    for axis in (0, 1):
+    hx, hy = np.nonzero(~valid)          # work on the unseen cells only
+    num = np.zeros(hx.size)
+    den = np.zeros(hx.size)
+    for axis, pos in ((0, hx), (1, hy)):
         n = e.shape[axis]
         prev, nxt = _brackets(valid, axis)
-        ok = ~valid & (prev >= 0) & (nxt < n) & (nxt - prev - 1 <= limit)
-        p = np.clip(prev, 0, n - 1)
-        q = np.clip(nxt, 0, n - 1)
-        if axis == 0:
-            a, b, pos = e[p, iy], e[q, iy], ix
-        else:
-            a, b, pos = e[ix, p], e[ix, q], iy
-        span = np.where(ok, q - p, 1).astype(np.float64)
-        v = a + (pos - p) / span * (b - a)
-        w = np.where(ok, 1.0 / (span * span), 0.0)
-        num += np.where(ok, w * v, 0.0)
-        den += w
-    new = den > 0
+        p, q = prev[hx, hy], nxt[hx, hy]
+        ok = (p >= 0) & (q < n) & (q - p - 1 <= limit)
+        if not ok.any():
+            continue
+        p, q, pos, cx, cy = p[ok], q[ok], pos[ok], hx[ok], hy[ok]
+        a, b = (e[p, cy], e[q, cy]) if axis == 0 else (e[cx, p], e[cx, q])
+        span = (q - p).astype(np.float64)
+        w = 1.0 / (span * span)
+        num[ok] += w * (a + (pos - p) / span * (b - a))
+        den[ok] += w
+    new = np.zeros(e.shape, dtype=bool)
+    hit = den > 0
+    new[hx[hit], hy[hit]] = True
     out = e.copy()
-    out[new] = num[new] / den[new]
+    out[hx[hit], hy[hit]] = num[hit] / den[hit]
     return out, new
 
 

@@ -237,6 +237,19 @@ class LayerStack:
         epoch = float(self._epoch_ns) if self._epoch_ns is not None else 0.0
         return np.where(th > 0, self._times[k - 1] + epoch, np.nan)
 
+    def deposit_cells(self, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Deposit ``k``'s material where it has any: ``(cells, thickness_m, time_ns)``.
+
+        ``cells`` are flat indices into ``(nx, ny)`` (ascending), ``thickness_m`` > 0 their
+        band thickness (m) and ``time_ns`` their :meth:`deposition_time_ns` (float64 UTC
+        ns): the same figures without forming the full-grid arrays.
+        """
+        lo, hi = self.band(k)
+        thick = (hi - lo).ravel()
+        cells = np.flatnonzero(thick > 0)
+        epoch = float(self._epoch_ns) if self._epoch_ns is not None else 0.0
+        return cells, thick[cells], self._times[k - 1].ravel()[cells] + epoch
+
     def volume_m3(self, k: int) -> float:
         """Volume of deposit ``k`` (m3)."""
         return float(np.sum(self.thickness(k)) * self._geometry.cell_area_m2)
@@ -347,37 +360,74 @@ class LayerStack:
         """
         self._check_k(k)
         surf = _check_layer(self._geometry, surface_m, "surface_m")
-        top = self._surfaces[-1]
-        with np.errstate(invalid="ignore"):
-            up = surf > top
-        cand = np.flatnonzero(up)
-        if cand.size == 0:
-            return self, up
-        # only where every band above k is empty (checked on the candidate cells only)
-        keep = np.ones(cand.size, bool)
-        for j in range(k + 1, self.n_deposits + 1):
-            keep &= self._surfaces[j].ravel()[cand] <= self._surfaces[j - 1].ravel()[cand]
-        up = np.zeros(self._geometry.shape, bool)
-        up.ravel()[cand[keep]] = True
-        if not keep.any():
-            return self, up
+        cells = np.flatnonzero(np.isfinite(surf))
         t = np.broadcast_to(np.asarray(t_ns, dtype=np.float64), self._geometry.shape)
-        epoch = int(np.nanmin(t[up])) if self._epoch_ns is None else self._epoch_ns
-        t_rel = t[up] - float(epoch)
-        lower = self._surfaces[k - 1]
-        old = (self._surfaces[k] - lower)[up]
-        add = surf[up] - top[up]
-        surfaces = list(self._surfaces)
-        for j in range(k, self.n_deposits + 1):
-            new = surfaces[j].copy()
-            new[up] = surf[up]
-            surfaces[j] = _frozen(new)
-        times = list(self._times)
-        new_time = times[k - 1].copy()
-        t_old = new_time[up]
-        new_time[up] = np.where(old > 0, (t_old * old + t_rel * add) / (old + add), t_rel)
-        times[k - 1] = _frozen(new_time)
-        return LayerStack(self._geometry, tuple(surfaces), tuple(times), self._infos, epoch), up
+        stack, (raised_cells,) = self.raise_deposits([(k, cells, surf.ravel()[cells],
+                                                       t.ravel()[cells])])
+        up = np.zeros(self._geometry.shape, bool)
+        up.ravel()[cells[raised_cells]] = True
+        return stack, up
+
+    def raise_deposits(self, updates) -> tuple["LayerStack", list[np.ndarray]]:
+        """:meth:`raise_deposit` for several deposits in turn, each surface copied once.
+
+        Parameters
+        ----------
+        updates : sequence of ``(k, cells, surface_m, t_ns)``
+            Applied in order, each seeing the stack the ones before left: ``k`` the deposit
+            (1-based); ``cells`` flat cell indices (into ``(nx, ny)``, distinct);
+            ``surface_m`` their observed surface (m, NaN = none); ``t_ns`` when their
+            material arrived (UTC ns, float array or one value).
+
+        Returns
+        -------
+        stack : LayerStack
+        raised : list of ndarray of bool
+            Per update, which of its ``cells`` received material.
+        """
+        n = self.n_deposits
+        surfaces, times = list(self._surfaces), list(self._times)
+        owned_s, owned_t = set(), set()   # arrays copied (writable) in this call
+        epoch = self._epoch_ns
+        raised_all = []
+        for k, cells, surf_c, t_c in updates:
+            self._check_k(k)
+            cells = np.asarray(cells, dtype=np.int64).ravel()
+            surf_c = np.asarray(surf_c, dtype=np.float64).ravel()
+            if surf_c.shape != cells.shape or (cells.size and (
+                    cells.min() < 0 or cells.max() >= self._geometry.nx * self._geometry.ny)):
+                raise ValueError("cells must be flat indices into the grid, one surface each")
+            t_c = np.broadcast_to(np.asarray(t_c, dtype=np.float64), cells.shape)
+            with np.errstate(invalid="ignore"):
+                keep = surf_c > surfaces[-1].ravel()[cells]
+            # only where every band above k is empty
+            for j in range(k + 1, n + 1):
+                if not keep.any():
+                    break
+                keep &= surfaces[j].ravel()[cells] <= surfaces[j - 1].ravel()[cells]
+            raised_all.append(keep)
+            if not keep.any():
+                continue
+            c, z = cells[keep], surf_c[keep]
+            if epoch is None:
+                epoch = int(np.nanmin(t_c[keep]))
+            t_rel = t_c[keep] - float(epoch)
+            old = surfaces[k].ravel()[c] - surfaces[k - 1].ravel()[c]
+            add = z - surfaces[-1].ravel()[c]
+            for j in range(k, n + 1):
+                if j not in owned_s:
+                    surfaces[j] = surfaces[j].copy()
+                    owned_s.add(j)
+                surfaces[j].ravel()[c] = z
+            if k - 1 not in owned_t:
+                times[k - 1] = times[k - 1].copy()
+                owned_t.add(k - 1)
+            tv = times[k - 1].ravel()
+            tv[c] = np.where(old > 0, (tv[c] * old + t_rel * add) / (old + add), t_rel)
+        if not owned_s:
+            return self, raised_all
+        return LayerStack(self._geometry, tuple(_frozen(a) for a in surfaces),
+                          tuple(_frozen(a) for a in times), self._infos, epoch), raised_all
 
     def add_material(self, k: int, thickness_m, t_ns) -> "LayerStack":
         """Insert material of deposit ``k`` into every column: its band grows by ``thickness_m``.
