@@ -531,12 +531,12 @@ def _follow_height(state: ProjectorState, t_ns: int, *, drops: bool = True,
         if unseen_floor_m is None:
             unseen_floor_m = _unseen_floor(state, elevation, t_ns)
         elevation = np.fmax(elevation, unseen_floor_m)
-    top = state.stack.surface()[region]
+    top_r = state.stack.surface()[region]
     with np.errstate(invalid="ignore"):
         margin = state.config.margin_sigma * np.sqrt(
             np.nan_to_num(state.height.variance[region], nan=0.0)) + state.margin_m
-        up_r = np.isfinite(elevation) & (elevation > top + margin)
-        down_r = np.isfinite(elevation) & (elevation < top - margin)
+        up_r = np.isfinite(elevation) & (elevation > top_r + margin)
+        down_r = np.isfinite(elevation) & (elevation < top_r - margin)
     if not (up_r.any() or (drops and down_r.any())):
         return
     shape = state.pile.geometry.shape
@@ -600,11 +600,7 @@ def _predict_height(height, new_top_m: np.ndarray, old_top_m: np.ndarray, sd_m: 
         return height
     elevation[moved] = new_top_m[moved]
     grid["variance"][moved] = sd_m * sd_m
-    grid["pending_count"][moved] = 0.0
-    for name in ("pending_z", "pending_var", "pending_x_offset_m", "pending_y_offset_m",
-                 "pending_since_ns"):
-        if name in grid:
-            grid[name][moved] = np.nan
+    heightmap.clear_evidence(grid, moved)
     return type(height)(grid)
 
 
@@ -816,14 +812,12 @@ def _rise_to_crossing_passes(state: ProjectorState, surface: np.ndarray,
     if not np.isfinite(seen).all():
         # a cell never seen itself lies between (or beside) seen ones: it was last seen
         # when they were, not never (else every pass so far would share its rise)
-        blind = cells[~np.isfinite(seen)]
-        box = _around(blind // geometry.ny, blind % geometry.ny,
-                      max(int(state.config.fill_gap_cells), 1), geometry)
-        nearby = _seen_nearby_ns(state, seen_before_ns[box])
-        bx = blind // geometry.ny - box[0].start
-        by = blind % geometry.ny - box[1].start
+        blind = ~np.isfinite(seen)
+        bx, by = np.divmod(cells[blind], geometry.ny)
+        box = _around(bx, by, max(int(state.config.fill_gap_cells), 1), geometry)
         seen = seen.copy()
-        seen[~np.isfinite(seen)] = nearby[bx, by]
+        seen[blind] = _seen_nearby_ns(state, seen_before_ns[box])[bx - box[0].start,
+                                                                   by - box[1].start]
     prev = np.where(np.isfinite(seen), seen, -np.inf)
     upto = np.full(cells.size, float(t_ns))
     if observed_ns is not None:

@@ -35,8 +35,8 @@ from scipy import ndimage
 
 from ledger.projector.grid import GridGeometry, GridMap, cell_index
 
-__all__ = ["CellObservations", "rasterize", "HeightMap", "FuseStats", "fuse", "fill_holes",
-           "centre_elevation", "volume_above"]
+__all__ = ["CellObservations", "rasterize", "HeightMap", "FuseStats", "fuse", "accept_rises",
+           "clear_evidence", "fill_holes", "centre_elevation", "volume_above"]
 
 
 # --------------------------------------------------------------------------------------
@@ -179,6 +179,18 @@ _LAYERS = {
     "pending_since_ns": math.nan,  # UTC ns of the first observation of the change evidence
     "observed_ns": math.nan,      # UTC ns when the elevation's level was first observed
 }
+
+
+#: the layers holding a cell's change evidence; cleared, they take their initial values
+_EVIDENCE = ("pending_z", "pending_var", "pending_count", "pending_x_offset_m",
+             "pending_y_offset_m", "pending_since_ns")
+
+
+def clear_evidence(layers, index) -> None:
+    """Drop the change evidence held at ``index`` (a mask or indices) of ``layers``: a
+    :class:`HeightMap`'s grid, or a dict of the same layers (e.g. flat views)."""
+    for name in _EVIDENCE:
+        layers[name][index] = _LAYERS[name]
 
 
 @dataclass
@@ -395,7 +407,7 @@ def fuse(heightmap: HeightMap, obs: CellObservations, t_ns: int, point_sd_m: flo
     xo[c], yo[c] = ox[new], oy[new]
     last[c] = t
     seen_at[c] = t
-    pz[c], pv[c], pc[c], pxo[c], pyo[c], since[c] = np.nan, np.nan, 0.0, np.nan, np.nan, np.nan
+    clear_evidence(layers, c)
 
     # in gate: Kalman step, evidence cleared
     c = lin[ingate]
@@ -407,7 +419,7 @@ def fuse(heightmap: HeightMap, obs: CellObservations, t_ns: int, point_sd_m: flo
     yo[c] += k * (oy[ingate] - yo[c])
     last[c] = t
     seen_at[c] = t
-    pz[c], pv[c], pc[c], pxo[c], pyo[c], since[c] = np.nan, np.nan, 0.0, np.nan, np.nan, np.nan
+    clear_evidence(layers, c)
 
     # out of gate: change evidence
     c = lin[gated]
@@ -439,8 +451,7 @@ def fuse(heightmap: HeightMap, obs: CellObservations, t_ns: int, point_sd_m: flo
     xo[cc], yo[cc] = ex_new[change], ey_new[change]
     last[cc] = t
     seen_at[cc] = since_new[change]
-    pz[cc], pv[cc], pc[cc], pxo[cc], pyo[cc] = np.nan, np.nan, 0.0, np.nan, np.nan
-    since[cc] = np.nan
+    clear_evidence(layers, cc)
 
     stats = FuseStats(cells_initialised=int(new.sum()), cells_updated=int(ingate.sum()),
                       cells_gated=int(keep.sum()), cells_changed_up=int(up.sum()),
@@ -474,10 +485,7 @@ def accept_rises(heightmap: HeightMap) -> tuple[HeightMap, np.ndarray]:
     g["y_offset_m"][rise] = g["pending_y_offset_m"][rise]
     g["last_update_ns"][rise] = g["pending_since_ns"][rise]
     g["observed_ns"][rise] = g["pending_since_ns"][rise]
-    for name, fill in (("pending_z", math.nan), ("pending_var", math.nan),
-                       ("pending_count", 0.0), ("pending_x_offset_m", math.nan),
-                       ("pending_y_offset_m", math.nan), ("pending_since_ns", math.nan)):
-        g[name][rise] = fill
+    clear_evidence(g, rise)
     return out, rise
 
 

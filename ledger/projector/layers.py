@@ -233,9 +233,10 @@ class LayerStack:
         The thickness-weighted mean over the material of the deposit in that cell; NaN where
         the deposit has no material.
         """
-        th = self.thickness(k)
-        epoch = float(self._epoch_ns) if self._epoch_ns is not None else 0.0
-        return np.where(th > 0, self._times[k - 1] + epoch, np.nan)
+        cells, _thick, times = self.deposit_cells(k)
+        out = np.full(self._geometry.shape, np.nan)
+        out.ravel()[cells] = times
+        return out
 
     def deposit_cells(self, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Deposit ``k``'s material where it has any: ``(cells, thickness_m, time_ns)``.

@@ -198,9 +198,6 @@ class _Join:
         grade, assayed, density = cells if cells is not None else self.cells(lot_id, times_ns)
         tonnes = volumes * density
         graded = np.isfinite(grade).all(axis=1)
-        if graded.all():
-            return (float(tonnes.sum()), tonnes @ grade, float(tonnes @ assayed),
-                    float(tonnes.sum()))
         sums = tonnes[graded] @ grade[graded]
         return (float(tonnes.sum()), sums, float(tonnes[assayed].sum()),
                 float(tonnes[graded].sum()))
