@@ -224,7 +224,6 @@ def _chevron_stack(n_deposits: int, nx: int, ny: int, cell_m: float, height_m: f
 
 def section_voxels(args) -> Section:
     """Voxel tonnes and grades of a full-scale pile from its layer stack (one core)."""
-    import tracemalloc
 
     from ledger.projector.voxels import integrate
 
@@ -241,13 +240,25 @@ def section_voxels(args) -> Section:
         w[..., 0] = density
         w[..., 1:] = density * grade
         weights.append(w)
+    def voxel_grades():
+        grid = integrate(stack, 1.0, weights)
+        tonnes = grid.weighted[..., 0]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            grades = grid.weighted[..., 1:] / tonnes[..., None]
+        return grid, tonnes, grades
+
+    def timed():
+        r0, t0 = resource.getrusage(resource.RUSAGE_SELF), time.perf_counter()
+        out = voxel_grades()
+        r1, t1 = resource.getrusage(resource.RUSAGE_SELF), time.perf_counter()
+        return out, t1 - t0, r1.ru_stime - r0.ru_stime
+
+    _, seconds, sys_s = timed()   # the first query of the process: its memory is new
+    del _
+    warm = min(timed()[1] for _ in range(2))
+    # memory on a further run: tracemalloc slows every allocation it traces
     tracemalloc.start()
-    t0 = time.perf_counter()
-    grid = integrate(stack, 1.0, weights)
-    tonnes = grid.weighted[..., 0]
-    with np.errstate(invalid="ignore", divide="ignore"):
-        grades = grid.weighted[..., 1:] / tonnes[..., None]
-    seconds = time.perf_counter() - t0
+    grid, tonnes, grades = voxel_grades()
     _cur, peak = tracemalloc.get_traced_memory()
     tracemalloc.stop()
     total = stack.total_volume_m3()
@@ -255,14 +266,16 @@ def section_voxels(args) -> Section:
     occupied = int((tonnes > 0).sum())
     ok = seconds <= 1.0 and err < 1e-9 and bool(np.isfinite(grades[tonnes > 0]).all())
     rows = [[f"{g.length_y_m:g} x {g.length_x_m:g} x 30 m", f"{cell:g} m", "1 m", str(n_dep),
-             f"{occupied:,}", f"{len(grid.qvo):,}", f"{seconds:.3f}", f"{peak / 2**20:.0f} MiB",
-             f"{err:.1e}"]]
+             f"{occupied:,}", f"{len(grid.qvo):,}", f"{seconds:.3f}", f"{sys_s:.2f}",
+             f"{warm:.3f}", f"{peak / 2**20:.0f} MiB", f"{err:.1e}"]]
     return Section(
         "voxel tonnes and grades (exact QVO integration), full-scale pile, one core",
         ["pile", "cells", "voxels", "deposits", "voxels with ore", "QVOs", "seconds",
-         "peak memory", "volume error"], rows,
-        [f"target <= 1 s: {seconds:.3f} s -> {'PASS' if seconds <= 1.0 else 'MISS'}; "
-         "volume error = |voxel total / stack total - 1|",
+         "of which system", "warm seconds", "peak memory", "volume error"], rows,
+        [f"target <= 1 s for the first query: {seconds:.3f} s -> "
+         f"{'PASS' if seconds <= 1.0 else 'MISS'}; volume error = |voxel total / stack total - 1|",
+         "seconds: the process's first query (new memory: page faults, counted as system "
+         "time); warm seconds: the best of two more",
          f"stack volume {total:,.0f} m3; 5 analytes + density per cell and deposit"], ok)
 
 

@@ -17,10 +17,12 @@ Weights turn volumes into tonnes and grades: pass, per deposit, per-cell weights
 sum over the voxel's pieces of volume x weight (tonnes, tonnes of analyte), and a voxel's
 grade is ``100 * weighted[..., 1 + a] / weighted[..., 0]``.
 
-Cost: per deposit a few vectorised passes over the cells with material and one
-sparse-dense product (pieces x weights); no cells x deposits x bins cube is formed.  The
-full-scale case (220 m x 60 m pile, 0.25 m cells, 1 m voxels, 60 chevron deposits, 6 weights)
-takes about 0.5 s on one core.
+Cost: per deposit a few vectorised passes over the cells with material (into buffers
+reused by every deposit) and one sparse-dense product (pieces x weights); no cells x
+deposits x bins cube is formed.  The full-scale case (220 m x 60 m pile, 0.25 m cells, 1 m
+voxels, 60 chevron deposits, 6 weights; 1.3 M QVOs) takes 0.8-1.0 s on one core of the
+development machine when its memory is warm and 1.1-1.5 s in a fresh process, where page
+faults on new memory add 0.2-0.5 s of system time (``bench/projector.py`` section 2).
 """
 
 from __future__ import annotations
@@ -201,11 +203,13 @@ def integrate(stack: LayerStack, voxel_m: float,
     if material.any():
         nvz = max(1, int(math.ceil((float(top[material].max()) - z0) / v)))
     nvox = nvx * nvy * nvz
+    if nvox >= 2**31 or ncell >= 2**31:
+        raise ValueError(f"voxel grid too large: {nvox} voxels, {ncell} cells")
     piece_m3 = v * geometry.cell_area_m2  # one whole bin of one cell
 
     # flat voxel index of bin 0 of every cell's voxel column, (nx * ny,), C order
-    base_of_cell = ((np.arange(nx) // m)[:, None] * (nvy * nvz)
-                    + (np.arange(ny) // m)[None, :] * nvz).ravel()
+    base_of_cell = ((np.arange(nx, dtype=np.int32) // m)[:, None] * (nvy * nvz)
+                    + (np.arange(ny, dtype=np.int32) // m)[None, :] * nvz).ravel()
 
     w_first = None
     n_w = 0
@@ -213,66 +217,100 @@ def integrate(stack: LayerStack, voxel_m: float,
         w_first = _weights_for(weights, 1, (nx, ny), None)
         n_w = w_first.shape[2]
     touched = np.zeros(nvox, dtype=bool)       # scratch: voxels one deposit reaches
-    compact = np.zeros(nvox, dtype=np.int64)   # scratch: voxel -> row of the deposit's QVOs
+    compact = np.zeros(nvox, dtype=np.int32)   # scratch: voxel -> row of the deposit's QVOs
     q_flat, q_dep, q_vol, q_w = [], [], [], []
+    weighted_flat = np.zeros(nvox * n_w)  # (nvox, n_w) flat: per-cell weighted voxel sums
 
-    u_lo_all = (stack.surface_k(0).ravel() - z0) / v
+    # every surface in bins: u = (z - z0) / voxel_m, and its bin floor(u) (as float); a
+    # surface's u and floor serve the deposit below it and the deposit above it.  Two
+    # buffers each, swapped per deposit, and piece buffers reused by every deposit: fresh
+    # memory costs page faults, which on a sandboxed machine cost more than the arithmetic.
+    u_lo_all, u_hi_all = np.empty(ncell), np.empty(ncell)
+    fl_lo_all, fl_hi_all = np.empty(ncell), np.empty(ncell)
+    span_all = np.empty(ncell)
+    np.divide(np.subtract(stack.surface_k(0).ravel(), z0, out=u_lo_all), v, out=u_lo_all)
+    np.floor(u_lo_all, out=fl_lo_all)
+    cap = 2 * ncell  # first and last pieces; whole bins beyond that get their own arrays
+    data_buf, tmp_buf = np.empty(cap), np.empty(ncell)
+    vox_buf, col_buf, rows_buf = (np.empty(cap, dtype=np.int32) for _ in range(3))
+    base_less_1 = base_of_cell - 1
     for k in range(1, n + 1):
-        u_hi_all = (stack.surface_k(k).ravel() - z0) / v
+        np.subtract(stack.surface_k(k).ravel(), z0, out=u_hi_all)
+        np.divide(u_hi_all, v, out=u_hi_all)
+        np.floor(u_hi_all, out=fl_hi_all)
         w = None
         if weights is not None:
             w = w_first if k == 1 else _weights_for(weights, k, (nx, ny), n_w)
-        # cells with material (a band thinner than the rounding of u, <= 1 ulp, is dropped)
-        cells = np.flatnonzero(u_hi_all > u_lo_all)
-        u_lo = np.take(u_lo_all, cells)
-        u_hi = np.take(u_hi_all, cells)
-        u_lo_all = u_hi_all
-        if cells.size == 0:
+        # three kinds of pieces, each at most one per cell and bin:
+        #   first: bin fl_lo, min(u_hi, fl_lo + 1) - u_lo (cells with material)
+        #   last:  bin fl_hi > fl_lo, u_hi - fl_hi (possibly 0: dropped with the zero QVOs)
+        #   whole: bins fl_lo + 1 .. fl_hi - 1, 1 each
+        # together a sparse (QVO x cell) matrix in COO form (bin units; x piece_m3 at the end)
+        cells = np.flatnonzero(u_hi_all > u_lo_all)  # a band < 1 ulp of u is dropped
+        n1 = cells.size
+        if n1:
+            data, vox, col = data_buf[:n1], vox_buf[:n1], col_buf[:n1]
+            top = np.take(fl_lo_all, cells, out=tmp_buf[:n1], mode="clip")
+            top += 1.0                                     # fl_lo + 1
+            np.minimum(np.take(u_hi_all, cells, out=data, mode="clip"), top, out=data)
+            data -= np.take(u_lo_all, cells)
+            np.add(np.take(base_less_1, cells, out=vox, mode="clip"), top, out=vox,
+                   casting="unsafe")
+            col[:] = cells
+            np.subtract(fl_hi_all, fl_lo_all, out=span_all)  # 0 where there is no material
+            last_cells = np.flatnonzero(span_all > 0)
+            n2 = n1 + last_cells.size
+            extra = []
+            if n2 > n1:
+                fl_hi = np.take(fl_hi_all, last_cells, out=tmp_buf[:n2 - n1], mode="clip")
+                last_data, last_vox = data_buf[n1:n2], vox_buf[n1:n2]
+                np.subtract(np.take(u_hi_all, last_cells, out=last_data, mode="clip"), fl_hi,
+                            out=last_data)
+                np.add(np.take(base_of_cell, last_cells, out=last_vox, mode="clip"), fl_hi,
+                       out=last_vox, casting="unsafe")
+                col_buf[n1:n2] = last_cells
+                mid_cells = np.flatnonzero(span_all > 1)
+                if mid_cells.size:
+                    n_whole = np.take(span_all, mid_cells).astype(np.int64) - 1
+                    first_of = np.cumsum(n_whole) - n_whole  # where each cell's run starts
+                    offset = (np.arange(int(first_of[-1] + n_whole[-1]), dtype=np.int32)
+                              - np.repeat(first_of.astype(np.int32), n_whole) + 1)
+                    bottom = (np.take(base_of_cell, mid_cells)
+                              + np.take(fl_lo_all, mid_cells).astype(np.int32))
+                    extra = [np.ones(offset.size), np.repeat(bottom, n_whole) + offset,
+                             np.repeat(mid_cells, n_whole)]
+            data, vox, col = data_buf[:n2], vox_buf[:n2], col_buf[:n2]
+            if extra:
+                data, vox, col = (np.concatenate((a, b)) for a, b in zip((data, vox, col),
+                                                                          extra))
+        u_lo_all, u_hi_all = u_hi_all, u_lo_all
+        fl_lo_all, fl_hi_all = fl_hi_all, fl_lo_all
+        if n1 == 0:
             continue
-        b_lo = np.floor(u_lo)
-        b_hi = np.ceil(u_hi) - 1.0  # >= b_lo because u_hi > u_lo
-        span = (b_hi - b_lo).astype(np.int64)  # bins after the first
-        # CSC layout: per cell its pieces [first, whole bins ..., last] contiguously
-        counts = np.zeros(ncell + 1, dtype=np.int64)
-        counts[cells + 1] = span + 1
-        indptr = np.cumsum(counts)
-        n_pieces = int(indptr[-1])
-        at_first = np.take(indptr, cells)
-        voxel = np.empty(n_pieces, dtype=np.int64)
-        data = np.empty(n_pieces)
-        base = np.take(base_of_cell, cells) + b_lo.astype(np.int64)
-        voxel[at_first] = base
-        data[at_first] = (np.minimum(u_hi, b_lo + 1.0) - u_lo) * piece_m3
-        two = np.flatnonzero(span > 0)
-        if two.size:
-            at_last = np.take(at_first, two) + np.take(span, two)
-            voxel[at_last] = np.take(base, two) + np.take(span, two)
-            data[at_last] = (np.take(u_hi, two) - np.take(b_hi, two)) * piece_m3
-            mid = np.flatnonzero(span > 1)
-            if mid.size:
-                # whole bins: (span - 1) per cell, at offsets 1 .. span - 1 from the first
-                n_mid = np.take(span, mid) - 1
-                first_of = np.cumsum(n_mid) - n_mid  # where each cell's run starts
-                offset = np.arange(int(n_mid.sum())) - np.repeat(first_of, n_mid) + 1
-                at_mid = np.repeat(np.take(at_first, mid), n_mid) + offset
-                voxel[at_mid] = np.repeat(np.take(base, mid), n_mid) + offset
-                data[at_mid] = piece_m3
-        touched[voxel] = True
+        touched[vox] = True
         nz = np.flatnonzero(touched)
         touched[nz] = False
-        compact[nz] = np.arange(nz.size)
-        rows = np.take(compact, voxel)
+        compact[nz] = np.arange(nz.size, dtype=np.int32)
+        rows = (np.take(compact, vox) if extra
+                else np.take(compact, vox, out=rows_buf[:vox.size], mode="clip"))
         q_k = np.bincount(rows, weights=data, minlength=nz.size)
+        q_k *= piece_m3
         q_flat.append(nz)
         q_dep.append(np.full(nz.size, k, dtype=np.int64))
         q_vol.append(q_k)
         if w is None or n_w == 0:
             continue
         if w.shape[:2] == (1, 1):
-            q_w.append(q_k[:, None] * w[0, 0][None, :])  # one weight vector for the deposit
+            q_wk = q_k[:, None] * w[0, 0][None, :]  # one weight vector for the deposit
         else:
-            pieces = sparse.csc_array((data, rows, indptr), shape=(nz.size, ncell))
-            q_w.append(pieces @ w.reshape(ncell, n_w))
+            pieces = sparse.coo_array((data, (rows, col)), shape=(nz.size, ncell))
+            q_wk = pieces @ w.reshape(ncell, n_w)
+            q_wk *= piece_m3
+        q_w.append(q_wk)
+        # voxel sums: the deposit's QVOs are distinct voxels, so a gather-add-scatter on
+        # the flat (voxel, weight) index is exact
+        at = (nz[:, None] * n_w + np.arange(n_w)).ravel()
+        weighted_flat[at] = np.take(weighted_flat, at) + q_wk.ravel()
 
     if q_flat:
         flat = np.concatenate(q_flat)
@@ -288,9 +326,7 @@ def integrate(stack: LayerStack, voxel_m: float,
         qvol = np.zeros(0)
         qw = np.zeros((0, n_w))
     volume = np.bincount(flat, weights=qvol, minlength=nvox)
-    weighted = np.empty((nvox, n_w))
-    for a in range(n_w):
-        weighted[:, a] = np.bincount(flat, weights=qw[:, a], minlength=nvox)
+    weighted = weighted_flat.reshape(nvox, n_w)
     vx, vy, vz = np.unravel_index(flat, (nvx, nvy, nvz))
     qvo = QVOTable(vx.astype(np.int64, copy=False), vy.astype(np.int64, copy=False),
                    vz.astype(np.int64, copy=False), deposit, qvol, qw)
