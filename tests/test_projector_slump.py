@@ -68,6 +68,53 @@ def test_relax_surface_conserves_volume_and_leaves_no_slope_steeper_than_repose(
     assert out[:, 0].max() < 6.0 and out[:, 29].min() >= 0.0 and out[:, 16].min() > 0.0
 
 
+def _relax_brute(top, base, cell_m, tan, tol_m):
+    """The same avalanche rule as relax_surface, column by column over the whole grid
+    every sweep (no block tracking), in plain Python."""
+    h = top.astype(float).copy()
+    nx, ny = h.shape
+    nbrs = [(dx, dy) for dx in (-1, 0, 1) for dy in (-1, 0, 1) if (dx, dy) != (0, 0)]
+    while True:
+        sends = []
+        for i in range(nx):
+            for j in range(ny):
+                ex = {}
+                for dx, dy in nbrs:
+                    a, b = i + dx, j + dy
+                    if 0 <= a < nx and 0 <= b < ny:
+                        e = h[i, j] - h[a, b] - tan * cell_m * math.hypot(dx, dy)
+                        if e > 0:
+                            ex[(a, b)] = e
+                mobile = h[i, j] - base[i, j]
+                if ex and max(ex.values()) > tol_m and mobile > 0:
+                    out = min(mobile, 0.5 * max(ex.values()))
+                    total = sum(ex.values())
+                    sends.append(((i, j), out, {c: out * e / total for c, e in ex.items()}))
+        if not sends:
+            return h
+        for (i, j), out, to in sends:     # all columns at once (Jacobi)
+            h[i, j] -= out
+            for c, v in to.items():
+                h[c] += v
+
+
+@pytest.mark.parametrize("seed", [3, 4])
+def test_relax_surface_equals_the_rule_applied_to_every_column(seed):
+    """Following only the block that moved gives what sweeping every column gives."""
+    print(f"seed={seed}")
+    rng = np.random.default_rng(seed)
+    base = rng.uniform(0.0, 0.2, (14, 17))
+    top = base + rng.uniform(0.0, 0.3, base.shape)
+    top[2:5, 3:6] += 2.0               # a tower that collapses
+    top[10:12, 12:16] += 1.2           # and a second one apart from it
+    tol = 0.01 * TAN37 * CELL
+    got = relax_surface(top, base, CELL, TAN37)
+    want = _relax_brute(top, base, CELL, TAN37, tol)
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-9)
+    assert got.sum() == pytest.approx(top.sum(), rel=1e-12)
+    assert np.all(got >= base - 1e-12)
+
+
 def test_relax_surface_rejects_bad_input():
     with pytest.raises(ValueError, match="shape"):
         relax_surface(np.zeros((3, 3)), np.zeros((3, 4)), CELL, TAN37)
@@ -75,6 +122,8 @@ def test_relax_surface_rejects_bad_input():
         relax_surface(np.zeros((3, 3)), np.zeros((3, 3)), CELL, -1.0)
     with pytest.raises(ValueError, match="finite"):
         relax_surface(np.full((3, 3), np.nan), np.zeros((3, 3)), CELL, TAN37)
+    with pytest.raises(ValueError, match="tol_m"):
+        relax_surface(np.zeros((3, 3)), np.zeros((3, 3)), CELL, TAN37, tol_m=-1.0)
 
 
 def test_slump_moves_material_with_its_composition():

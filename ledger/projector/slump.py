@@ -29,13 +29,8 @@ from ledger.projector.layers import LayerStack, Removal
 __all__ = ["estimate_repose_deg", "repose_floor", "relax_surface", "slump"]
 
 _SQRT2 = math.sqrt(2.0)
-# neighbour pairs: (slice of a, slice of b, distance in cells); b is a's neighbour
-_PAIRS = (
-    ((slice(1, None), slice(None)), (slice(None, -1), slice(None)), 1.0),
-    ((slice(None), slice(1, None)), (slice(None), slice(None, -1)), 1.0),
-    ((slice(1, None), slice(1, None)), (slice(None, -1), slice(None, -1)), _SQRT2),
-    ((slice(1, None), slice(None, -1)), (slice(None, -1), slice(1, None)), _SQRT2),
-)
+# the 8 neighbours of a column, (dx, dy) in cells
+_NEIGHBOURS = ((-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1))
 
 
 def _check_2d(name: str, a) -> np.ndarray:
@@ -162,13 +157,18 @@ def _unshear(sheared: np.ndarray, sign: int, shape: tuple[int, int]) -> np.ndarr
     return out
 
 
-def relax_surface(top_m, base_m, cell_m: float, tan_repose: float, *, rate: float = 0.25,
-                  tol_m: float = 1e-4, max_iter: int = 20000) -> np.ndarray:
-    """Let a surface slide until no slope between neighbours exceeds the repose angle.
+def relax_surface(top_m, base_m, cell_m: float, tan_repose: float, *,
+                  tol_m: float | None = None, max_iter: int = 100_000) -> np.ndarray:
+    """Let a surface slide until no column is steeper than the repose angle.
 
-    Material moves between neighbouring columns (the 4 axis and 4 diagonal neighbours),
-    from the higher to the lower, by ``rate`` times the height above the repose slope
-    per sweep, never below ``base_m``: the total volume is conserved exactly.
+    The avalanche relaxation of a critical-slope sandpile: in every sweep each column
+    whose drop to one of its 8 neighbours exceeds ``tan_repose`` x distance by more than
+    ``tol_m`` sends half of its largest excess (never more than it holds above
+    ``base_m``) to its lower neighbours, split in proportion to their excess.  All columns
+    send at once (Jacobi); nothing crosses the edge of the array, so the volume above
+    ``base_m`` is conserved exactly.  Sweeps after the first work on the block of columns
+    that sent in the sweep before, grown by one cell: nothing else can have become
+    unstable.
 
     Parameters
     ----------
@@ -178,44 +178,66 @@ def relax_surface(top_m, base_m, cell_m: float, tan_repose: float, *, rate: floa
         Cell edge (m).
     tan_repose : float
         Tangent of the steepest slope left standing (> 0).
-    rate : float
-        Share of the excess moved per sweep (0 < rate <= 0.25 keeps the sweeps stable).
-    tol_m : float
-        Stop when no sweep moves more than this (m).
+    tol_m : float, optional
+        Drop (m) beyond the repose slope that is left standing; default a hundredth of
+        the repose drop across one cell, ``0.01 * tan_repose * cell_m``.
     max_iter : int
         At most this many sweeps.
 
     Returns
     -------
     ndarray, shape (nx, ny)
-        The relaxed surface (m): same volume above ``base_m``.
+        The relaxed surface (m): same volume above ``base_m``; no drop to a neighbour
+        exceeds ``tan_repose`` x distance by more than ``tol_m`` where material is left
+        to move (after ``max_iter`` sweeps, possibly less settled).
     """
-    h = _check_2d("top_m", top_m).copy()
+    top = _check_2d("top_m", top_m)
     base = _check_2d("base_m", base_m)
-    if h.shape != base.shape:
-        raise ValueError(f"base_m must have the shape of top_m {h.shape}, got {base.shape}")
-    if not (np.all(np.isfinite(h)) and np.all(np.isfinite(base))):
+    if top.shape != base.shape:
+        raise ValueError(f"base_m must have the shape of top_m {top.shape}, got {base.shape}")
+    if not (np.all(np.isfinite(top)) and np.all(np.isfinite(base))):
         raise ValueError("top_m and base_m must be finite")
-    if not 0 < rate <= 0.25:
-        raise ValueError(f"rate must be in (0, 0.25], got {rate!r}")
     k = _check_tan(tan_repose) * float(cell_m)
-    for _ in range(int(max_iter)):
-        largest = 0.0
-        for a, b, d in _PAIRS:
-            diff = h[a] - h[b]
-            move = rate * (np.abs(diff) - k * d)
-            np.maximum(move, 0.0, out=move)
-            if not move.any():
-                continue
-            # positive flow: a -> b; limited to half of what lies above the source's base
-            flow = np.where(diff > 0, np.minimum(move, 0.5 * (h[a] - base[a])),
-                            -np.minimum(move, 0.5 * (h[b] - base[b])))
-            h[a] -= flow
-            h[b] += flow
-            largest = max(largest, float(np.abs(flow).max()))
-        if largest < tol_m:
-            break
-    return h
+    tol = 0.01 * k if tol_m is None else float(tol_m)
+    if not (math.isfinite(tol) and tol >= 0):
+        raise ValueError(f"tol_m must be finite and >= 0, got {tol_m!r}")
+    nx, ny = top.shape
+    # a ring of walls (+inf) round the surface: no drop toward it, nothing leaves
+    h = np.full((nx + 2, ny + 2), np.inf)
+    h[1:-1, 1:-1] = top
+    critical = [k * math.hypot(dx, dy) for dx, dy in _NEIGHBOURS]
+    r0, r1, c0, c1 = 1, nx + 1, 1, ny + 1      # the block swept (padded indices)
+    with np.errstate(invalid="ignore"):
+        for _ in range(int(max_iter)):
+            if r1 <= r0 or c1 <= c0:
+                break
+            block = h[r0 - 1:r1 + 1, c0 - 1:c1 + 1]
+            centre = block[1:-1, 1:-1]            # a view: the sweep updates h itself
+            rows, cols = r1 - r0, c1 - c0
+            excess = []
+            for (dx, dy), drop in zip(_NEIGHBOURS, critical):
+                e = centre - block[1 + dx:1 + dx + rows, 1 + dy:1 + dy + cols]
+                e -= drop
+                np.maximum(e, 0.0, out=e)        # -inf toward a wall -> 0
+                excess.append(e)
+            largest = np.maximum.reduce(excess)
+            mobile = centre - base[r0 - 1:r1 - 1, c0 - 1:c1 - 1]
+            send = (largest > tol) & (mobile > 0)
+            if not send.any():
+                break
+            out = np.minimum(mobile, 0.5 * largest)
+            out *= send
+            share = np.zeros_like(out)
+            np.divide(out, np.add.reduce(excess), out=share, where=send)
+            centre -= out
+            for (dx, dy), e in zip(_NEIGHBOURS, excess):
+                e *= share
+                h[r0 + dx:r1 + dx, c0 + dy:c1 + dy] += e
+            sx = np.flatnonzero(send.any(axis=1))
+            sy = np.flatnonzero(send.any(axis=0))
+            r0, r1 = max(1, r0 + int(sx[0]) - 1), min(nx + 1, r0 + int(sx[-1]) + 2)
+            c0, c1 = max(1, c0 + int(sy[0]) - 1), min(ny + 1, c0 + int(sy[-1]) + 2)
+    return h[1:-1, 1:-1].copy()
 
 
 def slump(stack: LayerStack, tan_repose: float, region: tuple[slice, slice] | None = None,
