@@ -33,7 +33,8 @@ from typing import Iterable, Mapping, Sequence
 
 import numpy as np
 
-__all__ = ["AssayRecord", "effective_assays", "grade_at", "timestamp_ns", "STATUSES"]
+__all__ = ["AssayRecord", "GradeClasses", "effective_assays", "grade_at", "grade_classes",
+           "timestamp_ns", "STATUSES"]
 
 #: Assay statuses, in increasing precedence.
 STATUSES: tuple[str, ...] = ("PROVISIONAL", "FINAL")
@@ -171,6 +172,77 @@ def effective_assays(assays: Iterable[AssayRecord], known_ns: int) -> list[Assay
     return out
 
 
+@dataclass(frozen=True, eq=False)
+class GradeClasses:
+    """Material of one lot sorted into the few grades it can take (:func:`grade_classes`).
+
+    Attributes
+    ----------
+    index : ndarray, shape (N,), int64
+        Class of each time: 0 = the planned grade, 1 = unknown time (NaN grade),
+        ``2 + i`` = the i-th applying assay.
+    grade : ndarray, shape (C, A)
+        Mass % of each class.
+    assayed : ndarray of bool, shape (C,)
+        Whether the class is an assay's.
+    density_t_m3 : ndarray, shape (C,)
+        The class's bulk density (NaN: the planned grade, an unknown time, or an assay
+        that reported none).
+    """
+
+    index: np.ndarray
+    grade: np.ndarray
+    assayed: np.ndarray
+    density_t_m3: np.ndarray
+
+
+def grade_classes(lot_id: str, planned_grade: Mapping[str, float],
+                  assays_effective: Sequence[AssayRecord], times_ns,
+                  analytes: tuple[str, ...]) -> GradeClasses:
+    """Which grade each deposition time of lot ``lot_id`` takes, as known at K.
+
+    The same rule as :func:`grade_at` with the grades kept once per class: a lot has a
+    few assays and its material many cells, so sums over cells are sums over classes
+    (``np.bincount(classes.index, weights)``) and never form an (N, A) array.
+
+    Parameters and errors as :func:`grade_at`.
+    """
+    times = np.asarray(times_ns)
+    if times.ndim != 1:
+        raise ValueError(f"times_ns must have shape (N,), got {times.shape}")
+    analytes = tuple(analytes)
+    n, n_a = times.shape[0], len(analytes)
+    planned = np.array([float(planned_grade.get(a, math.nan)) for a in analytes])
+    index = np.zeros(n, dtype=np.int64)
+    if times.dtype.kind in "iu":
+        t = times.astype(np.int64)
+        valid = None
+        bound = int
+    else:
+        t = times.astype(np.float64)
+        valid = ~np.isnan(t)
+        index[~valid] = 1
+        bound = float
+    rows = [planned, np.full(n_a, math.nan)]
+    assayed = [False, False]
+    density = [math.nan, math.nan]
+    mine = [a for a in assays_effective if a.lot_id == lot_id]
+    # lowest precedence first: later ones overwrite
+    mine.sort(key=lambda a: (a.is_final, a.recorded_ns, a.assay_id))
+    for a in mine:
+        with np.errstate(invalid="ignore"):
+            hit = (t >= bound(a.window_start_ns)) & (t <= bound(a.window_end_ns))  # NaN: no
+        if not hit.any():
+            continue
+        index[hit] = len(rows)
+        rows.append(np.array([a.analytes.get(name, planned[j])
+                              for j, name in enumerate(analytes)], dtype=np.float64))
+        assayed.append(True)
+        density.append(a.bulk_density_t_m3 if a.bulk_density_t_m3 > 0 else math.nan)
+    return GradeClasses(index, np.stack(rows).reshape(len(rows), n_a), np.array(assayed),
+                        np.array(density, dtype=np.float64))
+
+
 def grade_at(lot_id: str, planned_grade: Mapping[str, float],
              assays_effective: Sequence[AssayRecord], times_ns,
              analytes: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -204,35 +276,5 @@ def grade_at(lot_id: str, planned_grade: Mapping[str, float],
     ValueError
         If ``times_ns`` is not one-dimensional.
     """
-    times = np.asarray(times_ns)
-    if times.ndim != 1:
-        raise ValueError(f"times_ns must have shape (N,), got {times.shape}")
-    analytes = tuple(analytes)
-    n, n_a = times.shape[0], len(analytes)
-    planned = np.array([float(planned_grade.get(a, math.nan)) for a in analytes])
-    grade = np.tile(planned, (n, 1)) if n else np.zeros((0, n_a))
-    assayed = np.zeros(n, dtype=bool)
-    density = np.full(n, math.nan)
-    if times.dtype.kind in "iu":
-        valid = np.ones(n, dtype=bool)
-        t = times.astype(np.int64)
-        bound = int
-    else:
-        t = times.astype(np.float64)
-        valid = ~np.isnan(t)
-        bound = float
-    grade[~valid] = math.nan
-    mine = [a for a in assays_effective if a.lot_id == lot_id]
-    # lowest precedence first: later ones overwrite
-    mine.sort(key=lambda a: (a.is_final, a.recorded_ns, a.assay_id))
-    for a in mine:
-        with np.errstate(invalid="ignore"):
-            hit = valid & (t >= bound(a.window_start_ns)) & (t <= bound(a.window_end_ns))
-        if not hit.any():
-            continue
-        row = np.array([a.analytes.get(name, planned[j]) for j, name in enumerate(analytes)],
-                       dtype=np.float64)
-        grade[hit] = row
-        assayed[hit] = True
-        density[hit] = a.bulk_density_t_m3 if a.bulk_density_t_m3 > 0 else math.nan
-    return grade, assayed, density
+    c = grade_classes(lot_id, planned_grade, assays_effective, times_ns, analytes)
+    return c.grade[c.index], c.assayed[c.index], c.density_t_m3[c.index]

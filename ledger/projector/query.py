@@ -27,7 +27,8 @@ import numpy as np
 import zstandard
 
 from ledger.projector import fold as F
-from ledger.projector.grades import AssayRecord, effective_assays, grade_at
+from ledger.projector.grades import (AssayRecord, GradeClasses, effective_assays,
+                                     grade_classes)
 from ledger.projector.grid import GridGeometry
 
 __all__ = ["DepositSummary", "CutSummary", "PileState", "project", "SnapshotStore",
@@ -175,31 +176,37 @@ class _Join:
             self.by_lot.setdefault(a.lot_id, []).append(a)
         self.density_default = density_default
 
+    def classes(self, lot_id: str, times_ns: np.ndarray) -> GradeClasses:
+        """The grade classes of material of a lot deposited at these times
+        (:func:`ledger.projector.grades.grade_classes`), densities defaulted."""
+        planned = self.lots.get(lot_id)
+        if planned is None:   # an undeclared lot: no grade
+            n_a = len(self.analytes)
+            return GradeClasses(np.zeros(np.asarray(times_ns).shape[0], np.int64),
+                                np.full((1, n_a), np.nan), np.zeros(1, bool),
+                                np.array([self.density_default]))
+        c = grade_classes(lot_id, planned, self.by_lot.get(lot_id, []), times_ns,
+                          self.analytes)
+        density = np.where(np.isfinite(c.density_t_m3) & (c.density_t_m3 > 0), c.density_t_m3,
+                           self.density_default)
+        return GradeClasses(c.index, c.grade, c.assayed, density)
+
     def cells(self, lot_id: str, times_ns: np.ndarray):
         """``(grade (N, A), assayed (N,), density t/m3 (N,))`` for material of a lot."""
-        times = np.asarray(times_ns, np.float64)
-        planned = self.lots.get(lot_id)
-        if planned is None:
-            grade = np.full((times.size, len(self.analytes)), np.nan)
-            return grade, np.zeros(times.size, bool), np.full(times.size, self.density_default)
-        grade, assayed, density = grade_at(lot_id, planned, self.by_lot.get(lot_id, []), times,
-                                           self.analytes)
-        density = np.where(np.isfinite(density) & (density > 0), density, self.density_default)
-        return grade, assayed, density
+        c = self.classes(lot_id, times_ns)
+        return c.grade[c.index], c.assayed[c.index], c.density_t_m3[c.index]
 
-    def material(self, lot_id: str, times_ns, volumes_m3, cells=None):
-        """``(tonnes, grade-tonnes (A,), assayed tonnes, graded tonnes)`` of some material.
-
-        ``cells``: the :meth:`cells` result for these times, when the caller has it.
-        """
+    def material(self, lot_id: str, times_ns, volumes_m3):
+        """``(tonnes, grade-tonnes (A,), assayed tonnes, graded tonnes)`` of some material
+        (volumes summed per grade class, so per class, not per cell, work)."""
         volumes = np.asarray(volumes_m3, np.float64)
         if volumes.size == 0:
             return 0.0, np.zeros(len(self.analytes)), 0.0, 0.0
-        grade, assayed, density = cells if cells is not None else self.cells(lot_id, times_ns)
-        tonnes = volumes * density
-        graded = np.isfinite(grade).all(axis=1)
-        sums = tonnes[graded] @ grade[graded]
-        return (float(tonnes.sum()), sums, float(tonnes[assayed].sum()),
+        c = self.classes(lot_id, times_ns)
+        tonnes = np.bincount(c.index, weights=volumes, minlength=len(c.assayed)) * c.density_t_m3
+        graded = np.isfinite(c.grade).all(axis=1)
+        sums = tonnes[graded] @ c.grade[graded]
+        return (float(tonnes.sum()), sums, float(tonnes[c.assayed].sum()),
                 float(tonnes[graded].sum()))
 
 
