@@ -17,7 +17,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from ledger.projector.envelope import Reclaimer, cut_floor, in_slew_arc, wheel_centre
-from ledger.projector.grades import AssayRecord, effective_assays, grade_at
+from ledger.projector.grades import AssayRecord, effective_assays, grade_at, grade_classes
 from ledger.projector.grid import GridGeometry, cell_centre
 from ledger.projector.layers import DepositInfo, LayerStack
 from ledger.projector.voxels import integrate
@@ -682,6 +682,48 @@ def test_final_replaces_an_overlapping_provisional_of_the_same_lot():
     pv = _assay("PV", "L", 2.0, 2.5, 40.0, status="PROVISIONAL", rec_h=20)
     grade, _, _ = grade_at("L", PLANNED, [pv, f_a], times[:1], ANALYTES)
     assert grade[0, 0] == 61.0
+
+
+@pytest.mark.parametrize("seed", [11, 12])
+def test_grade_classes_sum_like_a_per_cell_loop(seed):
+    """Tonnes and grade-tonnes summed per class equal a loop over the cells applying the
+    precedence rule of the module docstring to each time."""
+    print(f"seed={seed}")
+    rng = np.random.default_rng(seed)
+    assays = [_assay("A", "L", 0.0, 1.0, 61.0, rec_h=3, density=2.5),
+              _assay("B", "L", 0.5, 2.0, 58.0, status="PROVISIONAL", rec_h=6, density=0.0),
+              _assay("C", "L", 1.5, 2.5, 63.5, rec_h=4, density=2.2,
+                     analytes={"Fe": 63.5, "SiO2": 3.0}),
+              _assay("D", "M", 0.0, 3.0, 40.0)]
+    n = 500
+    times = T0 + rng.uniform(-0.5, 3.0, n) * H
+    times[rng.random(n) < 0.05] = np.nan
+    volumes = rng.uniform(0.0, 1.0, n)
+    c = grade_classes("L", PLANNED, assays, times, ANALYTES)
+    tonnes_c = np.bincount(c.index, weights=volumes, minlength=len(c.assayed)) * np.where(
+        np.isfinite(c.density_t_m3), c.density_t_m3, 2.0)
+    graded = np.isfinite(c.grade).all(axis=1)
+    fe_c = float(tonnes_c[graded] @ c.grade[graded, 0])
+    tonnes, fe_t, assayed_t = 0.0, 0.0, 0.0
+    rank = {"PROVISIONAL": 0, "FINAL": 1}
+    for t, v in zip(times, volumes):
+        if np.isnan(t):
+            tonnes += v * 2.0
+            continue
+        hits = [a for a in assays if a.lot_id == "L" and a.window_start_ns <= t <= a.window_end_ns]
+        best = max(hits, key=lambda a: (rank[a.status], a.recorded_ns, a.assay_id), default=None)
+        d = best.bulk_density_t_m3 if best is not None and best.bulk_density_t_m3 > 0 else 2.0
+        fe = best.analytes["Fe"] if best is not None else PLANNED["Fe"]
+        tonnes += v * d
+        fe_t += v * d * fe
+        assayed_t += v * d if best is not None else 0.0
+    assert float(tonnes_c.sum()) == pytest.approx(tonnes, rel=1e-12)
+    assert fe_c == pytest.approx(fe_t, rel=1e-12)
+    assert float(tonnes_c[c.assayed].sum()) == pytest.approx(assayed_t, rel=1e-12)
+    # grade_at is the same classes, per cell
+    grade, assayed, dens = grade_at("L", PLANNED, assays, times, ANALYTES)
+    np.testing.assert_array_equal(grade, c.grade[c.index])
+    np.testing.assert_array_equal(assayed, c.assayed[c.index])
 
 
 def test_grade_at_planned_fallback_nan_times_and_missing_analytes():
