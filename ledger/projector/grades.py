@@ -216,12 +216,10 @@ def grade_classes(lot_id: str, planned_grade: Mapping[str, float],
     index = np.zeros(n, dtype=np.int64)
     if times.dtype.kind in "iu":
         t = times.astype(np.int64)
-        valid = None
         bound = int
     else:
         t = times.astype(np.float64)
-        valid = ~np.isnan(t)
-        index[~valid] = 1
+        index[np.isnan(t)] = 1
         bound = float
     rows = [planned, np.full(n_a, math.nan)]
     assayed = [False, False]

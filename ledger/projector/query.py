@@ -187,14 +187,9 @@ class _Join:
                                 np.array([self.density_default]))
         c = grade_classes(lot_id, planned, self.by_lot.get(lot_id, []), times_ns,
                           self.analytes)
-        density = np.where(np.isfinite(c.density_t_m3) & (c.density_t_m3 > 0), c.density_t_m3,
-                           self.density_default)
+        # grade_classes leaves NaN where no density was reported
+        density = np.where(np.isfinite(c.density_t_m3), c.density_t_m3, self.density_default)
         return GradeClasses(c.index, c.grade, c.assayed, density)
-
-    def cells(self, lot_id: str, times_ns: np.ndarray):
-        """``(grade (N, A), assayed (N,), density t/m3 (N,))`` for material of a lot."""
-        c = self.classes(lot_id, times_ns)
-        return c.grade[c.index], c.assayed[c.index], c.density_t_m3[c.index]
 
     def material(self, lot_id: str, times_ns, volumes_m3):
         """``(tonnes, grade-tonnes (A,), assayed tonnes, graded tonnes)`` of some material
@@ -260,10 +255,10 @@ def _deposit_weights(state: F.ProjectorState, join: _Join) -> list[np.ndarray]:
         w = np.zeros(state.pile.geometry.shape + (1 + len(join.analytes),))
         cells, _thick, times = stack.deposit_cells(k)
         if cells.size:
-            grade, _assayed, density = join.cells(stack.info(k).lot_id, times)
-            flat = w.reshape(-1, w.shape[-1])
-            flat[cells, 0] = density
-            flat[cells, 1:] = density[:, None] * np.nan_to_num(grade)
+            c = join.classes(stack.info(k).lot_id, times)
+            per_class = np.column_stack([c.density_t_m3,
+                                         c.density_t_m3[:, None] * np.nan_to_num(c.grade)])
+            w.reshape(-1, w.shape[-1])[cells] = per_class[c.index]
         weights.append(w)
     return weights
 

@@ -168,7 +168,8 @@ def relax_surface(top_m, base_m, cell_m: float, tan_repose: float, *,
     send at once (Jacobi); nothing crosses the edge of the array, so the volume above
     ``base_m`` is conserved exactly.  Sweeps after the first work on the block of columns
     that sent in the sweep before, grown by one cell: nothing else can have become
-    unstable.
+    unstable.  (The simulator's ``World._relax`` follows the same physical rule in its own
+    code on purpose: it is the ground truth the projector is measured against.)
 
     Parameters
     ----------

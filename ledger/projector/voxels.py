@@ -219,7 +219,7 @@ def integrate(stack: LayerStack, voxel_m: float,
     touched = np.zeros(nvox, dtype=bool)       # scratch: voxels one deposit reaches
     compact = np.zeros(nvox, dtype=np.int32)   # scratch: voxel -> row of the deposit's QVOs
     q_flat, q_dep, q_vol, q_w = [], [], [], []
-    weighted_flat = np.zeros(nvox * n_w)  # (nvox, n_w) flat: per-cell weighted voxel sums
+    weighted_flat = np.zeros(nvox * n_w)  # (nvox, n_w) flat: each voxel's weighted sums
 
     # every surface in bins: u = (z - z0) / voxel_m, and its bin floor(u) (as float); a
     # surface's u and floor serve the deposit below it and the deposit above it.  Two
@@ -250,11 +250,11 @@ def integrate(stack: LayerStack, voxel_m: float,
         n1 = cells.size
         if n1:
             data, vox, col = data_buf[:n1], vox_buf[:n1], col_buf[:n1]
-            top = np.take(fl_lo_all, cells, out=tmp_buf[:n1], mode="clip")
-            top += 1.0                                     # fl_lo + 1
-            np.minimum(np.take(u_hi_all, cells, out=data, mode="clip"), top, out=data)
+            next_bin = np.take(fl_lo_all, cells, out=tmp_buf[:n1], mode="clip")
+            next_bin += 1.0                                # fl_lo + 1
+            np.minimum(np.take(u_hi_all, cells, out=data, mode="clip"), next_bin, out=data)
             data -= np.take(u_lo_all, cells)
-            np.add(np.take(base_less_1, cells, out=vox, mode="clip"), top, out=vox,
+            np.add(np.take(base_less_1, cells, out=vox, mode="clip"), next_bin, out=vox,
                    casting="unsafe")
             col[:] = cells
             np.subtract(fl_hi_all, fl_lo_all, out=span_all)  # 0 where there is no material
