@@ -20,7 +20,7 @@ from ledger.projector.envelope import Reclaimer, cut_floor, in_slew_arc, wheel_c
 from ledger.projector.grades import AssayRecord, effective_assays, grade_at, grade_classes
 from ledger.projector.grid import GridGeometry, cell_centre
 from ledger.projector.layers import DepositInfo, LayerStack
-from ledger.projector.voxels import integrate
+from ledger.projector.voxels import ClassWeights, integrate
 
 T0 = 1_700_000_000 * 10**9  # an arbitrary UTC epoch (ns)
 H = 3_600 * 10**9           # one hour (ns)
@@ -576,6 +576,44 @@ def test_voxel_weights_give_tonnes_and_grades():
     vg_nan = integrate(stack, 1.0, nan_w)
     assert np.all(np.isfinite(vg_nan.weighted))
     np.testing.assert_allclose(vg_nan.weighted[..., 0], tonnes, rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize("seed", [51, 52])
+def test_class_weights_against_the_brute_force_loop(seed):
+    """Weights given as a class per cell and a table (one to four classes per deposit, NaN
+    in a class no cell of the deposit uses) equal the brute-force sums of table[class]."""
+    print(f"seed={seed}")
+    stack = _random_stack(seed, quantum=0.25 if seed % 2 else None)
+    g = stack.geometry
+    rng = np.random.default_rng(seed)
+    classed, per_cell = [], []
+    for k in range(1, stack.n_deposits + 1):
+        n_c = int(rng.integers(1, 5))
+        table = rng.uniform(1.0, 3.0, (n_c + 1, 3))
+        table[n_c] = np.nan                      # an extra class no cell uses
+        index = rng.integers(0, n_c, g.shape).astype(np.uint8)
+        classed.append(ClassWeights(index, table))
+        per_cell.append(table[index])
+    vg = integrate(stack, 1.0, classed)
+    want, want_w = _voxels_brute(stack, 1.0, per_cell)
+    rows = {(int(a), int(b), int(c), int(d)): i for i, (a, b, c, d) in
+            enumerate(zip(vg.qvo.ix, vg.qvo.iy, vg.qvo.iz, vg.qvo.deposit))}
+    assert set(rows) <= set(want)
+    for key, v in want.items():
+        if key in rows:
+            np.testing.assert_allclose(vg.qvo.weighted[rows[key]], want_w[key], rtol=1e-9,
+                                       atol=1e-12)
+        else:
+            assert v < 1e-12
+    wsum = np.zeros(vg.shape + (3,))
+    for (a, b, c, _d), wv in want_w.items():
+        wsum[a, b, c] += wv
+    np.testing.assert_allclose(vg.weighted, wsum, rtol=1e-9, atol=1e-12)
+    with pytest.raises(ValueError):
+        ClassWeights(np.full(g.shape, 5, np.uint8), np.ones((2, 3)))  # class 5 of 2
+    with pytest.raises(ValueError):
+        integrate(stack, 1.0, [ClassWeights(np.zeros((2, 2), np.uint8), np.ones((1, 3)))]
+                  * stack.n_deposits)                                  # wrong grid
 
 
 def _qvo_dense(vg, k):

@@ -246,20 +246,27 @@ def summarise(state: F.ProjectorState, lots, assays, *, valid_time_ns: int,
                      dict(state.counters), state, analytes, join)
 
 
-def _deposit_weights(state: F.ProjectorState, join: _Join) -> list[np.ndarray]:
-    """Per deposit, ``(nx, ny, 1 + A)`` weights: bulk density (t/m3), then density x grade
-    (t/m3 x %) per analyte, for :func:`ledger.projector.voxels.integrate`."""
+def _deposit_weights(state: F.ProjectorState, join: _Join) -> list["ClassWeights"]:
+    """Per deposit, :class:`ledger.projector.voxels.ClassWeights` for
+    :func:`ledger.projector.voxels.integrate`: each cell's grade class and per class the bulk
+    density (t/m3), then density x grade (t/m3 x %) per analyte."""
+    from ledger.projector.voxels import ClassWeights
+
     stack = state.stack
+    shape = state.pile.geometry.shape
     weights = []
     for k in range(1, stack.n_deposits + 1):
-        w = np.zeros(state.pile.geometry.shape + (1 + len(join.analytes),))
         cells, _thick, times = stack.deposit_cells(k)
-        if cells.size:
-            c = join.classes(stack.info(k).lot_id, times)
-            per_class = np.column_stack([c.density_t_m3,
-                                         c.density_t_m3[:, None] * np.nan_to_num(c.grade)])
-            w.reshape(-1, w.shape[-1])[cells] = per_class[c.index]
-        weights.append(w)
+        if not cells.size:
+            weights.append(ClassWeights(np.zeros(shape, np.uint8),
+                                        np.zeros((1, 1 + len(join.analytes)))))
+            continue
+        c = join.classes(stack.info(k).lot_id, times)
+        table = np.column_stack([c.density_t_m3,
+                                 c.density_t_m3[:, None] * np.nan_to_num(c.grade)])
+        index = np.zeros(shape, np.min_scalar_type(table.shape[0] - 1))
+        index.ravel()[cells] = c.index
+        weights.append(ClassWeights(index, table))
     return weights
 
 

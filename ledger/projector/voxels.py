@@ -18,15 +18,19 @@ sum over the voxel's pieces of volume x weight (tonnes, tonnes of analyte), and 
 grade is ``100 * weighted[..., 1 + a] / weighted[..., 0]``.
 
 Cost: per deposit a few vectorised passes over the cells with material (into buffers
-reused by every deposit) and one sparse-dense product (pieces x weights); no cells x
-deposits x bins cube is formed.  The full-scale case (220 m x 60 m pile, 0.25 m cells, 1 m
-voxels, 60 chevron deposits, 6 weights; 1.3 M QVOs) takes 0.8-1.0 s on one core of the
-development machine when its memory is warm and 1.1-1.5 s in a fresh process, where page
-faults on new memory add 0.2-0.5 s of system time (``bench/projector.py`` section 2).
+reused by every deposit) and, for the weights, one bincount of the pieces per (grade
+class, QVO) (:class:`ClassWeights`, the form the query uses) or one sparse-dense product
+(per-cell weight arrays); no cells x deposits x bins cube is formed, and the QVO table is
+written once into buffers reserved with ``np.empty``.  The full-scale case (220 m x 60 m
+pile, 0.25 m cells, 1 m voxels, 60 chevron deposits of 1-3 grade classes, 6 weights;
+1.3 M QVOs) takes about 0.5 s on one core of the development machine with warm memory and
+0.5-0.75 s as a fresh process's first query, where page faults on new memory add up to
+0.25 s of system time (``bench/projector.py`` section 2).
 """
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 from typing import Sequence
@@ -36,7 +40,43 @@ from scipy import sparse
 
 from ledger.projector.layers import LayerStack
 
-__all__ = ["QVOTable", "VoxelGrid", "integrate", "cells_per_voxel"]
+__all__ = ["ClassWeights", "QVOTable", "VoxelGrid", "integrate", "cells_per_voxel"]
+
+
+@dataclass(frozen=True, eq=False)
+class ClassWeights:
+    """Per-cell weights of one deposit as a class per cell and one weight row per class.
+
+    A deposit's material takes a few grades (the lot's planned grade and the grades of the
+    assays whose sampling windows cover its deposition times,
+    :func:`ledger.projector.grades.grade_classes`), so its per-cell weights are a small
+    table indexed by a class map; :func:`integrate` then sums volumes per (QVO, class) and
+    multiplies by the table once, instead of reading A weights per cell.
+
+    Attributes
+    ----------
+    index : ndarray, shape (nx, ny), integer
+        Class of each cell, in ``0 .. C - 1`` (any class where the deposit has no material).
+    table : ndarray, shape (C, A)
+        Weights of each class.  A class no piece of the deposit uses is ignored (NaN is
+        fine there); a used class's NaN propagates to the voxels it reaches.
+    """
+
+    index: np.ndarray
+    table: np.ndarray
+
+    def __post_init__(self) -> None:
+        index, table = np.asarray(self.index), np.asarray(self.table, dtype=np.float64)
+        if index.ndim != 2 or index.dtype.kind not in "iu":
+            raise ValueError(f"index must be an (nx, ny) integer array, got "
+                             f"{index.dtype} {index.shape}")
+        if table.ndim != 2 or table.shape[0] < 1:
+            raise ValueError(f"table must have shape (C, A) with C >= 1, got {table.shape}")
+        if index.size and (int(index.min()) < 0 or int(index.max()) >= table.shape[0]):
+            raise ValueError(f"index must lie in 0 .. {table.shape[0] - 1}, got "
+                             f"{int(index.min())} .. {int(index.max())}")
+        object.__setattr__(self, "index", index)
+        object.__setattr__(self, "table", table)
 
 
 @dataclass(frozen=True, eq=False)
@@ -45,8 +85,10 @@ class QVOTable:
 
     Attributes
     ----------
-    ix, iy, iz : ndarray, shape (m,), int64
-        Voxel indices.
+    flat : ndarray, shape (m,), int64
+        Flat voxel index into ``grid_shape`` (C order).
+    grid_shape : tuple of int
+        ``(nvx, nvy, nvz)``.
     deposit : ndarray, shape (m,), int64
         Deposit index (1-based, :class:`ledger.projector.layers.LayerStack`).
     volume_m3 : ndarray, shape (m,)
@@ -54,19 +96,80 @@ class QVOTable:
     weighted : ndarray, shape (m, A)
         Sum over the QVO's pieces of volume x per-cell weight (e.g. tonnes, tonnes of an
         analyte); A = 0 without weights.
+    ix, iy, iz : ndarray, shape (m,), int64
+        Voxel indices (computed from ``flat`` on first use).
 
     Rows are ordered by deposit, then by voxel (ix, iy, iz) lexicographically.
     """
 
-    ix: np.ndarray
-    iy: np.ndarray
-    iz: np.ndarray
+    flat: np.ndarray
+    grid_shape: tuple[int, int, int]
     deposit: np.ndarray
     volume_m3: np.ndarray
     weighted: np.ndarray
 
     def __len__(self) -> int:
         return int(self.volume_m3.size)
+
+    @functools.cached_property
+    def _indices(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        return tuple(i.astype(np.int64, copy=False)  # type: ignore[return-value]
+                     for i in np.unravel_index(self.flat, self.grid_shape))
+
+    @property
+    def ix(self) -> np.ndarray:
+        return self._indices[0]
+
+    @property
+    def iy(self) -> np.ndarray:
+        return self._indices[1]
+
+    @property
+    def iz(self) -> np.ndarray:
+        return self._indices[2]
+
+
+class _QVOColumns:
+    """The QVO table's columns, appended deposit by deposit into buffers that grow rarely.
+
+    Capacity is reserved with ``np.empty``, whose pages the kernel maps only when written,
+    so reserving generously costs nothing; copying per-deposit pieces into lists and
+    concatenating them at the end would touch the table's memory twice.
+    """
+
+    def __init__(self, n_weights: int) -> None:
+        self.n_w = n_weights
+        self.size = 0
+        self.flat = np.empty(0, np.int64)
+        self.deposit = np.empty(0, np.int64)
+        self.volume = np.empty(0)
+        self.weighted_t = np.empty((n_weights, 0))   # (A, capacity): columns contiguous
+
+    def append(self, flat, volume, weighted_t, deposit: int, deposits_left: int) -> None:
+        """Append one deposit's QVOs; ``weighted_t`` is their weighted sums transposed,
+        shape (A, n)."""
+        n, end = flat.size, self.size + flat.size
+        if end > self.flat.size:   # reserve room for the deposits left at this one's size
+            cap = max(end + n * deposits_left, (3 * self.flat.size) // 2)
+            for name in ("flat", "deposit", "volume"):
+                old = getattr(self, name)
+                new = np.empty(cap, old.dtype)
+                new[:self.size] = old[:self.size]
+                setattr(self, name, new)
+            new = np.empty((self.n_w, cap))
+            new[:, :self.size] = self.weighted_t[:, :self.size]
+            self.weighted_t = new
+        self.flat[self.size:end] = flat
+        self.deposit[self.size:end] = deposit
+        self.volume[self.size:end] = volume
+        if self.n_w:
+            self.weighted_t[:, self.size:end] = weighted_t
+        self.size = end
+
+    def table(self, grid_shape: tuple[int, int, int]) -> QVOTable:
+        m = self.size
+        return QVOTable(self.flat[:m], grid_shape, self.deposit[:m], self.volume[:m],
+                        self.weighted_t[:, :m].T)
 
 
 @dataclass(frozen=True, eq=False)
@@ -133,8 +236,18 @@ def cells_per_voxel(cell_m: float, voxel_m: float) -> int:
     return m
 
 
-def _weights_for(weights, k: int, shape: tuple[int, int], n_weights: int | None) -> np.ndarray:
-    w = np.asarray(weights[k - 1], dtype=np.float64)
+def _weights_for(weights, k: int, shape: tuple[int, int],
+                 n_weights: int | None) -> "np.ndarray | ClassWeights":
+    w = weights[k - 1]
+    if isinstance(w, ClassWeights):
+        if w.index.shape != shape:
+            raise ValueError(f"weights[{k - 1}].index must have shape {shape}, got "
+                             f"{w.index.shape}")
+        if n_weights is not None and w.table.shape[1] != n_weights:
+            raise ValueError(f"weights[{k - 1}] has {w.table.shape[1]} weights, expected "
+                             f"{n_weights}")
+        return w
+    w = np.asarray(w, dtype=np.float64)
     if w.ndim == 1:
         w = w[None, None, :]
     if w.ndim != 3 or w.shape[:2] not in (shape, (1, 1)):
@@ -143,6 +256,15 @@ def _weights_for(weights, k: int, shape: tuple[int, int], n_weights: int | None)
     if n_weights is not None and w.shape[2] != n_weights:
         raise ValueError(f"weights[{k - 1}] has {w.shape[2]} weights, expected {n_weights}")
     return w
+
+
+def _nonzero(flat: np.ndarray, volume: np.ndarray, weighted_t: np.ndarray | None):
+    """``(flat, volume, weighted_t)`` without the QVOs of zero volume (a band ending exactly
+    on a bin edge leaves an empty last piece); ``weighted_t`` has shape (A, n)."""
+    keep = volume > 0
+    if keep.all():
+        return flat, volume, weighted_t
+    return flat[keep], volume[keep], None if weighted_t is None else weighted_t[:, keep]
 
 
 def integrate(stack: LayerStack, voxel_m: float,
@@ -155,10 +277,11 @@ def integrate(stack: LayerStack, voxel_m: float,
         The layer stack (n deposits on a grid of ``nx x ny`` cells of ``cell_m``).
     voxel_m : float
         Voxel edge (m), an integer multiple of ``cell_m``.
-    weights : sequence of ndarray, optional
-        One array per deposit (``weights[k - 1]`` for deposit k), each of shape
+    weights : sequence of ndarray or ClassWeights, optional
+        One entry per deposit (``weights[k - 1]`` for deposit k): an array of shape
         ``(nx, ny, A)`` (per-cell weights) or ``(A,)`` (one weight vector for the whole
-        deposit), with the same ``A`` for all.  Read one at a time, so a lazy sequence
+        deposit), or a :class:`ClassWeights` (a class per cell, a (C, A) table; the
+        cheapest form when a deposit takes a few grades), with the same ``A`` for all.  Read one at a time, so a lazy sequence
         works.  Weights of cells where the deposit has no material are ignored (NaN is
         fine there).
 
@@ -215,11 +338,11 @@ def integrate(stack: LayerStack, voxel_m: float,
     n_w = 0
     if weights is not None and n > 0:
         w_first = _weights_for(weights, 1, (nx, ny), None)
-        n_w = w_first.shape[2]
+        n_w = (w_first.table.shape[1] if isinstance(w_first, ClassWeights)
+               else w_first.shape[2])
     touched = np.zeros(nvox, dtype=bool)       # scratch: voxels one deposit reaches
     compact = np.zeros(nvox, dtype=np.int32)   # scratch: voxel -> row of the deposit's QVOs
-    q_flat, q_dep, q_vol, q_w = [], [], [], []
-    weighted_flat = np.zeros(nvox * n_w)  # (nvox, n_w) flat: each voxel's weighted sums
+    out = _QVOColumns(n_w)
 
     # every surface in bins: u = (z - z0) / voxel_m, and its bin floor(u) (as float); a
     # surface's u and floor serve the deposit below it and the deposit above it.  Two
@@ -295,41 +418,37 @@ def integrate(stack: LayerStack, voxel_m: float,
                 else np.take(compact, vox, out=rows_buf[:vox.size], mode="clip"))
         q_k = np.bincount(rows, weights=data, minlength=nz.size)
         q_k *= piece_m3
-        q_flat.append(nz)
-        q_dep.append(np.full(nz.size, k, dtype=np.int64))
-        q_vol.append(q_k)
         if w is None or n_w == 0:
+            out.append(*_nonzero(nz, q_k, None), k, n - k)
             continue
-        if w.shape[:2] == (1, 1):
-            q_wk = q_k[:, None] * w[0, 0][None, :]  # one weight vector for the deposit
+        if isinstance(w, ClassWeights):
+            n_c = w.table.shape[0]
+            if n_c == 1:
+                q_wt = w.table[0][:, None] * q_k[None, :]
+            else:
+                # volume per (class, QVO), then the class table: one bincount, no per-cell
+                # weight rows
+                key = np.multiply(np.take(w.index.ravel(), col), nz.size, dtype=np.int64)
+                key += rows
+                per_class = np.bincount(key, weights=data, minlength=nz.size * n_c)
+                per_class = per_class.reshape(n_c, nz.size)
+                used = np.flatnonzero(per_class.any(axis=1))
+                q_wt = w.table[used].T @ per_class[used]
+                q_wt *= piece_m3
+        elif w.shape[:2] == (1, 1):
+            q_wt = w[0, 0][:, None] * q_k[None, :]  # one weight vector for the deposit
         else:
             pieces = sparse.coo_array((data, (rows, col)), shape=(nz.size, ncell))
-            q_wk = pieces @ w.reshape(ncell, n_w)
-            q_wk *= piece_m3
-        q_w.append(q_wk)
-        # voxel sums: the deposit's QVOs are distinct voxels, so a gather-add-scatter on
-        # the flat (voxel, weight) index is exact
-        at = (nz[:, None] * n_w + np.arange(n_w)).ravel()
-        weighted_flat[at] = np.take(weighted_flat, at) + q_wk.ravel()
+            q_wt = (pieces @ w.reshape(ncell, n_w)).T
+            q_wt *= piece_m3
+        out.append(*_nonzero(nz, q_k, q_wt), k, n - k)
 
-    if q_flat:
-        flat = np.concatenate(q_flat)
-        deposit = np.concatenate(q_dep)
-        qvol = np.concatenate(q_vol)
-        qw = np.concatenate(q_w) if n_w else np.zeros((flat.size, 0))
-        keep = np.flatnonzero(qvol > 0)
-        if keep.size < flat.size:
-            flat, deposit, qvol, qw = flat[keep], deposit[keep], qvol[keep], qw[keep]
-    else:
-        flat = np.zeros(0, dtype=np.int64)
-        deposit = np.zeros(0, dtype=np.int64)
-        qvol = np.zeros(0)
-        qw = np.zeros((0, n_w))
-    volume = np.bincount(flat, weights=qvol, minlength=nvox)
-    weighted = weighted_flat.reshape(nvox, n_w)
-    vx, vy, vz = np.unravel_index(flat, (nvx, nvy, nvz))
-    qvo = QVOTable(vx.astype(np.int64, copy=False), vy.astype(np.int64, copy=False),
-                   vz.astype(np.int64, copy=False), deposit, qvol, qw)
+    qvo = out.table((nvx, nvy, nvz))
+    volume = np.bincount(qvo.flat, weights=qvo.volume_m3, minlength=nvox)
+    # a voxel's weighted sums are the sums of its QVOs'
+    weighted = np.empty((nvox, n_w))
+    for a in range(n_w):   # qvo.weighted's columns are contiguous
+        weighted[:, a] = np.bincount(qvo.flat, weights=qvo.weighted[:, a], minlength=nvox)
     return VoxelGrid(
         voxel_m=v, origin_x_m=geometry.origin_x_m, origin_y_m=geometry.origin_y_m, z0_m=z0,
         cells_per_voxel=m, volume_m3=volume.reshape(nvx, nvy, nvz),
