@@ -346,26 +346,17 @@ def join_inventory(inv, lots: dict, assays: list, known_ns: int, analytes: tuple
                    density_default: float) -> tuple[float, dict[str, float], float]:
     """``(tonnes, grade %, assayed fraction)`` of an inventory as known at K (the join of
     :func:`ledger.projector.query.summarise`, per deposition-time bin)."""
-    from ledger.projector.grades import effective_assays, grade_at
+    from ledger.projector.query import GradeJoin
 
-    by_lot: dict[str, list] = {}
-    for a in effective_assays(assays, int(known_ns)):
-        by_lot.setdefault(a.lot_id, []).append(a)
+    join = GradeJoin(lots, assays, int(known_ns), density_default, tuple(analytes))
     tonnes, assayed_t, graded_t = 0.0, 0.0, 0.0
     sums = np.zeros(len(analytes))
     for lot, times, vols in inv:
-        planned = lots.get(lot)
-        if planned is None:
-            tonnes += float(vols.sum()) * density_default
-            continue
-        grade, assayed, density = grade_at(lot, planned, by_lot.get(lot, []), times, analytes)
-        density = np.where(np.isfinite(density) & (density > 0), density, density_default)
-        t = vols * density
-        graded = np.isfinite(grade).all(axis=1)
-        tonnes += float(t.sum())
-        sums += (t[graded, None] * grade[graded]).sum(axis=0)
-        assayed_t += float(t[assayed].sum())
-        graded_t += float(t[graded].sum())
+        t, s, a_t, g_t = join.material(lot, times, vols)
+        tonnes += t
+        sums += s
+        assayed_t += a_t
+        graded_t += g_t
     grade = ({a: float(s / graded_t) for a, s in zip(analytes, sums)} if graded_t > 0
              else {a: math.nan for a in analytes})
     return tonnes, grade, (assayed_t / tonnes if tonnes > 0 else 0.0)

@@ -31,7 +31,7 @@ from ledger.projector.grades import (AssayRecord, GradeClasses, effective_assays
                                      grade_classes)
 from ledger.projector.grid import GridGeometry
 
-__all__ = ["DepositSummary", "CutSummary", "PileState", "project", "SnapshotStore",
+__all__ = ["DepositSummary", "GradeJoin", "CutSummary", "PileState", "project", "SnapshotStore",
            "CANONICAL_ANALYTES"]
 
 CANONICAL_ANALYTES = ("Fe", "SiO2", "Al2O3", "P", "LOI")
@@ -84,7 +84,7 @@ class PileState:
     counters: dict[str, int]
     state: F.ProjectorState = field(repr=False)
     analytes: tuple[str, ...] = ()
-    _join: "_Join | None" = field(default=None, repr=False)
+    _join: "GradeJoin | None" = field(default=None, repr=False)
 
     @property
     def surface_m(self) -> np.ndarray:
@@ -164,12 +164,19 @@ def analytes_of(lots: dict[str, dict[str, float]], assays: list[AssayRecord]) ->
                  + sorted(names - set(CANONICAL_ANALYTES)))
 
 
-class _Join:
-    """Grades of material (lot, deposition times, volumes) as known at K."""
+class GradeJoin:
+    """Grades of material (lot, deposition times, volumes) as known at K.
 
-    def __init__(self, lots, assays, known_ns: int, density_default: float) -> None:
+    ``lots`` maps a lot id to its planned grade (analyte -> %), ``assays`` are every
+    :class:`ledger.projector.grades.AssayRecord` seen (those recorded after ``known_ns``
+    are ignored), ``density_default`` (t/m3) stands in where no assay reported one, and
+    ``analytes`` (default: every analyte the lots and assays name) orders the grades.
+    """
+
+    def __init__(self, lots, assays, known_ns: int, density_default: float,
+                 analytes: tuple[str, ...] | None = None) -> None:
         self.lots = lots
-        self.analytes = analytes_of(lots, assays)
+        self.analytes = analytes_of(lots, assays) if analytes is None else tuple(analytes)
         effective = effective_assays(assays, known_ns)
         self.by_lot: dict[str, list[AssayRecord]] = {}
         for a in effective:
@@ -218,7 +225,7 @@ def summarise(state: F.ProjectorState, lots, assays, *, valid_time_ns: int,
     if pile is None:
         return PileState(state.config.pile_id, valid_time_ns, known_time_ns, None, 0.0, 0.0, {},
                          0.0, [], [], dict(state.counters), state)
-    join = _Join(lots, assays, known_time_ns, pile.default_bulk_density_t_m3)
+    join = GradeJoin(lots, assays, known_time_ns, pile.default_bulk_density_t_m3)
     analytes = join.analytes
     stack = state.stack
     area = pile.geometry.cell_area_m2
@@ -246,7 +253,7 @@ def summarise(state: F.ProjectorState, lots, assays, *, valid_time_ns: int,
                      dict(state.counters), state, analytes, join)
 
 
-def _deposit_weights(state: F.ProjectorState, join: _Join) -> list["ClassWeights"]:
+def _deposit_weights(state: F.ProjectorState, join: GradeJoin) -> list["ClassWeights"]:
     """Per deposit, :class:`ledger.projector.voxels.ClassWeights` for
     :func:`ledger.projector.voxels.integrate`: each cell's grade class and per class the bulk
     density (t/m3), then density x grade (t/m3 x %) per analyte."""
@@ -270,7 +277,7 @@ def _deposit_weights(state: F.ProjectorState, join: _Join) -> list["ClassWeights
     return weights
 
 
-def _cut_summary(cut: F.CutRecord, stack, join: _Join, analytes) -> CutSummary:
+def _cut_summary(cut: F.CutRecord, stack, join: GradeJoin, analytes) -> CutSummary:
     per_deposit: dict[int, list] = {}
     tonnes, sums, assayed_t, graded_t, volume = 0.0, np.zeros(len(analytes)), 0.0, 0.0, 0.0
     for removal in cut.removals:
