@@ -69,7 +69,7 @@ from services.protocols.nmea import format_gga
 from services.scanner import default_frame_id, scan_field, scan_message
 from services.sim import sensors
 from services.sim.grades import ANALYTES, NS_PER_S, BeltGrade, LabModel, LabResult
-from services.sim.kinematics import boom_radius_m, envelope_floor_z, wheel_centre
+from services.sim.kinematics import FULL_SCALE, boom_radius_m, envelope_floor_z, wheel_centre
 from services.sim.publish import JsonlSink, Producer, Sink
 from services.sim.scenario import Scenario
 from services.sim.world import Grid, World
@@ -82,7 +82,7 @@ SCANNER_IN_WHEEL = np.array([[0.0, 1.0, 0.0],
 
 CHUNK_S = 30.0           # stacking is released in chunks of this much site time
 CUT_SUBSWEEPS = 8        # a cut removes material in this many steps of its slew
-MOVE_SPEED_M_S = 0.5     # travel speed between cuts and while patrolling
+MOVE_SPEED_M_S = 0.5     # travel speed between cuts and while patrolling (full-scale machine)
 PATROL_LAG_S = 2 * CHUNK_S  # the scanner trails the stacker by this much while it stacks
 SLEW_STEP_RAD = math.radians(0.5)
 #: values of ``Simulation.scan_events`` / ``--scan-events`` (see the module docstring)
@@ -215,6 +215,13 @@ class Simulation:
         h = math.sqrt(volume / sc.pile_length_m * tan)
         return sc.ground_z_m + min(h, sc.pile_width_m / 2 * tan)
 
+    @property
+    def move_m_s(self) -> float:
+        """Travel speed between cuts and on the patrol's run-on (m/s): MOVE_SPEED_M_S for
+        the full-scale machine, scaled down with the boom for a smaller one (a laboratory
+        model crossing its 1.2 m pile in 2 s would scan its end slope once)."""
+        return MOVE_SPEED_M_S * min(1.0, self.machine.l5_m / FULL_SCALE.l5_m)
+
     def _patrol_pose(self, travel_m: float) -> tuple[float, float, float]:
         """Joints that hold the wheel above the pile's centre line, clear of the crest."""
         sc, m = self.scenario, self.machine
@@ -298,7 +305,14 @@ class Simulation:
             for p in spans:
                 self.lab_results += lab.assays(belt, p["t0"], p["t1"], self.rng_belt, counter)
         self.lab_results.sort(key=lambda r: (r.reported_ns, r.assay_id))
-        reclaim_start = plan[-1]["t1"] + int(600 * NS_PER_S)
+        # the scanner runs on over the last pass's far end after the stacker stops, then
+        # surveys the finished pile end to end (a scan line per surface cell, at most at
+        # the travel speed) before the first cut
+        run_on_end = plan[-1]["t1"] + int((PATROL_LAG_S + sc.pile_length_m / self.move_m_s)
+                                          * NS_PER_S)
+        survey_m_s = min(self.move_m_s, sc.surface_cell_m * sc.scan_hz)
+        survey_end = run_on_end + int(sc.pile_length_m / survey_m_s * NS_PER_S)
+        reclaim_start = max(plan[-1]["t1"] + int(600 * NS_PER_S), survey_end + int(30 * NS_PER_S))
         end_ns = (max(r.reported_ns for r in self.lab_results) if self.lab_results else reclaim_start)
         end_ns += 60 * NS_PER_S
         if duration_h is not None:
@@ -328,9 +342,10 @@ class Simulation:
         at(t0, "encoder", None)
         at(t0, "gnss", None)
         at(t0, "scan", None)
-        # the scanner runs on over the last pass's far end after the stacker stops
-        self.stacking_until = plan[-1]["t1"] + int((PATROL_LAG_S + sc.pile_length_m / MOVE_SPEED_M_S)
-                                                   * NS_PER_S)
+        last_forward = plan[-1]["y1"] >= plan[-1]["y0"]
+        survey_to = sc.pile_origin_y_m + (0.0 if last_forward else sc.pile_length_m)
+        at(run_on_end, "patrol", (survey_end, survey_to))
+        self.stacking_until = survey_end
         self.reclaiming = False
         self.belts = belts
 
@@ -474,7 +489,7 @@ class Simulation:
         y_lo, y_hi = sc.pile_origin_y_m, sc.pile_origin_y_m + sc.pile_length_m
         start_end, far_end = (y_lo, y_hi) if forward else (y_hi, y_lo)
         # the run over the far end's slope ends before the next pass starts pouring
-        run_on_s = abs(far_end - p["y1"]) / MOVE_SPEED_M_S
+        run_on_s = abs(far_end - p["y1"]) / self.move_m_s
         lag_s = max(min(PATROL_LAG_S, sc.pass_gap_s - run_on_s - 10.0), CHUNK_S + 5.0)
         lag, run_on = int(lag_s * NS_PER_S), int(run_on_s * NS_PER_S)
         self.motion = Motion(t, t + lag, self.motion.at(t), self._patrol_pose(start_end))
@@ -576,7 +591,7 @@ class Simulation:
             return
         lo, hi = slews if cut % 2 == 0 else slews[::-1]
         current = self.motion.at(t)
-        move_s = abs(travel - current[0]) / MOVE_SPEED_M_S + 20.0
+        move_s = abs(travel - current[0]) / self.move_m_s + 20.0
         t_start = t + int(move_s * NS_PER_S)
         self.motion = Motion(t, t_start, current, (travel, lo, luff))
         at(t_start, "cut_start", {"bench": bench, "cut": cut, "travel": travel, "luff": luff,
