@@ -17,6 +17,8 @@ How each event type acts
 ``frame_transform``   a pose of a ``<machine>/scanner`` frame; releases waiting scans
 ``scan``              waits for the scanner pose after it, then is georeferenced,
                       cleaned, rasterised and fused into the height map in batches
+                      (cells a stacking pass reached since they were last seen are
+                      refreshed first: their old height no longer holds)
 ``reclaim_cut``       clamps every surface to the cutting-envelope floor; the removed
                       bands are the cut's composition
 ``assay``             kept (with its recorded time) for the grade join
@@ -94,6 +96,9 @@ class FoldConfig:
     slump_in_place : bool
         Rises outside a pass after a cut are slumped material: counted as the cut's
         ``returned_m3`` but not added (the face it came from is still in the stack).
+        False (default): they are added as well (a flagged deposit), since the drops of
+        the face they came from are applied (the cut's geometry residual) -- keeping the
+        one and not the other lost 1-1.5 % of a bench-scale pile.
     fill_gap_cells : int
         Unseen runs of at most this many cells between seen cells are interpolated
         (linearly) before the stack follows the height map; 0 = no filling.
@@ -111,6 +116,17 @@ class FoldConfig:
         When the next pass starts, at a cut and at a query's end, cells below the repose cone of the seen
         surface (a flank hidden behind the crest) rise to it, the material given to the
         passes that crossed them since they were last seen.
+    refresh_crossed : bool
+        Before a batch of scans is fused, cells a stacking pass reached since they were
+        last seen get a variance of at least ``(refresh_sd_factor * point_sd_m)^2``, so
+        the height map takes the layer the pass laid there at its next look rather than a
+        Kalman step from the level before (:func:`_refresh_crossed`).
+    refresh_sd_factor : float
+        That variance, in point sds (3: the next look weighs about 90 %).
+    refresh_reach : bool
+        A pass reaches a cell when its stacker comes within the pile's height /
+        tan(repose) of it along the rail (poured material runs down the flanks that far);
+        False: only when it passes the cell's own position.
     relax_slack : float
         Faces steeper than ``(1 + relax_slack) * tan(repose)`` slide (a little slack keeps
         the estimated angle's error from creeping standing flanks).
@@ -135,12 +151,15 @@ class FoldConfig:
     change_count: int = 3
     strong_points: int = 3
     attribute_by_crossing: bool = True
-    slump_in_place: bool = True
+    slump_in_place: bool = False
     fill_gap_cells: int = 16
     pad_m: float | None = None
     repose_deg: float | None = None
     slump_after_cut: bool = True
     complete_unseen: bool = True
+    refresh_crossed: bool = True
+    refresh_sd_factor: float = 3.0
+    refresh_reach: bool = True
     relax_slack: float = 0.0
     accept_rises_at_pass_start: bool = True
     catch_up_cells: int = 5
@@ -474,6 +493,8 @@ def _process_scans(state: ProjectorState, *, until_ns: int | None = None,
         # a change on its own (a stacked layer rises between two patrols, so waiting
         # for agreeing patrols would never accept it); a cell seen by a point or two
         # needs repeated agreeing observations.
+        if state.config.refresh_crossed:
+            _refresh_crossed(state, obs, int(t.max()), seen_before_ns)
         strong = obs.count >= state.config.strong_points
         for subset, change_count in ((strong, 1), (~strong, state.config.change_count)):
             if subset.any():
@@ -484,6 +505,55 @@ def _process_scans(state: ProjectorState, *, until_ns: int | None = None,
         _follow_height(state, int(t.max()), drops=False, seen_before_ns=seen_before_ns,
                        region=_around(obs.ix, obs.iy, state.config.fill_gap_cells + 1,
                                       state.pile.geometry))
+
+
+def _refresh_crossed(state: ProjectorState, obs, t_ns: int,
+                     seen_before_ns: np.ndarray) -> None:
+    """Cells a stacking pass reached since they were last seen may have risen by a layer:
+    their fused heights' variance grows to at least ``(refresh_sd_factor * point_sd)^2``
+    before this batch is fused, so the observations after the pass weigh as fresh ones.
+
+    Without it, a layer's rise smaller than the fusion's gate (a thin layer, a flank the
+    material ran down) is a Kalman step of gain ``P / (P + R)`` from the level before the
+    pass: a cell seen many times (small ``P``) keeps most of its old height, and where
+    points are few (flanks seen at grazing angles) the deficit is never made up.  A pass
+    reaches a cell when its stacker comes within ``refresh_reach`` of it along the rail:
+    the pile's height / tan(repose), how far poured material runs down the flanks.
+    """
+    if not state.passes:
+        return
+    g = state.pile.geometry
+    prev = seen_before_ns[obs.ix, obs.iy]
+    seen = np.isfinite(prev)
+    if not seen.any():
+        return
+    y = g.origin_y_m + (obs.iy + 0.5) * g.cell_m
+    earliest = float(np.min(prev[seen]))
+    passes = list(state.passes.values())
+    typical = _typical_pass_s(passes)
+    # material poured at the crest runs down the flanks as far along the rail as the pile
+    # is high / tan(repose): the stacker "crossed" a cell when it came that close
+    reach_m = 0.0
+    if state.config.refresh_reach:
+        tan = (math.tan(math.radians(state.config.repose_deg)) if state.config.repose_deg
+               else state.tan_repose if math.isfinite(state.tan_repose)
+               else math.tan(math.radians(35.0)))     # the last estimate, not re-estimated
+        reach_m = max(float(np.max(state.stack.surface() - state.stack.ground())), 0.0) / tan
+    crossed = np.zeros(obs.ix.size, bool)
+    for record in passes:
+        if record.ended_ns is not None and record.ended_ns <= earliest:
+            continue
+        a = _crossing_ns(record, y - reach_m, t_ns, typical)
+        b = _crossing_ns(record, y + reach_m, t_ns, typical)
+        with np.errstate(invalid="ignore"):
+            crossed |= (np.maximum(a, b) > prev) & (np.minimum(a, b) <= t_ns)
+    if not crossed.any():
+        return
+    variance = state.height.grid["variance"]
+    ix, iy = obs.ix[crossed], obs.iy[crossed]
+    floor_m2 = (state.config.refresh_sd_factor * state.point_sd_m) ** 2
+    variance[ix, iy] = np.maximum(variance[ix, iy], floor_m2)
+    state.count("cells_refreshed", int(crossed.sum()))
 
 
 def _subset(obs, mask: np.ndarray):
