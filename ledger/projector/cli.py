@@ -67,6 +67,10 @@ def cmd_project(args: argparse.Namespace) -> int:
         print(f"    {c.cut_id:<10} {c.tonnes:>10,.1f} t (belt {c.tonnes_scale:,.1f} t)  "
               f"{_fmt_grade(c.grade)}  assayed {c.assayed_fraction:.2f}  "
               f"residual {c.residual_m3:+.1f} m3")
+    unexplained_m3 = state.counters.get("unexplained_loss_mm3", 0) / 1e3
+    if unexplained_m3:
+        print(f"\n  unexplained loss {unexplained_m3:,.1f} m3: drops seen away from any cut "
+              "(the surface follows them; no cut is charged)")
     return 0
 
 

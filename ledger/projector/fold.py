@@ -37,6 +37,7 @@ from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
+from scipy import ndimage
 
 from schemas.events import decode_payload, timestamp_ns
 
@@ -127,6 +128,11 @@ class FoldConfig:
         A pass reaches a cell when its stacker comes within the pile's height /
         tan(repose) of it along the rail (poured material runs down the flanks that far);
         False: only when it passes the cell's own position.
+    residual_near_cut : bool
+        A drop seen after a cut is the cut's geometry residual only near it (its footprint
+        widened by the pile's height / tan(repose)); elsewhere the stack still follows the
+        measurement but the volume is an unexplained loss (counter
+        ``unexplained_loss_mm3``, in 1e-3 m3), not material the cut delivered.
     relax_slack : float
         Faces steeper than ``(1 + relax_slack) * tan(repose)`` slide (a little slack keeps
         the estimated angle's error from creeping standing flanks).
@@ -160,6 +166,7 @@ class FoldConfig:
     refresh_crossed: bool = True
     refresh_sd_factor: float = 3.0
     refresh_reach: bool = True
+    residual_near_cut: bool = True
     relax_slack: float = 0.0
     accept_rises_at_pass_start: bool = True
     catch_up_cells: int = 5
@@ -535,10 +542,8 @@ def _refresh_crossed(state: ProjectorState, obs, t_ns: int,
     # is high / tan(repose): the stacker "crossed" a cell when it came that close
     reach_m = 0.0
     if state.config.refresh_reach:
-        tan = (math.tan(math.radians(state.config.repose_deg)) if state.config.repose_deg
-               else state.tan_repose if math.isfinite(state.tan_repose)
-               else math.tan(math.radians(35.0)))     # the last estimate, not re-estimated
-        reach_m = max(float(np.max(state.stack.surface() - state.stack.ground())), 0.0) / tan
+        reach_m = (max(float(np.max(state.stack.surface() - state.stack.ground())), 0.0)
+                   / _tan_repose_cached(state))
     crossed = np.zeros(obs.ix.size, bool)
     for record in passes:
         if record.ended_ns is not None and record.ended_ns <= earliest:
@@ -546,7 +551,11 @@ def _refresh_crossed(state: ProjectorState, obs, t_ns: int,
         a = _crossing_ns(record, y - reach_m, t_ns, typical)
         b = _crossing_ns(record, y + reach_m, t_ns, typical)
         with np.errstate(invalid="ignore"):
-            crossed |= (np.maximum(a, b) > prev) & (np.minimum(a, b) <= t_ns)
+            hit = (np.maximum(a, b) > prev) & (np.minimum(a, b) <= t_ns)
+        lo_y, hi_y = sorted((record.start_y_m, record.end_y_m))
+        if math.isfinite(lo_y) and math.isfinite(hi_y):   # the path comes within reach
+            hit &= (y + reach_m >= lo_y) & (y - reach_m <= hi_y)
+        crossed |= hit
     if not crossed.any():
         return
     variance = state.height.grid["variance"]
@@ -644,13 +653,49 @@ def _follow_height(state: ProjectorState, t_ns: int, *, drops: bool = True,
             # hole from its face: the cut did not take it
             state.cuts[-1].returned_m3 += added
     if drops and down.any():
-        state.stack, removal = state.stack.clamp(np.where(down, elevation, np.inf))
-        if state.cuts:
-            cut = state.cuts[-1]
-            cut.removals.append(removal)
-            cut.residual_m3 += removal.volume_m3
-        else:
+        near = down
+        if state.cuts and state.config.residual_near_cut:
+            near = down & _near_cut(state, state.cuts[-1])
+        far = down & ~near
+        if near.any():
+            state.stack, removal = state.stack.clamp(np.where(near, elevation, np.inf))
+            if state.cuts:
+                cut = state.cuts[-1]
+                cut.removals.append(removal)
+                cut.residual_m3 += removal.volume_m3
+            else:
+                state.flagged_loss_m3 += removal.volume_m3
+        if far.any():
+            # the measurement wins, but a drop far from the cut is not what it delivered
+            state.stack, removal = state.stack.clamp(np.where(far, elevation, np.inf))
             state.flagged_loss_m3 += removal.volume_m3
+            state.count("unexplained_loss_mm3", int(round(removal.volume_m3 * 1e3)))
+
+
+def _near_cut(state: ProjectorState, cut: "CutRecord") -> np.ndarray:
+    """Cells a cut can have changed: its footprint (where its envelope removed material)
+    widened by the pile's height / tan(repose) (how far up its face a slide reaches),
+    shape (nx, ny)."""
+    g = state.pile.geometry
+    footprint = np.zeros(g.shape, bool)
+    for removal in cut.removals[:1]:       # the envelope's own removal
+        for d in removal.deposits:
+            footprint[d.ix, d.iy] = True
+    if not footprint.any():
+        return footprint
+    height = max(float(np.max(state.stack.surface() - state.stack.ground())), 0.0)
+    reach_cells = int(math.ceil(height / _tan_repose_cached(state) / g.cell_m)) + 1
+    return ndimage.maximum_filter(footprint, size=2 * reach_cells + 1, mode="constant")
+
+
+def _tan_repose_cached(state: ProjectorState) -> float:
+    """tan(angle of repose): configured, else the last estimate, else 35 deg (no new
+    estimate: cheap enough for every batch)."""
+    if state.config.repose_deg:
+        return math.tan(math.radians(state.config.repose_deg))
+    if math.isfinite(state.tan_repose):
+        return state.tan_repose
+    return math.tan(math.radians(35.0))
 
 
 def _predict_height(height, new_top_m: np.ndarray, old_top_m: np.ndarray, sd_m: float):

@@ -1,0 +1,141 @@
+"""The fold's two guards around real change: refreshing cells a stacking pass reached since
+they were last seen, and charging a cut only with the drops seen near it.
+
+States are built by hand (a declared pile, a settled height map, pass and cut records) so
+each test isolates one rule; the numbers checked come from the Kalman formulas and the
+geometry, not from the code under test.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+import ledger.projector.fold as F
+from ledger.projector.grid import GridGeometry
+from ledger.projector.heightmap import CellObservations, HeightMap, fuse
+from ledger.projector.layers import DepositInfo, LayerStack
+
+NS = 10**9
+SD = 0.05          # point sd (m)
+
+
+def _state(config: F.FoldConfig, nx: int = 8, ny: int = 80, cell: float = 0.25,
+           z0: float = 1.0) -> F.ProjectorState:
+    """A pile 2 m x 20 m whose surface stood at ``z0`` for 10 looks (t = 0..9 s)."""
+    g = GridGeometry(0.0, 0.0, cell, nx, ny)
+    state = F.initial_state(config)
+    state.pile = F.PileInfo("P1", g, 0.0, 1.0, 2.0)
+    state.point_sd_m = SD
+    state.margin_m = 0.4 * SD
+    state.process_sd_m = 0.2 * SD
+    hm = HeightMap.empty(g)
+    for k in range(10):
+        hm, _ = fuse(hm, _obs(g, z0), k * NS, SD)
+    state.height = hm
+    stack = LayerStack.empty(g, 0.0).open_deposit(DepositInfo(1, "P0", "L0", 0))
+    state.stack, _ = stack.raise_to(np.full(g.shape, z0), 0)
+    return state
+
+
+def _obs(g: GridGeometry, z: float, count: int = 1) -> CellObservations:
+    n = g.nx * g.ny
+    ix, iy = np.divmod(np.arange(n), g.ny)
+    return CellObservations(ix, iy, np.full(n, float(z)), np.zeros(n),
+                            np.full(n, count, dtype=np.int64))
+
+
+def test_a_cell_a_pass_crossed_takes_the_new_layer_at_the_next_look():
+    # a settled cell (10 looks) sees a layer 6 cm higher once, one point: inside the
+    # 3-sigma gate, so without the refresh it is a Kalman step of gain P / (P + R)
+    rise = 0.06
+    results = {}
+    for refresh in (False, True):
+        state = _state(F.FoldConfig("P1", refresh_crossed=refresh, refresh_reach=False))
+        g = state.pile.geometry
+        state.passes["A"] = F.PassRecord("A", "L1", "stk1", 20 * NS, 2, 30 * NS,
+                                         start_y_m=0.0, end_y_m=g.length_y_m)
+        p_before = float(state.height.variance[0, 0])
+        obs = _obs(g, 1.0 + rise)
+        seen = state.height.grid["last_update_ns"].copy()
+        if refresh:
+            F._refresh_crossed(state, obs, 40 * NS, seen)
+        p_prior = float(state.height.variance[0, 0]) + state.process_sd_m ** 2
+        gain = p_prior / (p_prior + SD ** 2)
+        assert rise < 3.0 * math.sqrt(p_prior + SD ** 2)   # inside the 3-sigma gate
+        state.height, _ = fuse(state.height, obs, 40 * NS, SD,
+                               process_sd_m=state.process_sd_m, inplace=True)
+        moved = float(state.height.elevation[0, 0]) - 1.0
+        assert math.isclose(moved, gain * rise, rel_tol=1e-9)
+        results[refresh] = moved
+        if refresh:
+            assert math.isclose(float(state.height.variance[0, 0]),
+                                (1 - gain) * p_prior, rel_tol=1e-9)
+            assert p_before < (3 * SD) ** 2 <= p_prior
+    assert results[False] < 0.5 * rise           # the old level held most of it
+    assert results[True] > 0.9 * rise            # the layer taken at the next look
+
+
+def test_refresh_only_where_a_pass_came_since_the_last_look():
+    state = _state(F.FoldConfig("P1", refresh_reach=False))
+    g = state.pile.geometry
+    # a pass that ended before the last look changes nothing; one over y in [0, 5] m
+    # after it refreshes the cells there only
+    state.passes["old"] = F.PassRecord("old", "L1", "stk1", 0, 2, 5 * NS,
+                                       start_y_m=0.0, end_y_m=g.length_y_m)
+    state.passes["new"] = F.PassRecord("new", "L1", "stk1", 20 * NS, 3, 30 * NS,
+                                       start_y_m=0.0, end_y_m=5.0)
+    before = state.height.variance.copy()
+    seen = state.height.grid["last_update_ns"].copy()
+    F._refresh_crossed(state, _obs(g, 1.0), 40 * NS, seen)
+    y = (np.arange(g.ny) + 0.5) * g.cell_m
+    after = state.height.variance
+    reached = y <= 5.0
+    assert np.all(after[:, reached] >= (3 * SD) ** 2 - 1e-15)
+    # beyond the pass's end the stacker is taken to have stood at its end: not crossed
+    assert np.array_equal(after[:, ~reached], before[:, ~reached])
+    assert state.counters["cells_refreshed"] == g.nx * int(reached.sum())
+
+
+def test_refresh_reach_is_the_height_over_tan_repose():
+    z0 = 3.0
+    state = _state(F.FoldConfig("P1", repose_deg=35.0), z0=z0)
+    g = state.pile.geometry
+    state.passes["new"] = F.PassRecord("new", "L1", "stk1", 20 * NS, 2, 30 * NS,
+                                       start_y_m=0.0, end_y_m=5.0)
+    seen = state.height.grid["last_update_ns"].copy()
+    F._refresh_crossed(state, _obs(g, z0), 40 * NS, seen)
+    reach = z0 / math.tan(math.radians(35.0))     # 4.28 m beyond the pass's end
+    y = (np.arange(g.ny) + 0.5) * g.cell_m
+    refreshed = state.height.variance[0] >= (3 * SD) ** 2 - 1e-15
+    assert np.array_equal(refreshed, y <= 5.0 + reach)
+
+
+def test_a_drop_far_from_the_cut_is_an_unexplained_loss_not_the_cut_s():
+    config = F.FoldConfig("P1", complete_unseen=False, fill_gap_cells=0, repose_deg=35.0)
+    state = _state(config, z0=1.0)
+    g = state.pile.geometry
+    # the cut took the cells y < 1 m down to 0.5 m
+    floor = np.full(g.shape, np.inf)
+    y = (np.arange(g.ny) + 0.5) * g.cell_m
+    floor[:, y < 1.0] = 0.5
+    state.stack, removal = state.stack.clamp(floor)
+    cut = F.CutRecord("C1", "B1", "bwr1", 40 * NS, 50 * NS, 0.0, [removal],
+                      predicted_m3=removal.volume_m3)
+    state.cuts.append(cut)
+    # then the scans see the surface 0.3 m lower at y in [1.5, 2) m (near: within
+    # 1 m / tan 35 = 1.43 m of the footprint) and at y in [15, 16) m (far)
+    elevation = state.stack.surface().copy()
+    near = (y >= 1.5) & (y < 2.0)
+    far = (y >= 15.0) & (y < 16.0)
+    elevation[:, near | far] -= 0.3
+    state.height.grid["elevation"][:] = elevation
+    state.height.grid["variance"][:] = SD ** 2 / 10
+    volume = 0.3 * g.cell_area_m2 * g.nx
+    F._follow_height(state, 60 * NS)
+    assert math.isclose(cut.residual_m3, volume * near.sum(), rel_tol=1e-9)
+    assert math.isclose(state.flagged_loss_m3, volume * far.sum(), rel_tol=1e-9)
+    assert state.counters["unexplained_loss_mm3"] == round(volume * far.sum() * 1e3)
+    # the measurement wins everywhere
+    np.testing.assert_allclose(state.stack.surface()[:, near | far], elevation[:, near | far])
