@@ -642,7 +642,10 @@ def _follow_height(state: ProjectorState, t_ns: int, *, drops: bool = True,
     if up.any():
         if state.active_pass is None and not _settling_last_pass(state):
             info = state.stack.deposits[-1] if state.stack.n_deposits else None
-            if info is None or not info.flagged or info.opened_ns < _last_event_ns(state):
+            if info is None or not info.flagged or (not state.cuts
+                                                   and info.opened_ns < _last_event_ns(state)):
+                # after the cuts began, one flagged deposit (the top one) takes every
+                # slide's material: a deposit per cut would grow the state by a layer each
                 state.stack = state.stack.open_deposit(
                     DepositInfo(state.stack.n_deposits + 1, "", "", t_ns, flagged=True))
         state.stack, added = state.stack.raise_to(np.where(up, elevation, np.nan),
