@@ -539,12 +539,9 @@ def _refresh_crossed(state: ProjectorState, obs, t_ns: int,
     earliest = float(np.min(prev[seen]))
     passes = list(state.passes.values())
     typical = _typical_pass_s(passes)
-    # material poured at the crest runs down the flanks as far along the rail as the pile
-    # is high / tan(repose): the stacker "crossed" a cell when it came that close
-    reach_m = 0.0
-    if state.config.refresh_reach:
-        reach_m = (max(float(np.max(state.stack.surface() - state.stack.ground())), 0.0)
-                   / _tan_repose_cached(state))
+    # material poured at the crest runs down the flanks: the stacker "crossed" a cell when
+    # it came that close along the rail
+    reach_m = _flank_reach_m(state) if state.config.refresh_reach else 0.0
     crossed = np.zeros(obs.ix.size, bool)
     for record in passes:
         if record.ended_ns is not None and record.ended_ns <= earliest:
@@ -687,19 +684,15 @@ def _near_cut(state: ProjectorState, cut: "CutRecord") -> np.ndarray:
             footprint[d.ix, d.iy] = True
     if not footprint.any():
         return footprint
-    height = max(float(np.max(state.stack.surface() - state.stack.ground())), 0.0)
-    reach_cells = int(math.ceil(height / _tan_repose_cached(state) / g.cell_m)) + 1
+    reach_cells = int(math.ceil(_flank_reach_m(state) / g.cell_m)) + 1
     return ndimage.maximum_filter(footprint, size=2 * reach_cells + 1, mode="constant")
 
 
-def _tan_repose_cached(state: ProjectorState) -> float:
-    """tan(angle of repose): configured, else the last estimate, else 35 deg (no new
-    estimate: cheap enough for every batch)."""
-    if state.config.repose_deg:
-        return math.tan(math.radians(state.config.repose_deg))
-    if math.isfinite(state.tan_repose):
-        return state.tan_repose
-    return math.tan(math.radians(35.0))
+def _flank_reach_m(state: ProjectorState) -> float:
+    """How far a flank runs out horizontally: the pile's height / tan(repose) (m), with the
+    last repose estimate (no new one)."""
+    height = max(float(np.max(state.stack.surface() - state.stack.ground())), 0.0)
+    return height / _tan_repose(state, estimate=False)
 
 
 def _predict_height(height, new_top_m: np.ndarray, old_top_m: np.ndarray, sd_m: float):
@@ -726,14 +719,16 @@ def _predict_height(height, new_top_m: np.ndarray, old_top_m: np.ndarray, sd_m: 
 # -- the angle of repose: slides after a cut, flanks hidden behind the crest ------------------
 
 
-def _tan_repose(state: ProjectorState) -> float:
+def _tan_repose(state: ProjectorState, *, estimate: bool = True) -> float:
     """tan(angle of repose): configured, else estimated from the seen slopes (35 deg
-    until enough are seen; the last good estimate is kept)."""
+    until enough are seen; the last good estimate is kept).  ``estimate=False`` takes the
+    last estimate without a new one (cheap enough for every batch of scans)."""
     if state.config.repose_deg is not None:
         return math.tan(math.radians(state.config.repose_deg))
-    deg = slump.estimate_repose_deg(state.height.elevation, state.pile.geometry.cell_m)
-    if math.isfinite(deg):
-        state.tan_repose = math.tan(math.radians(deg))
+    if estimate:
+        deg = slump.estimate_repose_deg(state.height.elevation, state.pile.geometry.cell_m)
+        if math.isfinite(deg):
+            state.tan_repose = math.tan(math.radians(deg))
     return state.tan_repose if math.isfinite(state.tan_repose) else math.tan(math.radians(35.0))
 
 

@@ -24,8 +24,8 @@ class, QVO) (:class:`ClassWeights`, the form the query uses) or one sparse-dense
 written once into buffers reserved with ``np.empty``.  The full-scale case (220 m x 60 m
 pile, 0.25 m cells, 1 m voxels, 60 chevron deposits of 1-3 grade classes, 6 weights;
 1.3 M QVOs) takes about 0.5 s on one core of the development machine with warm memory and
-0.5-0.75 s as a fresh process's first query, where page faults on new memory add up to
-0.25 s of system time (``bench/projector.py`` section 2).
+0.5-0.9 s as a fresh process's first query, where page faults on new memory add up to
+0.3 s of system time (``bench/projector.py`` section 2).
 """
 
 from __future__ import annotations
@@ -281,7 +281,8 @@ def integrate(stack: LayerStack, voxel_m: float,
         One entry per deposit (``weights[k - 1]`` for deposit k): an array of shape
         ``(nx, ny, A)`` (per-cell weights) or ``(A,)`` (one weight vector for the whole
         deposit), or a :class:`ClassWeights` (a class per cell, a (C, A) table; the
-        cheapest form when a deposit takes a few grades), with the same ``A`` for all.  Read one at a time, so a lazy sequence
+        cheapest form when a deposit takes a few grades), with the same ``A`` for all.
+        Read one at a time, so a lazy sequence
         works.  Weights of cells where the deposit has no material are ignored (NaN is
         fine there).
 
