@@ -2,12 +2,21 @@
 
     .venv/bin/python bench/projector_truth.py                 # demo and bench-scale, seed 1
     .venv/bin/python bench/projector_truth.py --scenario demo --seed 3 --keep /tmp/pt
+    .venv/bin/python bench/projector_truth.py --scenario bench-scale --explain --keep /tmp/pe
 
 For each scenario: ``stockpile sim --scan-events truth`` (scans and scanner poses as
 events, the poses the simulator cast with), ``stockpile ledger import --clock events``
 into a DuckDB ledger, then :func:`ledger.projector.query.project` with everything known.
 Truth is the simulator's own world model (its deposition grid and parcels), a different
 method from the projector's scans -> height map -> layer stack.
+
+``--explain`` also splits each cut's error: the simulator keeps the true surface at each
+cut's start (``--truth-cut-surfaces``), and for every cut the table gives the true
+surface above the projector's cutting-envelope floor on the simulator's grid (the
+envelope's own error: its difference from the true cut), the same on the projector's
+grid (the grid's: the footprint's edge cells differ), and the projector's layer stack
+and height map above that floor as of the cut's start (the surface's error, against the
+true surface on the projector's grid).  Each row is one fold to the cut's start.
 
 Targets (issue 5): pile tonnes within 1 % of truth; each cut's tonnes within 3 % and
 its Fe within 0.3 percentage points once all assays are known.
@@ -39,12 +48,15 @@ def _stockpile(*args: str) -> None:
                    stdout=subprocess.DEVNULL)
 
 
-def run(scenario: str, seed: int, out: Path, duration_h: float | None = None) -> dict:
+def run(scenario: str, seed: int, out: Path, duration_h: float | None = None,
+        cut_surfaces: bool = False) -> dict:
     sim_dir = out / f"{scenario}-seed{seed}"
     ledger = out / f"{scenario}-seed{seed}.duckdb"
     started = time.perf_counter()
     if not (sim_dir / "truth.json").exists():
         extra = ["--duration", str(duration_h)] if duration_h else []
+        if cut_surfaces:
+            extra.append("--truth-cut-surfaces")
         _stockpile("sim", "--scenario", scenario, "--seed", str(seed), "--speed", "0",
                    "--scan-events", "truth", "--out", str(sim_dir), *extra)
     if not ledger.exists():
@@ -58,7 +70,70 @@ def run(scenario: str, seed: int, out: Path, duration_h: float | None = None) ->
         state = project(store, pile_id)
         project_s = time.perf_counter() - t0
     return {"scenario": scenario, "seed": seed, "state": state, "truth": truth,
-            "prepare_s": prepared, "project_s": project_s}
+            "prepare_s": prepared, "project_s": project_s, "sim_dir": sim_dir,
+            "ledger": ledger}
+
+
+def explain(result: dict) -> None:
+    """Per cut: the envelope's error and the surface's error (see the module docstring)."""
+    import numpy as np
+    from scipy.interpolate import RegularGridInterpolator
+
+    from ledger.projector.envelope import cut_floor
+    from ledger.projector.grid import GridGeometry, cell_centres
+
+    arrays = np.load(result["sim_dir"] / "truth.npz")
+    if "cut_surface_z" not in arrays:
+        raise SystemExit(f"{result['sim_dir']} was simulated without --truth-cut-surfaces: "
+                         "give --explain a new --keep folder")
+    truth, pile_id = result["truth"], result["truth"]["scenario"].get("pile_id", "P1")
+    # bench-scale cuts hold tens of cm3
+    unit, scale = (("cm3", 1e6) if max((c["true_volume_m3"] for c in truth["cuts"]), default=1.0)
+                   < 0.01 else ("m3", 1.0))
+    print(f"\n-- {result['scenario']} (seed {result['seed']}): each cut's error, split "
+          f"({unit} above our envelope floor at the cut's start; one fold per cut)")
+    print(f"{'cut':<8} {'true cut':>10} {'sim grid':>10} {'envelope %':>10} {'our grid':>10} "
+          f"{'grid %':>7} {'our stack':>10} {'stack %':>8} {'our map':>10} {'map %':>7} "
+          f"{'stack-true mm':>13}")
+    xc, yc = arrays["x_centres"], arrays["y_centres"]
+    sim_grid = GridGeometry(origin_x_m=float(xc[0] - (xc[1] - xc[0]) / 2),
+                            origin_y_m=float(yc[0] - (yc[1] - yc[0]) / 2),
+                            cell_m=float(xc[1] - xc[0]), nx=len(xc), ny=len(yc), frame="site")
+    with open_ledger(result["ledger"], read_only=True) as store:
+        for c, true_z in zip(truth["cuts"], arrays["cut_surface_z"]):
+            before = project(store, pile_id, valid_time_ns=c["t0_ns"] - 1).state
+            g = before.pile.geometry
+            x, y = cell_centres(g)
+            surface = RegularGridInterpolator(
+                (arrays["y_centres"], arrays["x_centres"]), true_z.astype(np.float64),
+                bounds_error=False)(np.column_stack([y.ravel(), x.ravel()])).reshape(x.shape)
+            machine = before.machines[truth["scenario"]["machine_id"]]
+            floor = cut_floor(g, machine, c["travel_m"], c["luff_rad"], c["slew_start_rad"],
+                              c["slew_end_rad"])
+            foot = np.isfinite(floor)
+
+            ground_m = float(truth["scenario"].get("ground_z_m", 0.0))
+
+            def above(z, floor=floor, area_m2=g.cell_area_m2):
+                # material above the floor: a floor below the ground takes nothing there
+                return float(np.nansum(np.clip(z - np.fmax(floor, ground_m), 0.0, None))) * area_m2
+
+            # the envelope on the simulator's own grid (its arrays are (ny, nx)), then on ours
+            sim_m3 = above(true_z.T.astype(np.float64),
+                           cut_floor(sim_grid, machine, c["travel_m"], c["luff_rad"],
+                                     c["slew_start_rad"], c["slew_end_rad"]),
+                           sim_grid.cell_area_m2)
+            top = before.stack.surface()
+            true_m3, ours_m3 = above(surface), above(top)
+            map_m3 = above(before.height.elevation)
+            cells = foot & ((surface > np.fmax(floor, ground_m)) | (top > np.fmax(floor, ground_m)))
+            bias_mm = float(np.nanmean((top - surface)[cells])) * 1e3 if cells.any() else 0.0
+            cut_m3 = c["true_volume_m3"]
+            print(f"{c['cut_id']:<8} {cut_m3 * scale:>10.4g} {sim_m3 * scale:>10.4g} "
+                  f"{(sim_m3 / cut_m3 - 1) * 100:>+10.2f} {true_m3 * scale:>10.4g} "
+                  f"{(true_m3 / sim_m3 - 1) * 100:>+7.2f} {ours_m3 * scale:>10.4g} "
+                  f"{(ours_m3 / true_m3 - 1) * 100:>+8.2f} {map_m3 * scale:>10.4g} "
+                  f"{(map_m3 / true_m3 - 1) * 100:>+7.2f} {bias_mm:>+13.2f}", flush=True)
 
 
 def _t(tonnes: float) -> str:
@@ -108,13 +183,20 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--duration", type=float, default=None, help="site hours (default: all)")
     ap.add_argument("--keep", metavar="DIR", help="keep (and reuse) the runs in DIR")
+    ap.add_argument("--explain", action="store_true",
+                    help="split each cut's error into the envelope's and the surface's "
+                    "(simulates with --truth-cut-surfaces; a fold per cut)")
     args = ap.parse_args(argv)
     scenarios = args.scenario or ["demo", "bench-scale"]
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(args.keep or tmp)
         out.mkdir(parents=True, exist_ok=True)
-        results = [run(s, args.seed, out, args.duration) for s in scenarios]
+        results = [run(s, args.seed, out, args.duration, cut_surfaces=args.explain)
+                   for s in scenarios]
         ok = all([report(r) for r in results])
+        if args.explain:
+            for r in results:
+                explain(r)
     print(f"\n{'all targets met' if ok else 'some targets missed'}")
     return 0 if ok else 1
 

@@ -6,6 +6,7 @@ import json
 import subprocess
 import sys
 import threading
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -129,3 +130,32 @@ def test_truth_files_describe_the_run(tmp_path):
     rotations = arrays["scanner_poses"][:, 4:].reshape(-1, 3, 3)
     assert np.allclose(rotations @ rotations.transpose(0, 2, 1), np.eye(3), atol=1e-9)
     assert arrays["surface_z"].max() > 0.5  # a pass has been stacked
+
+
+def test_cut_surfaces_are_what_each_cut_acted_on(tmp_path):
+    """``cut_surfaces``: the true surface at each cut's start.  Checked by a different
+    method than the parcels the cut's truth comes from: the surface lost between one
+    cut's start and the next (or the end; the slides in between move material, they do
+    not lose it) is that cut's true volume."""
+    base = demo()
+    scenario = replace(base, lots=base.lots[:1], passes_per_lot=2, pass_duration_s=200.0,
+                       scan_hz=1.0, encoder_hz=1.0, gnss_hz=0.2, idle_hz=0.01,
+                       cuts_per_bench=(2,))
+    sim = Simulation(scenario, 3, tmp_path, cut_surfaces=True)
+    sim.run()
+    truth = json.loads((tmp_path / "truth.json").read_text())
+    arrays = np.load(tmp_path / "truth.npz")
+    surfaces = arrays["cut_surface_z"]
+    assert len(truth["cuts"]) == 2
+    assert surfaces.shape == (2, *arrays["surface_z"].shape)
+    assert truth["world"]["mass_balance"]["lost_tonnes"] == 0.0
+    cell_area_m2 = sim.world.grid.cell_area_m2
+    after = [*surfaces[1:], arrays["surface_z"]]
+    for cut, before_m, after_m in zip(truth["cuts"], surfaces, after):
+        lost_m3 = float(np.sum(before_m.astype(np.float64) - after_m)) * cell_area_m2
+        assert cut["true_volume_m3"] > 1.0
+        assert abs(lost_m3 - cut["true_volume_m3"]) <= 1e-4 * cut["true_volume_m3"], cut["cut_id"]
+    # without the option there is no such array
+    plain = Simulation(scenario, 3, tmp_path / "plain")
+    plain.run(duration_h=0.05)
+    assert "cut_surface_z" not in np.load(tmp_path / "plain" / "truth.npz")

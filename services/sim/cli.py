@@ -66,6 +66,7 @@ def run_sim(args: argparse.Namespace) -> int:
     try:
         sim = Simulation(scenario, args.seed, out, sinks=sinks, scanner_pty=ptys.get("scanner"),
                          gnss_pty=ptys.get("gnss"), scan_events=args.scan_events,
+                         cut_surfaces=args.truth_cut_surfaces,
                          progress=lambda line: print(f"  {line}", file=sys.stderr, flush=True))
         stats = sim.run(duration_h=args.duration, speed=args.speed, idle_speed=args.idle_speed)
         for pty in ptys.values():  # the devices go quiet: their readers see the end
@@ -144,6 +145,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    "scan time, so a ledger needs no scanner or localizer service: truth = the "
                    "true scanner pose, encoders = forward kinematics of the latest encoder "
                    "reading; default off (no such events)")
+    p.add_argument("--truth-cut-surfaces", action="store_true",
+                   help="also keep the true surface at each cut's start in truth.npz "
+                   "(cut_surface_z; for bench/projector_truth.py --explain)")
     p.add_argument("--wait-subscriber", type=float, default=0.0, metavar="SECONDS",
                    help="with --zenoh: start only once a subscriber listens (give up after SECONDS)")
     p.add_argument("--wait-live", action="append", default=[], metavar="KEY",

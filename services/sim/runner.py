@@ -13,7 +13,8 @@ Output of one run (all deterministic for a given scenario and seed):
     the GNSS receiver's GGA sentences, as written to its pseudo-terminal;
 ``truth.json`` / ``truth.npz``
     ground truth: the pile (surface, layer tops, parcels), every pass and cut, the
-    true joints, scanner poses and antenna positions over time.
+    true joints, scanner poses and antenna positions over time; with ``cut_surfaces``
+    (CLI ``--truth-cut-surfaces``) also the true surface at each cut's start.
 
 Time is site time (UTC ns).  The site clock is published as ``clock`` events every
 ``clock_period_s``; at ``speed`` > 0 the run is paced against the wall clock
@@ -154,6 +155,9 @@ class Simulation:
     #: "off", "truth" or "encoders": emit ``scan`` and scanner ``frame_transform`` events
     #: (see the module docstring)
     scan_events: str = "off"
+    #: keep the true surface at each cut's start (``cut_surface_z`` in truth.npz, float32,
+    #: one (ny, nx) grid per cut in the order of truth.json's cuts): what the cut acted on
+    cut_surfaces: bool = False
 
     def __post_init__(self) -> None:
         sc = self.scenario
@@ -198,6 +202,7 @@ class Simulation:
         self.gnss_file = (self.out_dir / "gnss.nmea").open("wb")
         self.stats = RunStats()
         self.truth_joints: list[tuple[int, float, float, float]] = []
+        self.truth_cut_surfaces: list[np.ndarray] = []
         self.truth_scans: list[tuple] = []
         self.truth_antenna: list[tuple] = []
         self.passes: list[dict] = []
@@ -599,6 +604,8 @@ class Simulation:
                                   "t1": t_start + int(sc.cut_duration_s * NS_PER_S), "parts": []})
 
     def _on_cut_start(self, t: int, c: dict, at) -> None:
+        if self.cut_surfaces:
+            self.truth_cut_surfaces.append(self.world.surface_z().astype(np.float32))
         self.motion = Motion(c["t0"], c["t1"], (c["travel"], c["slew_start"], c["luff"]),
                              (c["travel"], c["slew_end"], c["luff"]))
         for k in range(CUT_SUBSWEEPS):
@@ -642,7 +649,8 @@ class Simulation:
         self.producers["reclaimer"].emit(msg)
         self.cuts.append({"cut_id": cut_id, "t0_ns": c["t0"], "t1_ns": c["t1"], "travel_m": c["travel"],
                           "luff_rad": c["luff"], "slew_start_rad": c["slew_start"],
-                          "slew_end_rad": c["slew_end"], "true_tonnes": tonnes, "belt_tonnes": belt,
+                          "slew_end_rad": c["slew_end"], "true_tonnes": tonnes,
+                          "true_volume_m3": sum(p.volume_m3 for p in c["parts"]), "belt_tonnes": belt,
                           "grade": grade, "tonnes_by_lot": by_lot,
                           "tonnes_by_deposit": by_deposit})
         self.stats.cuts += 1
@@ -684,6 +692,10 @@ class Simulation:
                   "joints": np.asarray(self.truth_joints, dtype=np.float64).reshape(-1, 4),
                   "scanner_poses": np.asarray(self.truth_scans, dtype=np.float64).reshape(-1, 13),
                   "antenna_enu": np.asarray(self.truth_antenna, dtype=np.float64).reshape(-1, 4)}
+        if self.cut_surfaces:
+            # a run stopped mid-cut has a surface for a cut it did not finish: not kept
+            arrays["cut_surface_z"] = np.asarray(self.truth_cut_surfaces[:len(self.cuts)],
+                                                 np.float32).reshape(-1, *world.surface_z().shape)
         parcels = world.parcels()
         arrays.update(thickness=parcels["thickness"], time_ns=parcels["time_ns"],
                       grade=parcels["grade"], density_t_m3=parcels["density_t_m3"])
