@@ -130,10 +130,15 @@ def explain(result: dict) -> None:
             bias_mm = float(np.nanmean((top - surface)[cells])) * 1e3 if cells.any() else 0.0
             cut_m3 = c["true_volume_m3"]
             print(f"{c['cut_id']:<8} {cut_m3 * scale:>10.4g} {sim_m3 * scale:>10.4g} "
-                  f"{(sim_m3 / cut_m3 - 1) * 100:>+10.2f} {true_m3 * scale:>10.4g} "
-                  f"{(true_m3 / sim_m3 - 1) * 100:>+7.2f} {ours_m3 * scale:>10.4g} "
-                  f"{(ours_m3 / true_m3 - 1) * 100:>+8.2f} {map_m3 * scale:>10.4g} "
-                  f"{(map_m3 / true_m3 - 1) * 100:>+7.2f} {bias_mm:>+13.2f}", flush=True)
+                  f"{_pct(sim_m3, cut_m3):>+10.2f} {true_m3 * scale:>10.4g} "
+                  f"{_pct(true_m3, sim_m3):>+7.2f} {ours_m3 * scale:>10.4g} "
+                  f"{_pct(ours_m3, true_m3):>+8.2f} {map_m3 * scale:>10.4g} "
+                  f"{_pct(map_m3, true_m3):>+7.2f} {bias_mm:>+13.2f}", flush=True)
+
+
+def _pct(value: float, reference: float) -> float:
+    """``value`` against ``reference`` in % (NaN for a cut that took nothing)."""
+    return (value / reference - 1) * 100 if reference > 0 else float("nan")
 
 
 def _t(tonnes: float) -> str:
