@@ -514,21 +514,49 @@ def _pid() -> int:
 # -- site time ----------------------------------------------------------------------------
 
 
+def _pace_segment_start(pairs: list[tuple[float, int]], pace_change: float,
+                        min_step_s: float = 0.0005) -> int:
+    """Index of the first (arrival s, site ns) pair of the newest run of steps whose
+    rates (site ns per local s) stay within a factor ``pace_change`` of the newest
+    step's.  A step shorter than ``min_step_s`` of local time (events delivered in a
+    burst) has no usable rate and neither ends a run nor sets the newest rate."""
+    rates = [(i + 1, (sb - sa) / (mb - ma))
+             for i, ((ma, sa), (mb, sb)) in enumerate(zip(pairs, pairs[1:]))
+             if mb - ma >= min_step_s]
+    if len(rates) < 2:
+        return 0
+    newest = rates[-1][1]
+    for end, rate in reversed(rates[:-1]):
+        if not newest / pace_change <= rate <= newest * pace_change:
+            return end
+    return 0
+
+
 class SiteTime:
     """Where a service gets "now" in site time (UTC ns).
 
     ``mode="wall"`` (a real yard): the machine's UTC clock.  ``mode="site"`` (the
     simulated yard, which runs faster than real time): follow the ``clock`` events on
     ``stockpile/<site>/@v1/clock/**`` and map the local monotonic clock onto site
-    time with a least-squares line through the recent (arrival, site time) pairs.
+    time with a least-squares line through the recent (arrival, site time) pairs of
+    the current pace.  The simulator changes pace (the demo's 40x while a machine
+    moves, 2000x while none does, around every reclaim cut; slower when it falls
+    behind): a pair whose step from the one before runs at more than ``pace_change``
+    times, or less than 1 / ``pace_change`` of, the newest step's rate starts the
+    segment the line is fitted to, so the line never spans a change of pace (fitted
+    across one it was off by seconds of site time for the next ``window`` pairs).
     ``now_ns()`` before the first clock event raises :class:`LookupError`.
     """
 
-    def __init__(self, mode: str = "wall", *, window: int = 20) -> None:
+    def __init__(self, mode: str = "wall", *, window: int = 20,
+                 pace_change: float = 1.5) -> None:
         if mode not in ("wall", "site"):
             raise ValueError(f"clock mode must be 'wall' or 'site', got {mode!r}")
+        if not pace_change > 1.0:
+            raise ValueError(f"pace_change must be > 1, got {pace_change!r}")
         self.mode = mode
         self.window = int(window)
+        self.pace_change = float(pace_change)
         self._pairs: list[tuple[float, int]] = []  # (monotonic s, site ns)
         self._fit: tuple[float, float, int] | None = None  # (mono0, ns per s, site0)
         self._lock = threading.Lock()
@@ -559,6 +587,7 @@ class SiteTime:
         with self._lock:
             self._pairs.append((monotonic_s, int(site_ns)))
             del self._pairs[:-self.window]
+            del self._pairs[:_pace_segment_start(self._pairs, self.pace_change)]
             pairs = self._pairs
             m0, s0 = pairs[0]
             if len(pairs) >= 2 and pairs[-1][0] > m0:

@@ -29,7 +29,7 @@ from schemas.events import (
 from schemas.validate import check_event
 from services import scanner as S
 from services.protocols import lms200 as L
-from services.service import parse_logfmt
+from services.service import SiteTime, parse_logfmt
 from services.sim.pty import PtyDevice
 from services.sim.sensors import beam_angles_rad
 from tests.zenoh_helpers import (
@@ -292,6 +292,33 @@ def test_site_clock_waits_for_the_clock_then_maps_arrival_onto_site_time(router,
     assert abs(timestamp_ns(check_event(got[0]).timestamp) - expected_ns) < tolerance_ns
     stopped = _one(log_lines(log), "stopped")
     assert int(stopped["waiting_for_clock"]) == 1 and int(stopped["published"]) == 1
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_site_time_follows_a_change_of_pace_at_once(seed):
+    """The demo's simulator runs at 40x while a machine moves and 2000x while none does
+    (30 site seconds between cuts).  Clock ticks every 10 site seconds, delivered up to
+    2 ms late: right after the switch back to 40x, site time read 0.1 s (local) after
+    the newest tick is that tick + 4 s.  A line fitted across the switch was 17 s off."""
+    rng = np.random.default_rng(seed)
+    print(f"seed {seed}")
+    clock = SiteTime("site")
+    local_s, site_ns = 100.0, 1_800_000_000_000_000_000
+    steps = [(0.25, 40.0)] * 30 + [(0.005, 2000.0)] * 3 + [(0.25, 40.0)] * 3
+    for local_step_s, speed in steps:
+        local_s += local_step_s
+        site_ns += int(round(local_step_s * speed * 1e9))
+        clock.observe(local_s + abs(rng.normal(0.0, 0.002)), site_ns)
+    expected_ns = site_ns + int(0.1 * 40.0 * 1e9)
+    assert abs(clock.at(local_s + 0.1) - expected_ns) < 0.3e9   # 0.3 site s = 7.5 ms local
+    assert clock.speed == pytest.approx(40.0, rel=0.05)
+    # a burst (ticks delivered together) neither starts a new pace nor spoils the line
+    for _ in range(3):
+        site_ns += 10 * 10**9
+        clock.observe(local_s + 0.25 + 1e-5 * _, site_ns)
+    assert clock.speed == pytest.approx(40.0, rel=0.5)
+    with pytest.raises(ValueError):
+        SiteTime("site", pace_change=1.0)
 
 
 def test_a_device_that_cannot_be_opened_is_one_error_line_and_exit_2(tmp_path):
