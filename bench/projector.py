@@ -340,6 +340,7 @@ def _ledger_for_as_of(args) -> tuple[Path, str]:
 def section_as_of(args) -> Section:
     """``project(V, K)`` on a 24-hour full-scale ledger, from a snapshot vs from scratch."""
     from ledger import open_ledger
+    from ledger.projector.fold import FoldConfig
     from ledger.projector.query import SnapshotStore, build_snapshots, project
 
     ledger, scenario = _ledger_for_as_of(args)
@@ -353,12 +354,21 @@ def section_as_of(args) -> Section:
         first = next(iter(store.read(0, 1))).valid_time_ns
         last = max(e.valid_time_ns for e in store.read(max(0, head.global_seq - 2000)))
         hours = (last - first) / 3.6e12
-        if not snap_path.exists():
+        config = FoldConfig(pile_id=pile)
+        with SnapshotStore(snap_path) as snaps:
+            # snapshots of another fold config (its defaults changed since they were
+            # built) never serve this one's queries: build this config's
+            stale = snaps.count() - snaps.count(config)
+            build = snaps.count(config) == 0
+        if stale:
+            notes.append(f"{stale} snapshots of another fold config in {snap_path.name} are "
+                         "ignored (delete the file and its .d folder to free the space)")
+        if build:
             t0 = time.perf_counter()
             with SnapshotStore(snap_path) as snaps:
                 t_build = time.perf_counter()
                 saved = build_snapshots(
-                    store, snaps, pile, every_ns=int(every_s * NS_PER_S),
+                    store, snaps, pile, every_ns=int(every_s * NS_PER_S), config=config,
                     progress=lambda n, v: print(
                         f"  snapshot {n} at site hour {(v - first) / 3.6e12:.2f} "
                         f"({time.perf_counter() - t_build:.0f} s)", file=sys.stderr, flush=True))

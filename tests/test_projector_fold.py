@@ -165,7 +165,11 @@ def test_a_snapshot_taken_knowing_everything_serves_an_earlier_known_time(yard, 
     t0 = min(r.valid_time_ns for r in rows)
     t1 = max(r.valid_time_ns for r in rows)
     with SnapshotStore(tmp_path / "s.duckdb") as snaps:
-        assert build_snapshots(store, snaps, PILE, every_ns=60 * S) > 0
+        built = build_snapshots(store, snaps, PILE, every_ns=60 * S)
+        assert built > 0
+        # counted per fold config: another config's queries never use these
+        assert snaps.count() == snaps.count(F.FoldConfig(pile_id=PILE)) == built
+        assert snaps.count(F.FoldConfig(pile_id=PILE, margin_sigma=2.5)) == 0
         v = t0 + (t1 - t0) * 3 // 4
         k = v + 120 * S
         assert k < head_k

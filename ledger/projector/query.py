@@ -360,8 +360,14 @@ class SnapshotStore:
                           [state.config.pile_id, repr(state.config), valid_ns, gseq, head_seq,
                            known_ns, folded, name])
 
-    def count(self) -> int:
-        return self._con.execute(f"SELECT count(*) FROM {self.TABLE}").fetchone()[0]
+    def count(self, config: F.FoldConfig | None = None) -> int:
+        """Snapshots kept; with ``config``, only those folded with it (the others are
+        never used for its queries)."""
+        if config is None:
+            return self._con.execute(f"SELECT count(*) FROM {self.TABLE}").fetchone()[0]
+        return self._con.execute(
+            f"SELECT count(*) FROM {self.TABLE} WHERE pile_id = ? AND config = ?",
+            [config.pile_id, repr(config)]).fetchone()[0]
 
     def find(self, store, config: F.FoldConfig, valid_ns: int, known_ns: int):
         """``(state, position)`` of the latest usable snapshot for (V, K), or None."""
