@@ -583,8 +583,11 @@ class SiteTime:
                                                       on_sample)
 
     def observe(self, monotonic_s: float, site_ns: int) -> None:
-        """Add one (arrival, site time) pair."""
+        """Add one (arrival, site time) pair.  A tick no later in site time than the
+        newest one (a repeat, or one delivered late) carries nothing new and is ignored."""
         with self._lock:
+            if self._pairs and int(site_ns) <= self._pairs[-1][1]:
+                return
             self._pairs.append((monotonic_s, int(site_ns)))
             del self._pairs[:-self.window]
             del self._pairs[:_pace_segment_start(self._pairs, self.pace_change)]

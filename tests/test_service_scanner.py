@@ -317,6 +317,11 @@ def test_site_time_follows_a_change_of_pace_at_once(seed):
         site_ns += 10 * 10**9
         clock.observe(local_s + 0.25 + 1e-5 * _, site_ns)
     assert clock.speed == pytest.approx(40.0, rel=0.5)
+    # a tick repeated or delivered late changes nothing
+    before = clock.at(local_s + 1.0)
+    clock.observe(local_s + 0.9, site_ns - 30 * 10**9)
+    clock.observe(local_s + 0.95, site_ns)
+    assert clock.at(local_s + 1.0) == before
     with pytest.raises(ValueError):
         SiteTime("site", pace_change=1.0)
 
