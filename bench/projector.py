@@ -358,30 +358,27 @@ def section_as_of(args) -> Section:
         with SnapshotStore(snap_path) as snaps:
             # snapshots of another fold config (its defaults changed since they were
             # built) never serve this one's queries: build this config's
-            stale = snaps.count() - snaps.count(config)
-            build = snaps.count(config) == 0
-        if stale:
-            notes.append(f"{stale} snapshots of another fold config in {snap_path.name} are "
-                         "ignored (delete the file and its .d folder to free the space)")
-        if build:
-            t0 = time.perf_counter()
-            with SnapshotStore(snap_path) as snaps:
+            mine = snaps.count(config)
+            stale = snaps.count() - mine
+            if stale:
+                notes.append(f"{stale} snapshots of another fold config in {snap_path.name} "
+                             "are ignored (delete the file and its .d folder to free the space)")
+            if not mine:
                 t_build = time.perf_counter()
                 saved = build_snapshots(
                     store, snaps, pile, every_ns=int(every_s * NS_PER_S), config=config,
                     progress=lambda n, v: print(
                         f"  snapshot {n} at site hour {(v - first) / 3.6e12:.2f} "
                         f"({time.perf_counter() - t_build:.0f} s)", file=sys.stderr, flush=True))
-            size = snap_path.stat().st_size + sum(
-                f.stat().st_size for f in Path(str(snap_path) + ".d").glob("*.snap*"))
-            notes.append(f"snapshots: {saved} (one per {args.snapshot_every_min:g} site min, "
-                         f"{size / 2**20:,.0f} MiB) built in "
-                         f"{time.perf_counter() - t0:.1f} s into {snap_path.name}")
-        queries = [("the end, everything known", None, None),
-                   ("1 h before the end, known then", last - 3600 * NS_PER_S,
-                    head.recorded_time_ns - 3600 * NS_PER_S),
-                   ("half way, known now", first + (last - first) // 2, None)]
-        with SnapshotStore(snap_path) as snaps:
+                size = snap_path.stat().st_size + sum(
+                    f.stat().st_size for f in Path(str(snap_path) + ".d").glob("*.snap*"))
+                notes.append(f"snapshots: {saved} (one per {args.snapshot_every_min:g} site "
+                             f"min, {size / 2**20:,.0f} MiB) built in "
+                             f"{time.perf_counter() - t_build:.1f} s into {snap_path.name}")
+            queries = [("the end, everything known", None, None),
+                       ("1 h before the end, known then", last - 3600 * NS_PER_S,
+                        head.recorded_time_ns - 3600 * NS_PER_S),
+                       ("half way, known now", first + (last - first) // 2, None)]
             # the first query of a process also pays for imports and DuckDB's first plans
             t0 = time.perf_counter()
             project(store, pile, first + (last - first) // 3, None, snapshots=snaps)

@@ -16,7 +16,7 @@ surface above the projector's cutting-envelope floor on the simulator's grid (th
 envelope's own error: its difference from the true cut), the same on the projector's
 grid (the grid's: the footprint's edge cells differ), and the projector's layer stack
 and height map above that floor as of the cut's start (the surface's error, against the
-true surface on the projector's grid).  Each row is one fold to the cut's start.
+true surface on the projector's grid).  One fold gives the states at every cut's start.
 
 Targets (issue 5): pile tonnes within 1 % of truth; each cut's tonnes within 3 % and
 its Fe within 0.3 percentage points once all assays are known.
@@ -87,11 +87,12 @@ def explain(result: dict) -> None:
         raise SystemExit(f"{result['sim_dir']} was simulated without --truth-cut-surfaces: "
                          "give --explain a new --keep folder")
     truth, pile_id = result["truth"], result["truth"]["scenario"].get("pile_id", "P1")
+    ground_m = float(truth["scenario"].get("ground_z_m", 0.0))
     # bench-scale cuts hold tens of cm3
     unit, scale = (("cm3", 1e6) if max((c["true_volume_m3"] for c in truth["cuts"]), default=1.0)
                    < 0.01 else ("m3", 1.0))
     print(f"\n-- {result['scenario']} (seed {result['seed']}): each cut's error, split "
-          f"({unit} above our envelope floor at the cut's start; one fold per cut)")
+          f"({unit} above our envelope floor at the cut's start)")
     print(f"{'cut':<8} {'true cut':>10} {'sim grid':>10} {'envelope %':>10} {'our grid':>10} "
           f"{'grid %':>7} {'our stack':>10} {'stack %':>8} {'our map':>10} {'map %':>7} "
           f"{'stack-true mm':>13}")
@@ -100,40 +101,55 @@ def explain(result: dict) -> None:
                             origin_y_m=float(yc[0] - (yc[1] - yc[0]) / 2),
                             cell_m=float(xc[1] - xc[0]), nx=len(xc), ny=len(yc), frame="site")
     with open_ledger(result["ledger"], read_only=True) as store:
-        for c, true_z in zip(truth["cuts"], arrays["cut_surface_z"]):
-            before = project(store, pile_id, valid_time_ns=c["t0_ns"] - 1).state
-            g = before.pile.geometry
-            x, y = cell_centres(g)
-            surface = RegularGridInterpolator(
-                (arrays["y_centres"], arrays["x_centres"]), true_z.astype(np.float64),
-                bounds_error=False)(np.column_stack([y.ravel(), x.ravel()])).reshape(x.shape)
-            machine = before.machines[truth["scenario"]["machine_id"]]
-            floor = cut_floor(g, machine, c["travel_m"], c["luff_rad"], c["slew_start_rad"],
-                              c["slew_end_rad"])
-            foot = np.isfinite(floor)
-
-            ground_m = float(truth["scenario"].get("ground_z_m", 0.0))
-
-            def above(z, floor=floor, area_m2=g.cell_area_m2):
-                # material above the floor: a floor below the ground takes nothing there
-                return float(np.nansum(np.clip(z - np.fmax(floor, ground_m), 0.0, None))) * area_m2
-
-            # the envelope on the simulator's own grid (its arrays are (ny, nx)), then on ours
-            sim_m3 = above(true_z.T.astype(np.float64),
-                           cut_floor(sim_grid, machine, c["travel_m"], c["luff_rad"],
-                                     c["slew_start_rad"], c["slew_end_rad"]),
+        befores = _states_before(store, pile_id, [c["t0_ns"] for c in truth["cuts"]])
+    for c, true_z, before in zip(truth["cuts"], arrays["cut_surface_z"], befores):
+        g = before.pile.geometry
+        x, y = cell_centres(g)
+        surface = RegularGridInterpolator((yc, xc), true_z.astype(np.float64), bounds_error=False)(
+            np.column_stack([y.ravel(), x.ravel()])).reshape(x.shape)
+        machine = before.machines[truth["scenario"]["machine_id"]]
+        joints = (c["travel_m"], c["luff_rad"], c["slew_start_rad"], c["slew_end_rad"])
+        # material is above the floor and the ground: a floor below the ground takes
+        # nothing there
+        base = np.fmax(cut_floor(g, machine, *joints), ground_m)
+        # the envelope on the simulator's own grid (its arrays are (ny, nx)), then on ours
+        sim_m3 = _above_m3(true_z.T.astype(np.float64),
+                           np.fmax(cut_floor(sim_grid, machine, *joints), ground_m),
                            sim_grid.cell_area_m2)
-            top = before.stack.surface()
-            true_m3, ours_m3 = above(surface), above(top)
-            map_m3 = above(before.height.elevation)
-            cells = foot & ((surface > np.fmax(floor, ground_m)) | (top > np.fmax(floor, ground_m)))
-            bias_mm = float(np.nanmean((top - surface)[cells])) * 1e3 if cells.any() else 0.0
-            cut_m3 = c["true_volume_m3"]
-            print(f"{c['cut_id']:<8} {cut_m3 * scale:>10.4g} {sim_m3 * scale:>10.4g} "
-                  f"{_pct(sim_m3, cut_m3):>+10.2f} {true_m3 * scale:>10.4g} "
-                  f"{_pct(true_m3, sim_m3):>+7.2f} {ours_m3 * scale:>10.4g} "
-                  f"{_pct(ours_m3, true_m3):>+8.2f} {map_m3 * scale:>10.4g} "
-                  f"{_pct(map_m3, true_m3):>+7.2f} {bias_mm:>+13.2f}", flush=True)
+        top = before.stack.surface()
+        true_m3, ours_m3 = _above_m3(surface, base, g.cell_area_m2), _above_m3(top, base, g.cell_area_m2)
+        map_m3 = _above_m3(before.height.elevation, base, g.cell_area_m2)
+        cells = np.isfinite(base) & ((surface > base) | (top > base))
+        bias_mm = float(np.nanmean((top - surface)[cells])) * 1e3 if cells.any() else 0.0
+        cut_m3 = c["true_volume_m3"]
+        print(f"{c['cut_id']:<8} {cut_m3 * scale:>10.4g} {sim_m3 * scale:>10.4g} "
+              f"{_pct(sim_m3, cut_m3):>+10.2f} {true_m3 * scale:>10.4g} "
+              f"{_pct(true_m3, sim_m3):>+7.2f} {ours_m3 * scale:>10.4g} "
+              f"{_pct(ours_m3, true_m3):>+8.2f} {map_m3 * scale:>10.4g} "
+              f"{_pct(map_m3, true_m3):>+7.2f} {bias_mm:>+13.2f}", flush=True)
+
+
+def _states_before(store, pile_id: str, times_ns: list[int]) -> list:
+    """The fold state (flushed, as :func:`project` leaves it) just before each time, with
+    everything known: what ``project(store, pile_id, t - 1).state`` gives, from one fold."""
+    from ledger.projector import fold as F
+    from ledger.projector.query import FAR_FUTURE_NS
+
+    if times_ns != sorted(times_ns):
+        raise ValueError("the times must be in order")
+    state, states = F.initial_state(F.FoldConfig(pile_id=pile_id)), []
+    for event in store.as_of(FAR_FUTURE_NS, FAR_FUTURE_NS, types=list(F.GEOMETRY_TYPES)):
+        while len(states) < len(times_ns) and event.valid_time_ns >= times_ns[len(states)]:
+            states.append(F.flush(state.copy()))
+        F.apply(state, event)
+    return states + [F.flush(state.copy()) for _ in times_ns[len(states):]]
+
+
+def _above_m3(z_m, base_m, cell_area_m2: float) -> float:
+    """Volume (m3) of a surface above a base (NaN surface: unseen; inf base: outside)."""
+    import numpy as np
+
+    return float(np.nansum(np.clip(z_m - base_m, 0.0, None))) * cell_area_m2
 
 
 def _pct(value: float, reference: float) -> float:
@@ -190,7 +206,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--keep", metavar="DIR", help="keep (and reuse) the runs in DIR")
     ap.add_argument("--explain", action="store_true",
                     help="split each cut's error into the envelope's and the surface's "
-                    "(simulates with --truth-cut-surfaces; a fold per cut)")
+                    "(simulates with --truth-cut-surfaces)")
     args = ap.parse_args(argv)
     scenarios = args.scenario or ["demo", "bench-scale"]
     with tempfile.TemporaryDirectory() as tmp:

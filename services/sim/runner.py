@@ -695,7 +695,7 @@ class Simulation:
         if self.cut_surfaces:
             # a run stopped mid-cut has a surface for a cut it did not finish: not kept
             arrays["cut_surface_z"] = np.asarray(self.truth_cut_surfaces[:len(self.cuts)],
-                                                 np.float32).reshape(-1, *world.surface_z().shape)
+                                                 np.float32).reshape(-1, *arrays["surface_z"].shape)
         parcels = world.parcels()
         arrays.update(thickness=parcels["thickness"], time_ns=parcels["time_ns"],
                       grade=parcels["grade"], density_t_m3=parcels["density_t_m3"])
