@@ -1,5 +1,6 @@
-"""The fold's two guards around real change: refreshing cells a stacking pass reached since
-they were last seen, and charging a cut only with the drops seen near it.
+"""The fold's guards around real change: refreshing cells a stacking pass reached since they
+were last seen, charging a cut only with the drops seen in its footprint, undoing what
+rose in a footprint while the cut dug, and lifting never-seen flanks to the repose cone.
 
 States are built by hand (a declared pile, a settled height map, pass and cut records) so
 each test isolates one rule; the numbers checked come from the Kalman formulas and the
@@ -112,7 +113,7 @@ def test_refresh_reach_is_the_height_over_tan_repose():
     assert np.array_equal(refreshed, y <= 5.0 + reach)
 
 
-def test_a_drop_far_from_the_cut_is_an_unexplained_loss_not_the_cut_s():
+def test_only_a_drop_in_the_cut_s_footprint_is_the_cut_s():
     config = F.FoldConfig("P1", complete_unseen=False, fill_gap_cells=0, repose_deg=35.0)
     state = _state(config, z0=1.0)
     g = state.pile.geometry
@@ -124,18 +125,80 @@ def test_a_drop_far_from_the_cut_is_an_unexplained_loss_not_the_cut_s():
     cut = F.CutRecord("C1", "B1", "bwr1", 40 * NS, 50 * NS, 0.0, [removal],
                       predicted_m3=removal.volume_m3)
     state.cuts.append(cut)
-    # then the scans see the surface 0.3 m lower at y in [1.5, 2) m (near: within
-    # 1 m / tan 35 = 1.43 m of the footprint) and at y in [15, 16) m (far)
+    # then the scans see the surface 0.3 m lower in the footprint's half y in [0.5, 1) m
+    # (the wheel dug deeper than its envelope), beside it at y in [1.5, 2) m (the face
+    # slid into the hole) and far off at y in [15, 16) m
     elevation = state.stack.surface().copy()
-    near = (y >= 1.5) & (y < 2.0)
+    inside = (y >= 0.5) & (y < 1.0)
+    beside = (y >= 1.5) & (y < 2.0)
     far = (y >= 15.0) & (y < 16.0)
-    elevation[:, near | far] -= 0.3
+    elevation[:, inside | beside | far] -= 0.3
     state.height.grid["elevation"][:] = elevation
     state.height.grid["variance"][:] = SD ** 2 / 10
     volume = 0.3 * g.cell_area_m2 * g.nx
     F._follow_height(state, 60 * NS)
-    assert math.isclose(cut.residual_m3, volume * near.sum(), rel_tol=1e-9)
-    assert math.isclose(state.flagged_loss_m3, volume * far.sum(), rel_tol=1e-9)
-    assert state.counters["unexplained_loss_mm3"] == round(volume * far.sum() * 1e3)
+    assert math.isclose(cut.residual_m3, volume * inside.sum(), rel_tol=1e-9)
+    assert math.isclose(state.flagged_loss_m3, volume * (beside.sum() + far.sum()),
+                        rel_tol=1e-9)
+    assert state.counters["unexplained_loss_mm3"] == round(
+        volume * (beside.sum() + far.sum()) * 1e3)
     # the measurement wins everywhere
+    near = inside | beside
     np.testing.assert_allclose(state.stack.surface()[:, near | far], elevation[:, near | far])
+
+
+def test_a_never_seen_flank_rises_to_the_cone_beyond_the_fixed_margin_only():
+    # the pile stands 1 m high and was seen up to y = 15 m; beyond, nothing was ever seen
+    # and the stack holds the flank 5 cm (more than margin_m, 2 cm, less than one point's
+    # 3 sd + margin_m, 17 cm) below the repose cone of the last seen row; a strip further
+    # out is 1 cm below it (within the margin)
+    config = F.FoldConfig("P1", fill_gap_cells=0, repose_deg=35.0)
+    state = _state(config, z0=1.0)
+    g = state.pile.geometry
+    y = (np.arange(g.ny) + 0.5) * g.cell_m
+    hidden = y > 15.0
+    for name in ("elevation", "variance", "last_update_ns"):
+        state.height.grid[name][:, hidden] = np.nan
+    last_seen_y = y[~hidden].max()
+    tan = math.tan(math.radians(35.0))
+    cone = 1.0 - tan * (y - last_seen_y)      # exact along the grid's axis
+    low = hidden & (y < 16.0)                  # 5 cm below
+    slight = hidden & (y >= 16.0) & (y < 16.6)   # 1 cm below
+    target = np.where(low, cone - 0.05, np.where(slight, cone - 0.01, np.inf))
+    state.stack, _ = state.stack.clamp(np.broadcast_to(target, g.shape))
+    before = state.stack.surface().copy()
+    F._complete_unseen(state, 100 * NS)
+    top = state.stack.surface()
+    np.testing.assert_allclose(top[:, low], np.broadcast_to(cone[low], (g.nx, low.sum())),
+                               atol=1e-9)
+    assert np.array_equal(top[:, slight], before[:, slight])
+    assert state.counters["cells_completed"] == g.nx * int(low.sum())
+
+
+def test_a_cut_undoes_the_rises_its_own_digging_caused_in_its_footprint():
+    config = F.FoldConfig("P1", complete_unseen=False, fill_gap_cells=0, repose_deg=35.0)
+    state = _state(config, z0=1.0)
+    g = state.pile.geometry
+    y = (np.arange(g.ny) + 0.5) * g.cell_m
+    footprint = np.zeros(g.shape, bool)
+    footprint[:, y < 5.0] = True
+    early = (y >= 2.0) & (y < 3.0)     # rose before the cut started (t = 30 s)
+    during = (y >= 4.0) & (y < 6.0)    # rose while it dug (t = 45 s), half in, half out
+    for t_s, cells, rise in ((30, early, 0.3), (45, during, 0.4)):
+        elevation = state.height.grid["elevation"]
+        elevation[:, cells] = 1.0 + rise
+        state.height.grid["variance"][:, cells] = SD ** 2 / 10
+        F._follow_height(state, t_s * NS, drops=False)
+    np.testing.assert_allclose(state.stack.surface()[:, early], 1.3)
+    np.testing.assert_allclose(state.stack.surface()[:, during], 1.4)
+    undone = F._undo_digging_rises(state, 40 * NS, footprint)
+    top = state.stack.surface()
+    inside = during & (y < 5.0)
+    np.testing.assert_allclose(top[:, inside], 1.0)          # back to where it stood
+    np.testing.assert_allclose(top[:, during & ~inside], 1.4)  # outside the footprint
+    np.testing.assert_allclose(top[:, early], 1.3)           # before the cut began
+    assert math.isclose(undone, 0.4 * g.cell_area_m2 * g.nx * inside.sum(), rel_tol=1e-9)
+    # the journal forgets what is older than dig_journal_s
+    F._journal_rises(state, int((45 + config.dig_journal_s + 1) * NS),
+                     np.zeros(g.shape, bool), state.stack.surface())
+    assert state.rises_journal == []
