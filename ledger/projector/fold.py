@@ -640,7 +640,7 @@ def _follow_height(state: ProjectorState, t_ns: int, *, drops: bool = True,
         block, elevation = elevation, np.full(shape, np.nan)
         elevation[region] = block
     top = state.stack.surface()
-    rising = up.copy()
+    rising = np.flatnonzero(up)
     if up.any() and seen_before_ns is not None and state.config.attribute_by_crossing:
         up = _rise_to_crossing_passes(state, np.where(up, elevation, np.nan), seen_before_ns,
                                       t_ns, observed_ns=state.height.grid["observed_ns"]) & up
@@ -671,7 +671,7 @@ def _follow_height(state: ProjectorState, t_ns: int, *, drops: bool = True,
             # material rising outside a pass after a cut is what slumped into the cut's
             # hole from its face: the cut did not take it
             state.cuts[-1].returned_m3 += added
-    if rising.any():
+    if rising.size:
         _journal_rises(state, t_ns, rising, top)
     if drops and down.any():
         near = down
@@ -693,14 +693,16 @@ def _follow_height(state: ProjectorState, t_ns: int, *, drops: bool = True,
             state.count("unexplained_loss_mm3", int(round(removal.volume_m3 * 1e3)))
 
 
-def _journal_rises(state: ProjectorState, t_ns: int, mask: np.ndarray,
+def _journal_rises(state: ProjectorState, t_ns: int, cells: np.ndarray,
                    top_before_m: np.ndarray) -> None:
-    """Note which cells of ``mask`` the stack's top rose in, from what level, at ``t_ns``;
-    entries older than ``dig_journal_s`` before it are dropped."""
-    cells = np.flatnonzero(mask & (state.stack.surface() > top_before_m))
+    """Note in which of ``cells`` (flat indices, or a mask) the stack's top rose, from
+    what level (``top_before_m``, (nx, ny)), at ``t_ns``; entries older than
+    ``dig_journal_s`` before it are dropped."""
+    cells = np.flatnonzero(cells) if cells.dtype == bool else cells
+    cells = cells[state.stack.surface().reshape(-1)[cells] > top_before_m.reshape(-1)[cells]]
     if cells.size:
         state.rises_journal.append((int(t_ns), cells.astype(np.int32),
-                                    top_before_m.ravel()[cells].copy()))
+                                    top_before_m.reshape(-1)[cells]))
     oldest = t_ns - int(state.config.dig_journal_s * 1e9)
     while state.rises_journal and state.rises_journal[0][0] < oldest:
         state.rises_journal.pop(0)
