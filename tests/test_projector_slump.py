@@ -158,3 +158,35 @@ def test_estimate_repose_deg_finds_a_noisy_cone():
         noisy = cone + rng.normal(0, 0.02, cone.shape)
         assert estimate_repose_deg(noisy, CELL) == pytest.approx(deg, abs=0.5)
     assert math.isnan(estimate_repose_deg(np.zeros((50, 50)), CELL))   # flat: no flank
+
+
+def test_the_fold_measures_slopes_over_a_run_long_enough_for_its_noise():
+    # a laboratory pile's plane flank at 37 deg on 5 mm cells, its fused heights 2 mm
+    # noisy: over 4 cells a side the slopes read steep, |g + n|^2 = |g|^2 + |n|^2, by
+    # about 0.2 deg; over the fold's baseline (run >= 8 point sds of 15 mm) by ~0.03 deg
+    # (plus the estimator's own binning, a few hundredths)
+    import ledger.projector.fold as F
+
+    seed = 11
+    print("seed", seed)
+    rng = np.random.default_rng(seed)
+    cell = 0.005
+    x = (np.arange(200) + 0.5) * cell
+    plane = np.broadcast_to(TAN37 * x[:, None], (200, 200)).copy()
+    noisy = plane + rng.normal(0, 0.002, plane.shape)
+    state = F.initial_state("P1")
+    state.pile = F.PileInfo("P1", GridGeometry(0.0, 0.0, cell, 200, 200), 0.0, 0.02, 1.65)
+    state.point_sd_m = 0.015
+    b = F._slope_baseline_cells(state)
+    assert b == 12
+    run = 2 * 4 * cell
+    steep = math.degrees(math.atan(math.sqrt(TAN37 ** 2 + 2 * (2 * 0.002 ** 2) / run ** 2)))
+    assert estimate_repose_deg(noisy, cell, baseline_cells=4) == pytest.approx(steep, abs=0.05)
+    assert steep - 37.0 > 0.15
+    long_run = estimate_repose_deg(noisy, cell, baseline_cells=b)
+    assert long_run == pytest.approx(37.0, abs=0.1)
+    assert abs(long_run - 37.0) < 0.5 * (steep - 37.0)
+    # a yard's 25 cm cells and 5 cm point sd keep 4 cells (a 2 m run)
+    state.pile = F.PileInfo("P1", GridGeometry(0.0, 0.0, 0.25, 10, 10), 0.0, 1.0, 1.65)
+    state.point_sd_m = 0.05
+    assert F._slope_baseline_cells(state) == 4
