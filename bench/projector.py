@@ -356,12 +356,13 @@ def section_as_of(args) -> Section:
         hours = (last - first) / 3.6e12
         config = FoldConfig(pile_id=pile)
         with SnapshotStore(snap_path) as snaps:
-            # snapshots of another fold config (its defaults changed since they were
-            # built) never serve this one's queries: build this config's
+            # snapshots of another fold config or version (its defaults or code changed
+            # since they were built) never serve this one's queries: build this one's
             mine = snaps.count(config)
             stale = snaps.count() - mine
             if stale:
-                notes.append(f"{stale} snapshots of another fold config in {snap_path.name} "
+                notes.append(f"{stale} snapshots of another fold config or version in "
+                             f"{snap_path.name} "
                              "are ignored (delete the file and its .d folder to free the space)")
             if not mine:
                 t_build = time.perf_counter()

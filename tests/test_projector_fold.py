@@ -155,7 +155,8 @@ def test_snapshot_accelerated_project_equals_a_brute_force_fold(yard, tmp_path_f
     store.close()
 
 
-def test_a_snapshot_taken_knowing_everything_serves_an_earlier_known_time(yard, tmp_path):
+def test_a_snapshot_taken_knowing_everything_serves_an_earlier_known_time(yard, tmp_path,
+                                                                          monkeypatch):
     # every event arrives a minute after its valid time: a snapshot holds only events
     # recorded by about its position, so it serves a K an hour before the head
     events = yard["events"]
@@ -170,6 +171,11 @@ def test_a_snapshot_taken_knowing_everything_serves_an_earlier_known_time(yard, 
         # counted per fold config: another config's queries never use these
         assert snaps.count() == snaps.count(F.FoldConfig(pile_id=PILE)) == built
         assert snaps.count(F.FoldConfig(pile_id=PILE, margin_sigma=2.5)) == 0
+        # nor do the next version's: a changed fold folds the same events differently
+        with monkeypatch.context() as m:
+            m.setattr(F, "FOLD_VERSION", F.FOLD_VERSION + 1)
+            assert snaps.count(F.FoldConfig(pile_id=PILE)) == 0
+            assert snaps.find(store, F.FoldConfig(pile_id=PILE), t1, head_k) is None
         v = t0 + (t1 - t0) * 3 // 4
         k = v + 120 * S
         assert k < head_k

@@ -50,12 +50,17 @@ from ledger.projector.grades import AssayRecord
 from ledger.projector.grid import GridGeometry
 from ledger.projector.layers import DepositInfo, LayerStack, Removal
 
-__all__ = ["FoldConfig", "PileInfo", "PassRecord", "CutRecord", "ProjectorState",
+__all__ = ["FOLD_VERSION", "FoldConfig", "PileInfo", "PassRecord", "CutRecord", "ProjectorState",
            "initial_state", "apply", "flush", "GEOMETRY_TYPES"]
 
 #: event types that change the geometric state (assays and lots only feed the join)
 GEOMETRY_TYPES = ("pile_declared", "machine_declared", "stack_started", "stack_ended",
                   "frame_transform", "scan", "reclaim_cut")
+
+#: The fold's version: bumped whenever a change makes the same events and config fold to
+#: a different state.  Snapshots are keyed by it as well as by the config, so those of an
+#: older fold are never used (:class:`ledger.projector.query.SnapshotStore`).
+FOLD_VERSION = 6
 
 DEFAULT_CELL_M = 0.25
 DEFAULT_VOXEL_M = 1.0

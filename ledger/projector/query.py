@@ -306,8 +306,9 @@ def _cut_summary(cut: F.CutRecord, stack, join: GradeJoin, analytes) -> CutSumma
 class SnapshotStore:
     """Geometric fold states kept in their own DuckDB file, keyed by what they include.
 
-    A snapshot row: pile id, the fold config, the position ``(valid ns, global seq)``
-    folded to, the ledger head (global seq) and its recorded time when it was taken, the
+    A snapshot row: pile id, the fold's version and config (:func:`_config_key`: a
+    snapshot of another version or config never serves a query), the position
+    ``(valid ns, global seq)`` folded to, the ledger head (global seq) and its recorded time when it was taken, the
     latest recorded time of the events folded in, and the name of the file holding the
     pickled state (:func:`_pack`: zstd level 1 of the pickle and the arrays' buffers; a
     full-scale state of 200 MB packs to 30 MB and unpacks in 0.25 s, with the arrays
@@ -357,17 +358,18 @@ class SnapshotStore:
         work.write_bytes(_pack(state))
         work.replace(self.folder / name)
         self._con.execute(f"INSERT INTO {self.TABLE} VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
-                          [state.config.pile_id, repr(state.config), valid_ns, gseq, head_seq,
+                          [state.config.pile_id, _config_key(state.config), valid_ns, gseq,
+                           head_seq,
                            known_ns, folded, name])
 
     def count(self, config: F.FoldConfig | None = None) -> int:
-        """Snapshots kept; with ``config``, only those folded with it (the others are
-        never used for its queries)."""
+        """Snapshots kept; with ``config``, only those folded with it by this version of
+        the fold (the others are never used for its queries)."""
         if config is None:
             return self._con.execute(f"SELECT count(*) FROM {self.TABLE}").fetchone()[0]
         return self._con.execute(
             f"SELECT count(*) FROM {self.TABLE} WHERE pile_id = ? AND config = ?",
-            [config.pile_id, repr(config)]).fetchone()[0]
+            [config.pile_id, _config_key(config)]).fetchone()[0]
 
     def find(self, store, config: F.FoldConfig, valid_ns: int, known_ns: int):
         """``(state, position)`` of the latest usable snapshot for (V, K), or None."""
@@ -375,7 +377,7 @@ class SnapshotStore:
             f"SELECT valid_ns, global_seq, head_seq, payload FROM {self.TABLE} "
             "WHERE pile_id = ? AND config = ? AND valid_ns <= ? AND folded_recorded_ns <= ? "
             "ORDER BY valid_ns DESC, global_seq DESC",
-            [config.pile_id, repr(config), valid_ns, known_ns]).fetchall()
+            [config.pile_id, _config_key(config), valid_ns, known_ns]).fetchall()
         for v_s, g_s, head_s, name in rows:
             if not (self.folder / name).exists():   # a cache: a lost file is a miss
                 continue
@@ -383,6 +385,11 @@ class SnapshotStore:
                 blob = (self.folder / name).read_bytes()
                 return _unpack(blob), (v_s, g_s)
         return None
+
+
+def _config_key(config: F.FoldConfig) -> str:
+    """What a snapshot is keyed by besides its position: the fold's version and config."""
+    return f"fold v{F.FOLD_VERSION} {config!r}"
 
 
 def _pack(state: F.ProjectorState) -> bytes:
