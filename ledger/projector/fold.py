@@ -807,7 +807,7 @@ def _slope_baseline_cells(state: ProjectorState) -> int:
 
     Noise in the heights makes a slope read steep, ``|g + n|^2 = |g|^2 + |n|^2``.  A
     laboratory pile's fused heights carry a few mm of it; over a 4 cm run (4 cells of
-    5 mm) the angle read 0.1-0.2 deg steep, and every cut after the first, mostly
+    5 mm either side) the angle read 0.1-0.2 deg steep, and every cut after the first, mostly
     material that slid off the face at that angle, came 1-4 % short.  At a yard (5 cm
     point sd, 25 cm cells) 4 cells already make a 2 m run.
     """
