@@ -69,8 +69,9 @@ def cmd_project(args: argparse.Namespace) -> int:
               f"residual {c.residual_m3:+.1f} m3")
     unexplained_m3 = state.counters.get("unexplained_loss_mm3", 0) / 1e3
     if unexplained_m3:
-        print(f"\n  unexplained loss {unexplained_m3:,.1f} m3: drops seen away from any cut "
-              "(the surface follows them; no cut is charged)")
+        print(f"\n  unexplained loss {unexplained_m3:,.1f} m3: drops seen outside any cut's "
+              "footprint, such as a face sliding into a cut's hole (the surface follows "
+              "them; no cut is charged)")
     return 0
 
 
