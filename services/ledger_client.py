@@ -40,10 +40,17 @@ class LedgerClient:
     site : str
     timeout_s : float
         Longest wait for a whole answer, seconds.
+    stop : threading.Event, optional
+        When set, a query still waiting for its answer gives up at once
+        (:class:`LedgerUnavailable`).  A service passes its stopper's event: a wait
+        inside Zenoh does not run Python's signal handlers, so without it SIGTERM
+        waited for the query's whole timeout.
     """
 
-    def __init__(self, session, site: str, *, timeout_s: float = DEFAULT_TIMEOUT_S) -> None:
+    def __init__(self, session, site: str, *, timeout_s: float = DEFAULT_TIMEOUT_S,
+                 stop: threading.Event | None = None) -> None:
         self.session, self.site, self.timeout_s = session, site, float(timeout_s)
+        self.stop = stop
 
     def _get(self, what: str, params: dict[str, Any] | None = None) -> list:
         import zenoh
@@ -56,7 +63,7 @@ class LedgerClient:
             timeout=self.timeout_s,
         )
         out = []
-        for reply in replies:
+        for reply in self._replies(replies, what):
             if reply.err is not None:
                 raise LedgerQueryError(f"ledger service error on {what}: "
                                        f"{reply.err.payload.to_bytes().decode(errors='replace')}")
@@ -65,6 +72,25 @@ class LedgerClient:
             raise LedgerUnavailable(f"no ledger service answered {query_key(self.site, what)} "
                                     f"within {self.timeout_s:g} s")
         return out
+
+    def _replies(self, handler, what: str):
+        """The replies as they come; with ``stop``, polled so that setting it ends the
+        wait within 10 ms."""
+        if self.stop is None:
+            yield from handler
+            return
+        import zenoh
+
+        while True:
+            try:
+                reply = handler.try_recv()
+            except zenoh.ZError:          # the channel closed: every reply is in
+                return
+            if reply is not None:
+                yield reply
+            elif self.stop.wait(0.01):
+                raise LedgerUnavailable(f"stopped while waiting for the ledger's answer "
+                                        f"to {query_key(self.site, what)}")
 
     def _json(self, what: str, params: dict[str, Any] | None = None) -> Any:
         return json.loads(self._get(what, params)[0].payload.to_bytes())

@@ -204,7 +204,7 @@ def newest_head(heads: queue.SimpleQueue, timeout_s: float) -> int | None:
 
 def main(config: Config, *, stopper: Stopper | None = None) -> int:
     """Run the projector until SIGINT/SIGTERM (or ``stopper``); return the exit code."""
-    from services.ledger_client import LedgerClient
+    from services.ledger_client import LedgerClient, LedgerUnavailable
 
     heads: queue.SimpleQueue = queue.SimpleQueue()
     runtime = ServiceRuntime(SERVICE, config.site, config.zenoh, name=config.pile_id,
@@ -231,7 +231,7 @@ def main(config: Config, *, stopper: Stopper | None = None) -> int:
                 query.reply_err(b"no projection yet")
 
         queryable = session.declare_queryable(key, on_query)
-        client = LedgerClient(session, config.site)
+        client = LedgerClient(session, config.site, stop=runtime.stopper.event)
         subscriber = client.follow_head(lambda head: heads.put(head["global_seq"]))
         rebuilds = 0
         try:
@@ -265,10 +265,15 @@ def main(config: Config, *, stopper: Stopper | None = None) -> int:
                         status.add("published")
                         dirty, last_pub = False, time.monotonic()
                 except Exception as exc:  # noqa: BLE001 - a failed read is retried later
+                    if stop.is_set():     # a read given up because the service stops
+                        break
                     status.add("errors")
                     runtime.log("update failed", level="warn",
                                 error=f"{type(exc).__name__}: {exc}")
                     stop.wait(0.5)
+        except LedgerUnavailable:
+            if not runtime.stopper.is_set():   # given up because the service stops: fine
+                raise
         finally:
             for entity in (subscriber, queryable, publisher):
                 try:

@@ -199,3 +199,40 @@ def test_sigkill_mid_run_loses_nothing_or_records_the_exact_gaps(tmp_path, cache
         assert lost_total >= n_pub * 2_000
     lines = log_lines(tmp_path / "ledger2.log")
     assert any(line["msg"] == "serving" and int(line["head"]) >= 12_000 for line in lines)
+
+
+def test_a_client_waiting_for_the_ledger_gives_up_at_once_when_stopped():
+    # a "ledger" that takes every query and never answers (it holds the queries open)
+    import time
+
+    from services.ledger_client import LedgerUnavailable
+    from services.ledger_service import query_key
+    from services.service import ZenohOptions
+
+    router, endpoint = open_router()
+    held: list = []
+    session = None
+    try:
+        queryable = router.declare_queryable(query_key("stuck", "head"), held.append)
+        session = zenoh.open(ZenohOptions(mode="client", connect=(endpoint,)).to_config())
+        # without a stop event the wait is the query's whole timeout (Zenoh then
+        # answers "Timeout" itself)
+        t0 = time.monotonic()
+        with pytest.raises((LedgerUnavailable, LedgerQueryError)):
+            LedgerClient(session, "stuck", timeout_s=1.0).head()
+        assert time.monotonic() - t0 >= 0.9
+        # with one, setting it ends a 30 s wait at once (a service's SIGTERM)
+        stop = threading.Event()
+        timer = threading.Timer(0.3, stop.set)
+        timer.start()
+        t0 = time.monotonic()
+        with pytest.raises(LedgerUnavailable, match="stopped"):
+            LedgerClient(session, "stuck", timeout_s=30.0, stop=stop).head()
+        assert 0.25 <= time.monotonic() - t0 < 3.0
+        assert held, "the queries reached the stuck queryable"
+        queryable.undeclare()
+    finally:
+        held.clear()
+        if session is not None:
+            session.close()
+        router.close()
