@@ -200,5 +200,5 @@ def test_a_cut_undoes_the_rises_its_own_digging_caused_in_its_footprint():
     assert math.isclose(undone, 0.4 * g.cell_area_m2 * g.nx * inside.sum(), rel_tol=1e-9)
     # the journal forgets what is older than dig_journal_s
     F._journal_rises(state, int((45 + config.dig_journal_s + 1) * NS),
-                     np.zeros(g.shape, bool), state.stack.surface())
+                     np.zeros(0, np.intp), state.stack.surface())
     assert state.rises_journal == []

@@ -700,10 +700,9 @@ def _follow_height(state: ProjectorState, t_ns: int, *, drops: bool = True,
 
 def _journal_rises(state: ProjectorState, t_ns: int, cells: np.ndarray,
                    top_before_m: np.ndarray) -> None:
-    """Note in which of ``cells`` (flat indices, or a mask) the stack's top rose, from
-    what level (``top_before_m``, (nx, ny)), at ``t_ns``; entries older than
-    ``dig_journal_s`` before it are dropped."""
-    cells = np.flatnonzero(cells) if cells.dtype == bool else cells
+    """Note in which of ``cells`` (flat indices) the stack's top rose, from what level
+    (``top_before_m``, (nx, ny)), at ``t_ns``; entries older than ``dig_journal_s``
+    before it are dropped."""
     cells = cells[state.stack.surface().reshape(-1)[cells] > top_before_m.reshape(-1)[cells]]
     if cells.size:
         state.rises_journal.append((int(t_ns), cells.astype(np.int32),
@@ -869,7 +868,7 @@ def _complete_unseen(state: ProjectorState, t_ns: int,
         # no pass crossed since the cell was seen: the top deposit's (it stands above it)
         state.stack, _added = state.stack.raise_to(np.where(left, level, np.nan),
                                                    _deposition_ns(state, t_ns))
-    _journal_rises(state, t_ns, lift, top)
+    _journal_rises(state, t_ns, np.flatnonzero(lift), top)
     state.count("cells_completed", int(lift.sum()))
     state.count("completed_mm3", int(round((state.stack.total_volume_m3() - before) * 1e3)))
     return floor
@@ -908,7 +907,7 @@ def _catch_up_rises(state: ProjectorState, t_ns: int) -> None:
     before = state.stack.total_volume_m3()
     state.stack, _added = state.stack.raise_to(np.where(up, elevation, np.nan),
                                                _deposition_ns(state, t_ns))
-    _journal_rises(state, t_ns, up, top)
+    _journal_rises(state, t_ns, np.flatnonzero(up), top)
     state.count("cells_caught_up", int(up.sum()))
     state.count("caught_up_mm3", int(round((state.stack.total_volume_m3() - before) * 1e3)))
 

@@ -308,12 +308,12 @@ class SnapshotStore:
 
     A snapshot row: pile id, the fold's version and config (:func:`_config_key`: a
     snapshot of another version or config never serves a query), the position
-    ``(valid ns, global seq)`` folded to, the ledger head (global seq) and its recorded time when it was taken, the
-    latest recorded time of the events folded in, and the name of the file holding the
-    pickled state (:func:`_pack`: zstd level 1 of the pickle and the arrays' buffers; a
-    full-scale state of 200 MB packs to 30 MB and unpacks in 0.25 s, with the arrays
-    left in place; zlib and an in-band pickle took 0.8 s) in the
-    folder ``<path>.d`` beside it: DuckDB reads a large BLOB far slower than a file
+    ``(valid ns, global seq)`` folded to, the ledger head (global seq) and its recorded
+    time when it was taken, the latest recorded time of the events folded in, and the
+    name of the file holding the pickled state (:func:`_pack`: zstd level 1 of the
+    pickle and the arrays' buffers; a full-scale state of 200 MB packs to 30 MB and
+    unpacks in 0.25 s, with the arrays left in place; zlib and an in-band pickle took
+    0.8 s) in the folder ``<path>.d`` beside it: DuckDB reads a large BLOB far slower than a file
     (8.5 s for a 30 MB full-scale state), so the table holds only the keys.  It is a
     cache: deleting both loses nothing (a file of an older layout is ignored).
     """
@@ -359,8 +359,7 @@ class SnapshotStore:
         work.replace(self.folder / name)
         self._con.execute(f"INSERT INTO {self.TABLE} VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
                           [state.config.pile_id, _config_key(state.config), valid_ns, gseq,
-                           head_seq,
-                           known_ns, folded, name])
+                           head_seq, known_ns, folded, name])
 
     def count(self, config: F.FoldConfig | None = None) -> int:
         """Snapshots kept; with ``config``, only those folded with it by this version of
