@@ -1547,7 +1547,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def main(config: Config, *, stopper: Stopper | None = None) -> int:
     """Run the live dashboard until SIGINT/SIGTERM (or ``stopper``); return the exit code."""
-    from services.ledger_client import LedgerClient
+    from services.ledger_client import LedgerClient, LedgerUnavailable
     from services.service import ServiceRuntime
 
     if not config.pile_id:
@@ -1569,9 +1569,14 @@ def main(config: Config, *, stopper: Stopper | None = None) -> int:
             if config.serve and uri:
                 viewer = WebViewer(config, uri)
                 runtime.log("serving", web=viewer.url, grpc=uri)
-            client = LedgerClient(runtime.session, config.site)
+            # a wait for the ledger inside Zenoh runs no signal handler: the client polls
+            # the stopper, so SIGTERM ends it at once rather than after a query's timeout
+            client = LedgerClient(runtime.session, config.site, stop=runtime.stopper.event)
             subscriber = client.follow_head(lambda head: heads.put(head["global_seq"]))
             _follow(config, runtime, status, client, heads, rec)
+        except LedgerUnavailable:
+            if not runtime.stopper.is_set():   # given up because the service stops: fine
+                raise
         finally:
             if subscriber is not None:
                 try:
@@ -1627,6 +1632,8 @@ def _follow(config: Config, runtime, status, client, heads: queue.SimpleQueue, r
                               + ")", "ERROR")
                 quarantined[0] = q
         except Exception as exc:  # noqa: BLE001 - retried at the next poll
+            if runtime.stopper.is_set():   # given up because the service stops
+                return
             status.add("errors")
             runtime.log("poll failed", level="warn", error=f"{type(exc).__name__}: {exc}")
 
@@ -1659,6 +1666,8 @@ def _follow(config: Config, runtime, status, client, heads: queue.SimpleQueue, r
                     status.add("updates")
                     last_update = now
         except Exception as exc:  # noqa: BLE001 - a failed read is retried later
+            if stop.is_set():     # a read given up because the service stops
+                break
             status.add("errors")
             runtime.log("update failed", level="warn",
                         error=f"{type(exc).__name__}: {exc}")

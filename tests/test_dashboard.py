@@ -354,3 +354,38 @@ def test_live_service_follows_the_ledger_service(ledger, tmp_path):
     assert sum(t.startswith(f"reconciliation: cut {CUT} Fe") for t in texts) >= 2
     assert any("revised as known now" in t for t in texts)
     assert log_lines(tmp_path / "dashboard.log")[-1]["msg"] == "stopped"
+
+
+@pytest.mark.parametrize("service", ["dashboard", "projector"])
+def test_a_live_service_waiting_for_the_ledger_stops_at_once_on_sigterm(service, tmp_path):
+    # a "ledger service" that takes every query and never answers: the live service's
+    # first query waits inside Zenoh, where Python runs no signal handler; its client
+    # polls the stopper, so SIGTERM ends the wait rather than the query's 30 s timeout
+    import time
+
+    from services.ledger_service import query_key
+
+    router, endpoint = open_router()
+    held: list = []
+    queryable = router.declare_queryable(query_key("stuck", "**"), held.append)
+    extra = ["--rrd", str(tmp_path / "live.rrd")] if service == "dashboard" else []
+    process = stockpile("service", service, "--pile", PILE, "--site", "stuck", *extra,
+                        *client_args(endpoint), stderr_path=tmp_path / "service.log")
+    try:
+        wait_until(lambda: held or process.poll() is not None, 60,
+                   f"the {service} service's first query")
+        assert process.poll() is None, (tmp_path / "service.log").read_text()[-2000:]
+        t0 = time.monotonic()
+        code = stop(process, timeout_s=20)
+        waited_s = time.monotonic() - t0
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.wait()
+        held.clear()
+        queryable.undeclare()
+        router.close()
+    assert code == 0, (tmp_path / "service.log").read_text()[-2000:]
+    assert waited_s < 10, f"the {service} service took {waited_s:.1f} s to stop"
+    lines = log_lines(tmp_path / "service.log")
+    assert not [line for line in lines if line.get("level") == "error"], lines
