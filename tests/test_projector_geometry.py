@@ -22,8 +22,8 @@ from ledger.projector.georef import (
     georeference, interpolate_poses, quaternion_to_matrix, sensor_points)
 from ledger.projector.grid import GridGeometry, cell_centres
 from ledger.projector.heightmap import (
-    CellObservations, FuseStats, HeightMap, centre_elevation, fill_holes, fuse, rasterize,
-    volume_above)
+    CellObservations, FuseStats, HeightMap, centre_elevation, fill_holes, fuse,
+    plane_fit_of_seen, rasterize, volume_above)
 from ledger.projector.profile import above_ground, clean_profile
 
 BASE_SEED = int(os.environ.get("PROJECTOR_GEOMETRY_SEED", "20261107"))
@@ -693,3 +693,48 @@ def test_scans_of_a_prism_to_volume_end_to_end():
     vol = volume_above(hm.centred_elevation(), 0.0, g.cell_area_m2, fill="linear")
     exact = half_w * height * 40.0                   # section area x length
     assert vol == pytest.approx(exact, rel=2e-3)
+
+
+def test_plane_fit_of_seen_is_exact_on_a_plane_up_to_the_edge_of_what_was_seen():
+    ix, iy = np.meshgrid(np.arange(30.0), np.arange(40.0), indexing="ij")
+    plane = 0.3 * ix - 0.7 * iy + 5.0
+    holey = plane.copy()
+    holey[:, 25:] = np.nan          # never seen beyond a row (the window is one-sided there)
+    holey[3, 3] = holey[10:12, 7] = np.nan
+    fitted = plane_fit_of_seen(holey, 5)
+    seen = np.isfinite(holey)
+    np.testing.assert_array_equal(np.isfinite(fitted), seen)
+    np.testing.assert_allclose(fitted[seen], plane[seen], atol=1e-9)
+    # a local mean stands up the slope beside the last seen row: the reason for a plane
+    rows = holey[:, 22:25]
+    assert np.mean(rows, axis=1).mean() > plane[:, 24].mean() + 0.5
+
+
+def test_plane_fit_of_seen_averages_noise_down_by_the_window_s_cell_count():
+    seed = 20261126
+    print("seed", seed)
+    rng = np.random.default_rng(seed)
+    ix, iy = np.meshgrid(np.arange(200.0), np.arange(200.0), indexing="ij")
+    plane = 0.02 * ix + 0.05 * iy
+    sd = 0.01
+    noisy = plane + rng.normal(0.0, sd, plane.shape)
+    fitted = plane_fit_of_seen(noisy, 5)
+    inner = (slice(2, -2), slice(2, -2))
+    # at the centre of a full window the plane's height has variance sd^2 / 25
+    assert abs(np.std((fitted - plane)[inner]) / (sd / 5.0) - 1.0) < 0.05
+    assert abs(np.mean((fitted - plane)[inner])) < 0.02 * sd
+
+
+def test_plane_fit_of_seen_falls_back_to_the_mean_and_validates():
+    line = np.full((9, 9), np.nan)
+    line[4, :] = np.arange(9.0) ** 2          # one row: no plane through it
+    fitted = plane_fit_of_seen(line, 3)
+    expect = [np.mean(line[4, max(0, j - 1):j + 2]) for j in range(9)]
+    np.testing.assert_allclose(fitted[4], expect)
+    assert np.isnan(fitted[3]).all()
+    np.testing.assert_array_equal(plane_fit_of_seen(line, 1), line)
+    for bad in (0, 4):
+        with pytest.raises(ValueError, match="odd"):
+            plane_fit_of_seen(line, bad)
+    with pytest.raises(ValueError, match="shape"):
+        plane_fit_of_seen(np.zeros(5), 3)

@@ -1,6 +1,7 @@
 """The fold's guards around real change: refreshing cells a stacking pass reached since they
 were last seen, charging a cut only with the drops seen in its footprint, undoing what
-rose in a footprint while the cut dug, and lifting never-seen flanks to the repose cone.
+rose in a footprint while the cut dug, and lifting never-seen and stale flanks to the repose
+cone.
 
 States are built by hand (a declared pile, a settled height map, pass and cut records) so
 each test isolates one rule; the numbers checked come from the Kalman formulas and the
@@ -202,3 +203,68 @@ def test_a_cut_undoes_the_rises_its_own_digging_caused_in_its_footprint():
     F._journal_rises(state, int((45 + config.dig_journal_s + 1) * NS),
                      np.zeros(0, np.intp), state.stack.surface())
     assert state.rises_journal == []
+
+
+def test_a_never_seen_cell_s_cone_is_not_the_maximum_of_the_seen_heights_noise():
+    # a flank at repose (35 deg) falling along y was seen up to y = 12 m with 1 cm of
+    # noise in its fused heights; beyond, nothing was seen and the stack is empty.
+    # Every seen cell up the flank gives a hidden cell the same cone height, give or
+    # take its noise: the cone from the raw heights is their maximum, the one from
+    # heights fitted over 5 x 5 cells is not.
+    seed = 5
+    print("seed", seed)
+    rng = np.random.default_rng(seed)
+    tan = math.tan(math.radians(35.0))
+    noise_sd = 0.01
+    lifted = {}
+    for cells in (1, 5):
+        config = F.FoldConfig("P1", fill_gap_cells=0, repose_deg=35.0,
+                              cone_smooth_cells=cells)
+        state = _state(config, nx=24, ny=80, z0=0.0)
+        g = state.pile.geometry
+        y = (np.arange(g.ny) + 0.5) * g.cell_m
+        hidden = y > 12.0
+        flank = tan * (g.length_y_m - y)                 # exact along the grid's axis
+        grid = state.height.grid
+        grid["elevation"][:] = flank[None, :] + rng.normal(0.0, noise_sd, g.shape)
+        grid["variance"][:] = noise_sd ** 2
+        for name in ("elevation", "variance", "last_update_ns"):
+            grid[name][:, hidden] = np.nan
+        F._complete_unseen(state, 100 * NS)
+        band = hidden & (y < 14.0)                       # the first 8 hidden rows
+        lifted[cells] = float(np.mean(state.stack.surface()[:, band] - flank[band]))
+    # the raw heights' maximum stands about 2.2 sd high (seeds 0-4: 2.1-2.3); the fitted
+    # heights' noise is a fifth of theirs, or more beside the last seen row, and their
+    # maximum stands about half an sd high (0.44-0.57)
+    assert lifted[1] > 1.5 * noise_sd, lifted
+    assert -0.2 * noise_sd < lifted[5] < 0.8 * noise_sd, lifted
+    assert lifted[5] < 0.35 * lifted[1], lifted
+
+
+def test_a_stale_seen_flank_rises_to_the_cone_beyond_the_fixed_margin_only():
+    # a flank at repose, seen 10 times; a pass crossed it since.  A strip of it was last
+    # seen 5 cm lower (before the pass's layer) and the stack holds it there: the cone of
+    # the flank above says it is at least that much higher.  Its fused sd (1.6 cm) says
+    # how well the old level was known, not whether it still holds; its margin is the
+    # fixed part (2 cm), not 3 sd + 2 cm = 6.7 cm.
+    config = F.FoldConfig("P1", fill_gap_cells=0, repose_deg=35.0)
+    state = _state(config, z0=0.0)
+    g = state.pile.geometry
+    y = (np.arange(g.ny) + 0.5) * g.cell_m
+    tan = math.tan(math.radians(35.0))
+    flank = np.broadcast_to(tan * (g.length_y_m - y), g.shape)
+    strip = (y >= 8.0) & (y < 9.0)
+    old = np.where(strip, flank - 0.05, flank)
+    state.height.grid["elevation"][:] = old
+    fused_sd = math.sqrt(float(state.height.variance[0, 0]))
+    assert 3 * fused_sd + state.margin_m > 0.05 > state.margin_m
+    state.stack = state.stack.open_deposit(DepositInfo(2, "A", "L1", 20 * NS))
+    state.stack, _ = state.stack.raise_to(old, 20 * NS)
+    state.passes["A"] = F.PassRecord("A", "L1", "stk1", 20 * NS, 2, 30 * NS,
+                                     start_y_m=0.0, end_y_m=g.length_y_m)
+    before = state.stack.surface().copy()
+    F._complete_unseen(state, 100 * NS)
+    top = state.stack.surface()
+    np.testing.assert_allclose(top[:, strip], flank[:, strip], atol=1e-9)
+    np.testing.assert_array_equal(top[:, ~strip], before[:, ~strip])
+    assert state.counters["cells_completed"] == g.nx * int(strip.sum())

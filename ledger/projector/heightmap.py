@@ -515,6 +515,69 @@ def _check_elevation(elevation) -> np.ndarray:
     return e
 
 
+def plane_fit_of_seen(elevation, size_cells: int) -> np.ndarray:
+    """Each seen cell's height from the least-squares plane through the seen cells of the
+    ``size_cells`` x ``size_cells`` window centred on it (never-seen cells stay NaN).
+
+    A local mean would do as well on a flat top, but beside a slope's last seen row the
+    window is one-sided and the mean stands up the slope; a plane is exact on a planar
+    flank up to the edge of what was seen.  Where a window's seen cells do not span a
+    plane (fewer than three, or all in a line) their mean is taken.
+
+    Parameters
+    ----------
+    elevation : array_like, shape (nx, ny)
+        Heights (m), NaN = never seen.
+    size_cells : int
+        Window edge (cells), odd and >= 1 (1 returns a copy).
+
+    Returns
+    -------
+    ndarray, shape (nx, ny)
+        The fitted heights (m), NaN where ``elevation`` is.
+    """
+    from scipy import ndimage
+
+    e = _check_elevation(elevation)
+    n = int(size_cells)
+    if n < 1 or n % 2 == 0:
+        raise ValueError(f"size_cells must be odd and >= 1, got {size_cells}")
+    seen = np.isfinite(e)
+    if n == 1 or not seen.any():
+        return e.copy()
+    w = seen.astype(np.float64)
+    z = np.where(seen, e, 0.0)
+    # window sums of 1, u, v, uu, uv, vv, z, uz, vz with (u, v) the offset from the
+    # window's centre in cells: sums over absolute indices, then shifted to the centre
+    u0, v0 = np.meshgrid(np.arange(e.shape[0], dtype=np.float64),
+                         np.arange(e.shape[1], dtype=np.float64), indexing="ij")
+
+    def wsum(a):
+        return ndimage.uniform_filter(a, n, mode="constant") * (n * n)
+
+    s1, su, sv = wsum(w), wsum(w * u0), wsum(w * v0)
+    suu, suv, svv = wsum(w * u0 * u0), wsum(w * u0 * v0), wsum(w * v0 * v0)
+    sz, suz, svz = wsum(z), wsum(z * u0), wsum(z * v0)
+    a11, a12, a13 = s1, su - s1 * u0, sv - s1 * v0
+    a22 = suu - 2.0 * u0 * su + u0 * u0 * s1
+    a33 = svv - 2.0 * v0 * sv + v0 * v0 * s1
+    a23 = suv - u0 * sv - v0 * su + u0 * v0 * s1
+    b1, b2, b3 = sz, suz - u0 * sz, svz - v0 * sz
+    # the plane's height at the centre by Cramer's rule (the matrix is symmetric)
+    det = (a11 * (a22 * a33 - a23 * a23) - a12 * (a12 * a33 - a23 * a13)
+           + a13 * (a12 * a23 - a22 * a13))
+    det1 = (b1 * (a22 * a33 - a23 * a23) - a12 * (b2 * a33 - a23 * b3)
+            + a13 * (b2 * a23 - a22 * b3))
+    out = np.full(e.shape, np.nan)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        # det scales as count^3 x spread^2 (cells): a line of cells has det ~ 0
+        planar = seen & (s1 >= 3) & (np.abs(det) > 1e-6 * np.maximum(s1, 1.0) ** 3)
+        out[planar] = det1[planar] / det[planar]
+        flat = seen & ~planar
+        out[flat] = sz[flat] / s1[flat]
+    return out
+
+
 def fill_holes(elevation, *, method: str = "nearest",
                max_gap_cells: int | None = None) -> np.ndarray:
     """Fill never-seen cells that lie inside the data's footprint.
