@@ -268,3 +268,41 @@ def test_a_stale_seen_flank_rises_to_the_cone_beyond_the_fixed_margin_only():
     np.testing.assert_allclose(top[:, strip], flank[:, strip], atol=1e-9)
     np.testing.assert_array_equal(top[:, ~strip], before[:, ~strip])
     assert state.counters["cells_completed"] == g.nx * int(strip.sum())
+
+
+def test_a_completed_cell_s_later_rise_goes_to_the_passes_after_its_completion():
+    # a flank at repose seen up to y = 12 m; beyond, never seen.  Pass A lays the pile,
+    # the completion at t = 40 s lifts the hidden cells to the cone (A's); pass B lays
+    # 10 cm more and the completion at t = 70 s lifts them 10 cm further: that is B's
+    # alone.  Counted from "never seen", A and B would share it (5 cm each), and the
+    # outer layer's material would go to the one under it.
+    config = F.FoldConfig("P1", fill_gap_cells=0, repose_deg=35.0)
+    state = _state(config, z0=0.0)
+    g = state.pile.geometry
+    y = (np.arange(g.ny) + 0.5) * g.cell_m
+    hidden = y > 12.0
+    far = y > 12.5          # beyond the cells that take their seen neighbours' time
+    tan = math.tan(math.radians(35.0))
+    flank = np.broadcast_to(tan * (g.length_y_m - y), g.shape)
+    grid = state.height.grid
+    for k, (pass_id, t0_s, rise_m) in enumerate((("A", 20, 0.0), ("B", 50, 0.1))):
+        state.stack = state.stack.open_deposit(DepositInfo(k + 2, pass_id, "L1", t0_s * NS))
+        state.passes[pass_id] = F.PassRecord(pass_id, "L1", "stk1", t0_s * NS, k + 2,
+                                             (t0_s + 10) * NS, start_y_m=0.0,
+                                             end_y_m=g.length_y_m)
+        # the scanner saw the seen part after the pass
+        grid["elevation"][:] = flank + rise_m
+        grid["last_update_ns"][:] = (t0_s + 15) * NS
+        for name in ("elevation", "variance", "last_update_ns"):
+            grid[name][:, hidden] = np.nan
+        state.stack, _ = state.stack.raise_to(np.where(hidden, np.nan, flank + rise_m),
+                                              (t0_s + 15) * NS)
+        F._complete_unseen(state, (t0_s + 20) * NS)
+        if pass_id == "A":
+            np.testing.assert_allclose(state.stack.surface()[:, far], flank[:, far], atol=1e-9)
+            a_m = state.stack.thickness(2)[:, far].copy()
+            np.testing.assert_allclose(a_m, flank[:, far] - 0.0, atol=1e-9)
+    np.testing.assert_allclose(state.stack.surface()[:, far], flank[:, far] + 0.1, atol=1e-9)
+    np.testing.assert_allclose(state.stack.thickness(3)[:, far], 0.1, atol=1e-9)
+    np.testing.assert_array_equal(state.stack.thickness(2)[:, far], a_m)
+    np.testing.assert_array_equal(state.completed_ns[:, hidden], 70 * NS)
