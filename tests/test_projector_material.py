@@ -849,3 +849,28 @@ def test_raise_deposits_in_one_call_equals_raising_them_one_by_one(seed):
         assert np.array_equal(times, batch.deposition_time_ns(k).ravel()[cells])
     with pytest.raises(ValueError):
         stack.raise_deposits([(1, np.array([g.nx * g.ny]), np.array([1.0]), 0.0)])
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_a_removal_split_by_a_mask_is_the_clamp_of_each_part(seed):
+    # one clamp of two cell sets, split by a mask, equals two clamps, one per set
+    print("seed", seed)
+    stack = _random_stack(seed)
+    rng = np.random.default_rng(seed + 100)
+    floor = np.where(rng.random(stack.geometry.shape) < 0.6,
+                     stack.surface() - rng.random(stack.geometry.shape), np.inf)
+    mask = rng.random(stack.geometry.shape) < 0.5
+    whole_stack, whole = stack.clamp(floor)
+    a_stack, a = stack.clamp(np.where(mask, floor, np.inf))
+    b_stack, b = a_stack.clamp(np.where(mask, np.inf, floor))
+    np.testing.assert_array_equal(whole_stack.surfaces(), b_stack.surfaces())
+    for part, expect in ((whole.within(mask), a), (whole.within(~mask), b)):
+        assert [d.index for d in part.deposits] == [d.index for d in expect.deposits]
+        for got, ref in zip(part.deposits, expect.deposits):
+            np.testing.assert_array_equal(got.ix, ref.ix)
+            np.testing.assert_array_equal(got.iy, ref.iy)
+            np.testing.assert_allclose(got.cell_volume_m3, ref.cell_volume_m3, rtol=1e-12)
+            np.testing.assert_array_equal(got.deposition_time_ns, ref.deposition_time_ns)
+            assert math.isclose(got.volume_m3, ref.volume_m3, rel_tol=1e-12)
+    assert math.isclose(whole.within(mask).volume_m3 + whole.within(~mask).volume_m3,
+                        whole.volume_m3, rel_tol=1e-12)

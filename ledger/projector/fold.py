@@ -60,7 +60,7 @@ GEOMETRY_TYPES = ("pile_declared", "machine_declared", "stack_started", "stack_e
 #: The fold's version: bumped whenever a change makes the same events and config fold to
 #: a different state.  Snapshots are keyed by it as well as by the config, so those of an
 #: older fold are never used (:class:`ledger.projector.query.SnapshotStore`).
-FOLD_VERSION = 8
+FOLD_VERSION = 9
 
 DEFAULT_CELL_M = 0.25
 DEFAULT_VOXEL_M = 1.0
@@ -698,20 +698,21 @@ def _follow_height(state: ProjectorState, t_ns: int, *, drops: bool = True,
         near = down
         if state.cuts and state.config.residual_near_cut:
             near = down & _near_cut(state, state.cuts[-1])
-        far = down & ~near
+        # one clamp for all the drops (each lowered surface is copied once), split after
+        state.stack, removal = state.stack.clamp(np.where(down, elevation, np.inf))
         if near.any():
-            state.stack, removal = state.stack.clamp(np.where(near, elevation, np.inf))
+            inside = removal.within(near)
             if state.cuts:
                 cut = state.cuts[-1]
-                cut.removals.append(removal)
-                cut.residual_m3 += removal.volume_m3
+                cut.removals.append(inside)
+                cut.residual_m3 += inside.volume_m3
             else:
-                state.flagged_loss_m3 += removal.volume_m3
-        if far.any():
+                state.flagged_loss_m3 += inside.volume_m3
+        if (down & ~near).any():
             # the measurement wins, but a drop far from the cut is not what it delivered
-            state.stack, removal = state.stack.clamp(np.where(far, elevation, np.inf))
-            state.flagged_loss_m3 += removal.volume_m3
-            state.count("unexplained_loss_mm3", int(round(removal.volume_m3 * 1e3)))
+            outside = removal.within(~near)
+            state.flagged_loss_m3 += outside.volume_m3
+            state.count("unexplained_loss_mm3", int(round(outside.volume_m3 * 1e3)))
 
 
 def _journal_rises(state: ProjectorState, t_ns: int, cells: np.ndarray,

@@ -547,27 +547,26 @@ def plane_fit_of_seen(elevation, size_cells: int) -> np.ndarray:
         return e.copy()
     w = seen.astype(np.float64)
     z = np.where(seen, e, 0.0)
-    # window sums of 1, u, v, uu, uv, vv, z, uz, vz with (u, v) the offset from the
-    # window's centre in cells: sums over absolute indices, then shifted to the centre
-    u0, v0 = np.meshgrid(np.arange(e.shape[0], dtype=np.float64),
-                         np.arange(e.shape[1], dtype=np.float64), indexing="ij")
+    # window sums of w, w u, w v, w uu, w uv, w vv, z, z u, z v with (u, v) the offset
+    # (cells) from the window's centre: separable 1-D correlations with the kernels 1, u
+    # and u^2 along each axis
+    h = n // 2
+    k0 = np.ones(n)
+    k1 = np.arange(-h, h + 1, dtype=np.float64)
+    k2 = k1 * k1
 
-    def wsum(a):
-        return ndimage.uniform_filter(a, n, mode="constant") * (n * n)
+    def wsum(a, kx, ky):
+        out = ndimage.correlate1d(a, kx, axis=0, mode="constant")
+        return ndimage.correlate1d(out, ky, axis=1, mode="constant")
 
-    s1, su, sv = wsum(w), wsum(w * u0), wsum(w * v0)
-    suu, suv, svv = wsum(w * u0 * u0), wsum(w * u0 * v0), wsum(w * v0 * v0)
-    sz, suz, svz = wsum(z), wsum(z * u0), wsum(z * v0)
-    a11, a12, a13 = s1, su - s1 * u0, sv - s1 * v0
-    a22 = suu - 2.0 * u0 * su + u0 * u0 * s1
-    a33 = svv - 2.0 * v0 * sv + v0 * v0 * s1
-    a23 = suv - u0 * sv - v0 * su + u0 * v0 * s1
-    b1, b2, b3 = sz, suz - u0 * sz, svz - v0 * sz
+    a11, a12, a13 = wsum(w, k0, k0), wsum(w, k1, k0), wsum(w, k0, k1)
+    a22, a33, a23 = wsum(w, k2, k0), wsum(w, k0, k2), wsum(w, k1, k1)
+    b1, b2, b3 = wsum(z, k0, k0), wsum(z, k1, k0), wsum(z, k0, k1)
+    s1, sz = a11, b1
     # the plane's height at the centre by Cramer's rule (the matrix is symmetric)
-    det = (a11 * (a22 * a33 - a23 * a23) - a12 * (a12 * a33 - a23 * a13)
-           + a13 * (a12 * a23 - a22 * a13))
-    det1 = (b1 * (a22 * a33 - a23 * a23) - a12 * (b2 * a33 - a23 * b3)
-            + a13 * (b2 * a23 - a22 * b3))
+    c11 = a22 * a33 - a23 * a23
+    det = a11 * c11 - a12 * (a12 * a33 - a23 * a13) + a13 * (a12 * a23 - a22 * a13)
+    det1 = b1 * c11 - a12 * (b2 * a33 - a23 * b3) + a13 * (b2 * a23 - a22 * b3)
     out = np.full(e.shape, np.nan)
     with np.errstate(invalid="ignore", divide="ignore"):
         # det scales as count^3 x spread^2 (cells): a line of cells has det ~ 0

@@ -118,6 +118,18 @@ class Removal:
         """The removals keyed by deposit index."""
         return {d.index: d for d in self.deposits}
 
+    def within(self, mask) -> "Removal":
+        """The part of this removal in the cells where ``mask`` (bool, (nx, ny)) is True."""
+        mask = np.asarray(mask, dtype=bool)
+        parts = []
+        for d in self.deposits:
+            sel = mask[d.ix, d.iy]
+            if sel.any():
+                vol = d.cell_volume_m3[sel]
+                parts.append(DepositRemoval(d.index, d.info, float(np.sum(vol)), d.ix[sel],
+                                            d.iy[sel], vol, d.deposition_time_ns[sel]))
+        return Removal(tuple(parts))
+
     def removed_m(self, geometry: GridGeometry) -> np.ndarray:
         """Removed thickness per cell, all deposits, shape (nx, ny) (m)."""
         out = np.zeros(geometry.shape)
