@@ -41,6 +41,12 @@ def _state(config: F.FoldConfig, nx: int = 8, ny: int = 80, cell: float = 0.25,
     return state
 
 
+def _never_seen(state: F.ProjectorState, columns: np.ndarray) -> None:
+    """Make the height map's cells in these y columns (bool, (ny,)) never seen."""
+    for name in ("elevation", "variance", "last_update_ns"):
+        state.height.grid[name][:, columns] = np.nan
+
+
 def _obs(g: GridGeometry, z: float, count: int = 1) -> CellObservations:
     n = g.nx * g.ny
     ix, iy = np.divmod(np.arange(n), g.ny)
@@ -158,8 +164,7 @@ def test_a_never_seen_flank_rises_to_the_cone_beyond_the_fixed_margin_only():
     g = state.pile.geometry
     y = (np.arange(g.ny) + 0.5) * g.cell_m
     hidden = y > 15.0
-    for name in ("elevation", "variance", "last_update_ns"):
-        state.height.grid[name][:, hidden] = np.nan
+    _never_seen(state, hidden)
     last_seen_y = y[~hidden].max()
     tan = math.tan(math.radians(35.0))
     cone = 1.0 - tan * (y - last_seen_y)      # exact along the grid's axis
@@ -228,8 +233,7 @@ def test_a_never_seen_cell_s_cone_is_not_the_maximum_of_the_seen_heights_noise()
         grid = state.height.grid
         grid["elevation"][:] = flank[None, :] + rng.normal(0.0, noise_sd, g.shape)
         grid["variance"][:] = noise_sd ** 2
-        for name in ("elevation", "variance", "last_update_ns"):
-            grid[name][:, hidden] = np.nan
+        _never_seen(state, hidden)
         F._complete_unseen(state, 100 * NS)
         band = hidden & (y < 14.0)                       # the first 8 hidden rows
         lifted[cells] = float(np.mean(state.stack.surface()[:, band] - flank[band]))
@@ -293,8 +297,7 @@ def test_a_completed_cell_s_later_rise_goes_to_the_passes_after_its_completion()
         # the scanner saw the seen part after the pass
         grid["elevation"][:] = flank + rise_m
         grid["last_update_ns"][:] = (t0_s + 15) * NS
-        for name in ("elevation", "variance", "last_update_ns"):
-            grid[name][:, hidden] = np.nan
+        _never_seen(state, hidden)
         state.stack, _ = state.stack.raise_to(np.where(hidden, np.nan, flank + rise_m),
                                               (t0_s + 15) * NS)
         F._complete_unseen(state, (t0_s + 20) * NS)

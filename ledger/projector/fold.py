@@ -698,6 +698,7 @@ def _follow_height(state: ProjectorState, t_ns: int, *, drops: bool = True,
         near = down
         if state.cuts and state.config.residual_near_cut:
             near = down & _near_cut(state, state.cuts[-1])
+        far = down & ~near
         # one clamp for all the drops (each lowered surface is copied once), split after
         state.stack, removal = state.stack.clamp(np.where(down, elevation, np.inf))
         if near.any():
@@ -708,9 +709,9 @@ def _follow_height(state: ProjectorState, t_ns: int, *, drops: bool = True,
                 cut.residual_m3 += inside.volume_m3
             else:
                 state.flagged_loss_m3 += inside.volume_m3
-        if (down & ~near).any():
+        if far.any():
             # the measurement wins, but a drop far from the cut is not what it delivered
-            outside = removal.within(~near)
+            outside = removal.within(far)
             state.flagged_loss_m3 += outside.volume_m3
             state.count("unexplained_loss_mm3", int(round(outside.volume_m3 * 1e3)))
 
