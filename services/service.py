@@ -29,6 +29,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import signal
 import sys
 import threading
@@ -185,18 +186,28 @@ class Stopper:
     """Turns SIGINT/SIGTERM into a :class:`threading.Event` (main thread only).
 
     ``stop.wait(t)`` doubles as an interruptible sleep for service loops.
+
+    The handler does not set the event itself: Python runs it in the main thread
+    between two bytecodes, which may be inside ``event.wait()`` while that holds the
+    event's lock, and ``Event.set()`` there would wait for that lock forever (seen: a
+    projector that ignored SIGTERM).  It writes the signal number to a pipe instead,
+    and one relay thread per process sets the event of the stopper installed last.
     """
 
     def __init__(self, install: bool = True) -> None:
         self.event = threading.Event()
         self.signal_name: str | None = None
         if install and threading.current_thread() is threading.main_thread():
+            self._relay_fd = _signal_relay(self)
             for sig in (signal.SIGINT, signal.SIGTERM):
                 signal.signal(sig, self._on_signal)
 
     def _on_signal(self, signum: int, _frame: object) -> None:
         self.signal_name = signal.Signals(signum).name
-        self.event.set()
+        try:                          # no lock taken here: see the class docstring
+            os.write(self._relay_fd, bytes((signum,)))
+        except BlockingIOError:       # the pipe is full of stops already on their way
+            pass
 
     def set(self) -> None:
         self.event.set()
@@ -206,6 +217,33 @@ class Stopper:
 
     def wait(self, timeout_s: float | None = None) -> bool:
         return self.event.wait(timeout_s)
+
+
+_relay_lock = threading.Lock()
+_relay_write_fd: int | None = None
+_relay_target: Stopper | None = None
+
+
+def _signal_relay(stopper: Stopper) -> int:
+    """Make ``stopper`` the one the relay thread stops; return the pipe's write end
+    (the pipe and the thread are made once per process)."""
+    global _relay_write_fd, _relay_target
+    with _relay_lock:
+        _relay_target = stopper
+        if _relay_write_fd is None:
+            read_fd, write_fd = os.pipe()
+            os.set_blocking(write_fd, False)
+            threading.Thread(target=_relay, args=(read_fd,), name="signal-relay",
+                             daemon=True).start()
+            _relay_write_fd = write_fd
+        return _relay_write_fd
+
+
+def _relay(read_fd: int) -> None:
+    while os.read(read_fd, 64):
+        target = _relay_target
+        if target is not None:
+            target.event.set()
 
 
 # -- status -------------------------------------------------------------------------------

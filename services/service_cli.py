@@ -3,12 +3,17 @@
 Each service module (:data:`services.service.SERVICE_MODULES`) provides
 ``add_arguments(parser)`` (its own options; the shared ones are added here),
 ``config_from_args(args) -> Config`` and ``main(config, *, stopper=None) -> int``.
+
+A running service dumps the stack of every thread to its log (stderr) on SIGUSR1
+(``kill -USR1 PID``): the way to see where a service that does not stop is waiting.
 """
 
 from __future__ import annotations
 
 import argparse
+import faulthandler
 import importlib
+import signal
 
 from services.service import SERVICE_MODULES, add_service_arguments
 
@@ -28,6 +33,8 @@ def _modules() -> dict[str, str]:
 
 
 def _run(args: argparse.Namespace) -> int:
+    if hasattr(signal, "SIGUSR1"):
+        faulthandler.register(signal.SIGUSR1, all_threads=True)
     module = importlib.import_module(_modules()[args.service])
     return int(module.main(module.config_from_args(args)) or 0)
 

@@ -50,8 +50,10 @@ def stockpile(*args: str, stderr_path: Path | None = None, stdout_path: Path | N
     """Start ``stockpile ARGS`` as a child process (its stderr to a file, for its log lines)."""
     stderr = open(stderr_path, "w") if stderr_path else subprocess.DEVNULL
     stdout = open(stdout_path, "w") if stdout_path else subprocess.DEVNULL
-    return subprocess.Popen([PYTHON, "-m", "services.cli", *args], stderr=stderr, stdout=stdout,
-                            env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    process = subprocess.Popen([PYTHON, "-m", "services.cli", *args], stderr=stderr,
+                               stdout=stdout, env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    process.stderr_path = stderr_path     # for stop()'s report on a process that hangs
+    return process
 
 
 def stop(process: subprocess.Popen, timeout_s: float = 30.0) -> int:
@@ -61,9 +63,26 @@ def stop(process: subprocess.Popen, timeout_s: float = 30.0) -> int:
     try:
         return process.wait(timeout_s)
     except subprocess.TimeoutExpired:
+        stacks = _stacks_of(process)
         process.kill()
         process.wait()
-        raise AssertionError(f"process {process.args} ignored SIGTERM for {timeout_s} s")
+        raise AssertionError(f"process {process.args} ignored SIGTERM for {timeout_s} s"
+                             f"{stacks}") from None
+
+
+def _stacks_of(process: subprocess.Popen) -> str:
+    """Ask a hung service for its threads' stacks (SIGUSR1, see services.service_cli) and
+    return the tail of its log, where they are written; "" without a log file."""
+    path = getattr(process, "stderr_path", None)
+    if path is None or not hasattr(signal, "SIGUSR1"):
+        return ""
+    size = Path(path).stat().st_size
+    process.send_signal(signal.SIGUSR1)
+    try:                       # the dump is written at once; give it a moment to land
+        wait_until(lambda: Path(path).stat().st_size > size, 5, "the stack dump")
+    except AssertionError:
+        pass
+    return "; its log ends:\n" + Path(path).read_text(errors="replace")[-6000:]
 
 
 def log_lines(path: Path) -> list[dict[str, str]]:
