@@ -22,7 +22,8 @@ from hypothesis import strategies as st
 
 from ledger import open_ledger
 from ledger.projector import fold as F
-from ledger.projector.query import SnapshotStore, build_snapshots, project, summarise
+from ledger.projector.query import (FAR_FUTURE_NS, SnapshotStore, build_snapshots, project,
+                                    summarise)
 from ledger.records import RecordedEvent
 from schemas import pb
 from schemas.events import Event, decode_payload, make_event, set_timestamp_ns
@@ -187,7 +188,41 @@ def test_a_snapshot_taken_knowing_everything_serves_an_earlier_known_time(yard, 
         earlier = snaps.find(store, F.FoldConfig(pile_id=PILE), v, v_s - 61 * S)
         assert earlier is None or earlier[1][0] < v_s
         _same(project(store, PILE, v, k, snapshots=snaps), _brute_force(rows, v, k))
+        # the latest one's position, and dropping a config's snapshots deletes their files
+        config = F.FoldConfig(pile_id=PILE)
+        latest = snaps.latest_valid_ns(config)
+        assert latest is not None and latest >= v_s
+        assert snaps.find(store, config, FAR_FUTURE_NS, head_k)[1][0] == latest
+        files = list(snaps.folder.glob("*.snap.zst"))
+        assert len(files) == built
+        assert snaps.drop(config) == built
+        assert snaps.count() == 0 and snaps.latest_valid_ns(config) is None
+        assert not any(f.exists() for f in files)
+        assert snaps.find(store, config, t1, head_k) is None
     store.close()
+
+
+def test_a_packed_state_unpacks_to_the_same_arrays_and_a_foreign_file_is_refused(yard):
+    # the frames of a packed state decompress on every core (zstd threads): the state
+    # that comes back is the one that went in, array for array
+    from ledger.projector.query import _pack, _unpack
+
+    store = _ledger(yard["events"], [0] * len(yard["events"]))
+    state = F.initial_state(F.FoldConfig(pile_id=PILE))
+    for event in store.as_of(FAR_FUTURE_NS, FAR_FUTURE_NS, types=list(F.GEOMETRY_TYPES)):
+        F.apply(state, event)
+    store.close()
+    back = _unpack(_pack(state))
+    assert back.stack.n_deposits == state.stack.n_deposits > 0
+    for k in range(1, state.stack.n_deposits + 1):
+        for a, b in zip(back.stack.deposit_cells(k), state.stack.deposit_cells(k)):
+            np.testing.assert_array_equal(a, b)
+    for name, layer in state.height.grid.layers.items():
+        np.testing.assert_array_equal(back.height.grid.layers[name], layer)
+        assert back.height.grid.layers[name].flags.writeable    # the fold updates them
+    assert [c.cut_id for c in back.cuts] == [c.cut_id for c in state.cuts]
+    with pytest.raises(ValueError, match="not a snapshot"):
+        _unpack(b"\x28\xb5\x2f\xfd" + bytes(64))        # a bare zstd frame (the old layout)
 
 
 def test_a_past_cut_changes_grade_exactly_when_its_assay_arrives(yard):
