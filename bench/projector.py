@@ -11,7 +11,8 @@ order and prints each table.  To add a benchmark, write ``section_xxx(args) -> S
 and append it to ``SECTIONS``.
 
 The process is pinned to one CPU and the BLAS/OpenMP pools to one thread before numpy
-is imported, so the figures are single-core.
+is imported, so the figures are single-core (section 3 also times each query on every
+core, see there).
 
 Sections
 --------
@@ -31,7 +32,8 @@ Sections
 3. :func:`section_as_of` -- ``project(V, K)`` on a 24-hour full-scale ledger (the
    simulator's ``full-scale`` scenario with scan events, imported), from the latest usable
    snapshot, beside the same query folded from the first event.  Target: <= 2 s from a
-   snapshot.  The ledger is built once into ``--ledger-dir`` (about an hour of simulation
+   snapshot, on every core of the machine (a snapshot's frames unpack in parallel; the
+   rest of the query runs on one) and pinned to one core; both must meet it.  The ledger is built once into ``--ledger-dir`` (about an hour of simulation
    on one core; ``--quick`` uses 2 hours of the ``demo`` scenario instead), the snapshots
    once beside it (one per ``--snapshot-every-min`` site minutes and one after every
    reclaim cut; about 5 minutes and 5.8 GB for the 24 hours).
@@ -436,15 +438,15 @@ def section_as_of(args) -> Section:
                              "yes" if same else "NO"]
                 else:   # not folded from the first event (--scratch)
                     same, cells = True, ["-", "-", "-"]
-                good = seconds <= 2.0 and same
+                good = max(seconds, one_core) <= 2.0 and same
                 ok &= good
                 rows.append([label, f"{fast.tonnes:,.0f}", str(len(fast.cuts)),
                              f"{one_core:.2f}", f"{seconds:.2f}", cells[0], cells[1],
                              f"{peak / 2**20:.0f} MiB", cells[2], "PASS" if good else "MISS"])
             notes.append(f"'snapshot s' on {n_cores} cores (the snapshot's frames unpack in "
                          "parallel; the fold and the grade join run on one), beside the same "
-                         "query pinned to one core; the verdict is on the former (the machine "
-                         "the target names has 2 cores)")
+                         "query pinned to one core ('1 core s'); the verdict asks both to meet "
+                         "the target")
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     notes.insert(0, f"{scenario}: {events:,} events over {hours:.1f} site hours; "
                     f"target <= 2 s from a snapshot; process peak RSS {rss:,.0f} MiB")

@@ -202,9 +202,11 @@ def test_a_snapshot_taken_knowing_everything_serves_an_earlier_known_time(yard, 
     store.close()
 
 
-def test_a_packed_state_unpacks_to_the_same_arrays_and_a_foreign_file_is_refused(yard):
-    # the frames of a packed state decompress on every core (zstd threads): the state
+def test_a_packed_state_unpacks_to_the_same_arrays_and_a_foreign_file_is_refused(yard,
+                                                                                monkeypatch):
+    # the frames of a packed state decompress on every core (a thread each): the state
     # that comes back is the one that went in, array for array
+    from ledger.projector import query as Q
     from ledger.projector.query import _pack, _unpack
 
     store = _ledger(yard["events"], [0] * len(yard["events"]))
@@ -221,6 +223,17 @@ def test_a_packed_state_unpacks_to_the_same_arrays_and_a_foreign_file_is_refused
         np.testing.assert_array_equal(back.height.grid.layers[name], layer)
         assert back.height.grid.layers[name].flags.writeable    # the fold updates them
     assert [c.cut_id for c in back.cuts] == [c.cut_id for c in state.cuts]
+    # empty arrays' buffers, first, between and last, come back as they went (an empty
+    # buffer has no frame), on one thread and on several
+    from types import SimpleNamespace
+
+    arrays = [np.zeros(0), np.arange(3.0), np.zeros((0, 2)), np.arange(4), np.zeros(0)]
+    for threads in (1, 3):
+        monkeypatch.setattr(Q, "SNAPSHOT_THREADS", threads)
+        back = _unpack(_pack(SimpleNamespace(height=None, arrays=arrays)))
+        assert [a.shape for a in back.arrays] == [a.shape for a in arrays]
+        for a, b in zip(back.arrays, arrays):
+            np.testing.assert_array_equal(a, b)
     with pytest.raises(ValueError, match="not a snapshot"):
         _unpack(b"\x28\xb5\x2f\xfd" + bytes(64))        # a bare zstd frame (the old layout)
 
