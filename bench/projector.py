@@ -67,6 +67,7 @@ import numpy as np  # noqa: E402
 from accuracy import NS_PER_S, Case, Rig, grid_for, simulate, thesis_piles  # noqa: E402
 from ledger.projector.georef import georeference, interpolate_poses  # noqa: E402
 from ledger.projector.heightmap import HeightMap, fuse, rasterize  # noqa: E402
+from ledger.projector.fold import FoldConfig  # noqa: E402
 from ledger.projector.profile import clean_profile  # noqa: E402
 
 
@@ -144,7 +145,7 @@ def _pipeline(hm, t_scan, ranges, angle_min, inc, t_pose, pose_tr, pose_q, batch
         t0 = clock()
         tr, q = interpolate_poses(t_scan[sl], t_pose, pose_tr, pose_q, max_gap_ns=NS_PER_S // 2)
         t1 = clock()
-        clean = clean_profile(ranges[sl])
+        clean = clean_profile(ranges[sl], fit_beams=FoldConfig.profile_fit_beams)
         t2 = clock()
         pts = georeference(clean, angle_min, inc, tr, q)
         t3 = clock()

@@ -315,11 +315,72 @@ def test_clean_profile_keeps_a_grazing_surface():
     assert np.isfinite(clean_profile(noisy)).all()
 
 
+def _line_fit_by_polyfit(r: np.ndarray, half: int, jump_m: float) -> np.ndarray:
+    """Brute force: per beam, np.polyfit of degree 1 through the kept returns within
+    ``half`` beams that no step of more than ``jump_m`` separates from it."""
+    out = r.copy()
+    for s_i, row in enumerate(r):
+        for b in range(row.size):
+            if np.isnan(row[b]):
+                continue
+            ks = [0]
+            for direction in (-1, 1):
+                last = row[b]                  # the last kept return on this side
+                for k in range(1, half + 1):
+                    j = b + direction * k
+                    if not 0 <= j < row.size:
+                        break
+                    if np.isnan(row[j]):       # a dropout: the window goes on past it
+                        continue
+                    if abs(row[j] - last) > jump_m:
+                        break                  # a jump: nothing beyond it
+                    ks.append(direction * k)
+                    last = row[j]
+            ks = sorted(ks)
+            if len(ks) >= 2:
+                out[s_i, b] = np.polyval(np.polyfit(ks, row[b + np.array(ks)], 1), 0.0)
+    return out
+
+
+@pytest.mark.parametrize("fit_beams", [3, 5])
+def test_line_fit_of_profiles_matches_polyfit_and_never_crosses_a_jump(fit_beams):
+    rng = make_rng(20 + fit_beams)
+    print("seed offset", 20 + fit_beams)
+    k = np.arange(200)
+    # straight runs with steps of 2 m between them (jumps), noise, and dropouts
+    r = 10.0 + 0.01 * k + 2.0 * (k >= 70) - 2.0 * (k >= 140)
+    scans = np.tile(r, (6, 1)) + rng.normal(0.0, 0.005, (6, k.size))
+    scans[rng.random(scans.shape) < 0.05] = np.nan
+    out = clean_profile(scans, fit_beams=fit_beams, mad_k=50.0)   # no outlier rejection
+    kept = clean_profile(scans, mad_k=50.0)
+    # the level steps are the only steps over 0.3 m between kept returns, also where
+    # a dropout lies on the step
+    expected = _line_fit_by_polyfit(kept, fit_beams // 2, 0.3)
+    np.testing.assert_allclose(out, expected, atol=1e-9)
+    # no fitted return lies between the two levels (it would be a mixed pixel)
+    level = np.abs(out - (10.0 + 0.01 * k + 2.0 * ((k >= 70) & (k < 140))))
+    assert np.nanmax(level) < 0.05
+
+
+def test_line_fit_of_profiles_keeps_a_straight_run_and_cuts_the_noise():
+    rng = make_rng(30)
+    k = np.arange(400)
+    straight = np.tile(5.0 + 0.003 * k, (40, 1))
+    np.testing.assert_allclose(clean_profile(straight, fit_beams=3), straight, atol=1e-12)
+    noisy = straight + rng.normal(0.0, 0.0145, straight.shape)
+    fitted = clean_profile(noisy, fit_beams=3)
+    raw_sd = np.std((clean_profile(noisy) - straight)[:, 1:-1])
+    fit_sd = np.std((fitted - straight)[:, 1:-1])
+    assert fit_sd == pytest.approx(raw_sd / math.sqrt(3.0), rel=0.05)
+
+
 def test_clean_profile_validates():
     with pytest.raises(ValueError, match=r"\(S, B\)"):
         clean_profile(np.ones(10))
     with pytest.raises(ValueError, match="odd"):
         clean_profile(np.ones((2, 10)), window=4)
+    with pytest.raises(ValueError, match="fit_beams must be odd"):
+        clean_profile(np.ones((2, 10)), fit_beams=2)
     r = np.ones((2, 10))
     out = clean_profile(r)
     assert out is not r and np.array_equal(out, r)

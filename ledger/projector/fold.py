@@ -60,7 +60,7 @@ GEOMETRY_TYPES = ("pile_declared", "machine_declared", "stack_started", "stack_e
 #: The fold's version: bumped whenever a change makes the same events and config fold to
 #: a different state.  Snapshots are keyed by it as well as by the config, so those of an
 #: older fold are never used (:class:`ledger.projector.query.SnapshotStore`).
-FOLD_VERSION = 9
+FOLD_VERSION = 10
 
 DEFAULT_CELL_M = 0.25
 DEFAULT_VOXEL_M = 1.0
@@ -160,6 +160,11 @@ class FoldConfig:
         A never-seen cell's repose cone rises from the seen heights fitted with a plane
         over this many x this many cells (odd; 1: the heights as fused), so that it is
         not the maximum of their noise (:func:`_unseen_floor`).
+    profile_fit_beams : int
+        Each scan's kept ranges are fitted with a line over this many beams (odd; 1: as
+        measured), never across a range jump, before they are georeferenced
+        (:func:`ledger.projector.profile.clean_profile`, ``fit_beams``): the range noise
+        that spreads points along their beams drops by sqrt(3) for 3.
     """
 
     pile_id: str
@@ -189,11 +194,13 @@ class FoldConfig:
     catch_up_cells: int = 5
     dig_journal_s: float = 3600.0
     cone_smooth_cells: int = 5
+    profile_fit_beams: int = 3
 
     def __post_init__(self) -> None:
-        if int(self.cone_smooth_cells) < 1 or int(self.cone_smooth_cells) % 2 == 0:
-            raise ValueError(f"cone_smooth_cells must be odd and >= 1, got "
-                             f"{self.cone_smooth_cells}")
+        for name in ("cone_smooth_cells", "profile_fit_beams"):
+            value = int(getattr(self, name))
+            if value < 1 or value % 2 == 0:
+                raise ValueError(f"{name} must be odd and >= 1, got {getattr(self, name)}")
 
 
 @dataclass(frozen=True)
@@ -524,7 +531,7 @@ def _process_scans(state: ProjectorState, *, until_ns: int | None = None,
         xyz, q = georef.interpolate_poses(t, pose_t, pose_xyz, pose_q,
                                           max_gap_ns=state.config.max_pose_gap_ns)
         ranges = np.stack([s.ranges_m for s in scans])
-        ranges = profile.clean_profile(ranges)
+        ranges = profile.clean_profile(ranges, fit_beams=state.config.profile_fit_beams)
         increment = (end - start) / (beams - 1)
         points = georef.georeference(ranges, start, increment, xyz, q).reshape(-1, 3)
         points = points[np.isfinite(points).all(axis=1)]
