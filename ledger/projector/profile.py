@@ -58,19 +58,23 @@ What is rejected (set to NaN), and why
    most one beam's range change, so it is off by default: the height fusion averages
    noise anyway.
 
-4. **Optional line fit** (``fit_beams`` > 1): each kept return is replaced by the
-   value at its beam of the least-squares line through the kept returns within
-   ``fit_beams // 2`` beams on either side, never across a jump of test 1 nor any
-   step over ``jump_m`` between two kept returns (with missing ones between them, the
-   relative test can miss a jump; a steady grazing run then goes unfitted, which
-   costs nothing).  A straight run of the profile (a planar flank)
-   is left exactly as it is, the range noise of each return drops (to sd/sqrt(3) for 3
-   beams), and no return is averaged with the far side of an edge (which would make a
-   mixed pixel).  At bench scale the LMS200's 14.5 mm range noise spreads each point
-   along its beam by up to three 5 mm cells; the fusion averages the height noise, but
-   not that spread, and the layers and cuts there are a few mm thick.  A line fit
-   moves a sharp apex (a crest seen as a V in range) by two thirds of one beam's range
-   change for 3 beams.
+4. **Optional line fit** (``fit_beams`` > 1; the fold uses 3): each kept return is
+   replaced by the value at its beam of the least-squares line through the kept
+   returns within ``fit_beams // 2`` beams on either side, never across a jump of
+   test 1 nor any step over ``jump_m`` between two kept returns (with missing returns
+   beside a step the relative test can miss it; a steady grazing run with larger
+   steps then goes unfitted, which costs nothing).
+
+   - A straight run of the profile (a planar flank) is left exactly as it is.
+   - The range noise of each return drops, to sd/sqrt(3) for 3 beams.
+   - No return is averaged with the far side of an edge (that would make a mixed
+     pixel).
+   - A sharp apex (a crest seen as a V in range) moves by two thirds of one beam's
+     range change for 3 beams.
+
+   Why: at bench scale the LMS200's 14.5 mm range noise spreads each point along its
+   beam over up to three 5 mm cells.  The fusion averages the height noise but not
+   that spread, and the layers and cuts there are a few mm thick.
 
 The running medians treat NaN returns by carrying the nearest earlier valid return
 into them (then the nearest later one at the start of a scan) before filtering; that
