@@ -30,7 +30,8 @@ from services.dashboard import Config, render_ledger
 from services.ledger_client import LedgerClient
 from services.service import EventPublisher
 from test_audit import CUT, PILE, SEED, audit_ledger
-from zenoh_helpers import client_args, log_lines, open_router, stockpile, stop, wait_liveliness, wait_until
+from zenoh_helpers import (client_args, log_lines, open_router, service_on_a_stuck_ledger, stockpile,
+                           stop, wait_liveliness, wait_until)
 
 S = 1_000_000_000
 SITE = "dash"
@@ -363,28 +364,12 @@ def test_a_live_service_waiting_for_the_ledger_stops_at_once_on_sigterm(service,
     # polls the stopper, so SIGTERM ends the wait rather than the query's 30 s timeout
     import time
 
-    from services.ledger_service import query_key
-
-    router, endpoint = open_router()
-    held: list = []
-    queryable = router.declare_queryable(query_key("stuck", "**"), held.append)
     extra = ["--rrd", str(tmp_path / "live.rrd")] if service == "dashboard" else []
-    process = stockpile("service", service, "--pile", PILE, "--site", "stuck", *extra,
-                        *client_args(endpoint), stderr_path=tmp_path / "service.log")
-    try:
-        wait_until(lambda: held or process.poll() is not None, 60,
-                   f"the {service} service's first query")
-        assert process.poll() is None, (tmp_path / "service.log").read_text()[-2000:]
+    with service_on_a_stuck_ledger(service, tmp_path / "service.log",
+                                   "--pile", PILE, *extra) as process:
         t0 = time.monotonic()
         code = stop(process, timeout_s=20)
         waited_s = time.monotonic() - t0
-    finally:
-        if process.poll() is None:
-            process.kill()
-            process.wait()
-        held.clear()
-        queryable.undeclare()
-        router.close()
     assert code == 0, (tmp_path / "service.log").read_text()[-2000:]
     assert waited_s < 10, f"the {service} service took {waited_s:.1f} s to stop"
     lines = log_lines(tmp_path / "service.log")

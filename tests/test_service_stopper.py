@@ -8,10 +8,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from services.ledger_service import query_key
-from tests.zenoh_helpers import (
-    client_args, log_lines, open_router, stockpile, stop, wait_until,
-)
+from tests.zenoh_helpers import log_lines, service_on_a_stuck_ledger, stop, wait_until
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -40,15 +37,8 @@ def test_a_signal_landing_while_the_main_thread_holds_the_stop_events_lock_still
 
 
 def test_a_running_service_dumps_its_threads_stacks_on_sigusr1_and_keeps_running(tmp_path):
-    router, endpoint = open_router()
-    held: list = []
-    queryable = router.declare_queryable(query_key("stuck", "**"), held.append)
     log = tmp_path / "service.log"
-    process = stockpile("service", "projector", "--pile", "P1", "--site", "stuck",
-                        *client_args(endpoint), stderr_path=log)
-    try:
-        wait_until(lambda: held or process.poll() is not None, 60, "the projector's first query")
-        assert process.poll() is None, log.read_text()[-2000:]
+    with service_on_a_stuck_ledger("projector", log, "--pile", "P1") as process:
         process.send_signal(signal.SIGUSR1)
         wait_until(lambda: "projector_service.py" in log.read_text(), 20, "the stack dump")
         text = log.read_text()
@@ -56,12 +46,5 @@ def test_a_running_service_dumps_its_threads_stacks_on_sigusr1_and_keeps_running
         assert "in head" in text and "ledger_client.py" in text
         assert process.poll() is None            # a dump, not a stop
         code = stop(process, timeout_s=20)
-    finally:
-        if process.poll() is None:
-            process.kill()
-            process.wait()
-        held.clear()
-        queryable.undeclare()
-        router.close()
     assert code == 0
     assert log_lines(log)[-1]["msg"] == "stopped"

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import socket
@@ -23,6 +24,7 @@ from schemas.events import (
     make_event,
     set_timestamp_ns,
 )
+from services.ledger_service import query_key
 from services.service import ZenohOptions, parse_logfmt
 
 PYTHON = sys.executable
@@ -83,6 +85,31 @@ def _stacks_of(process: subprocess.Popen) -> str:
     except AssertionError:
         pass
     return "; its log ends:\n" + Path(path).read_text(errors="replace")[-6000:]
+
+
+@contextlib.contextmanager
+def service_on_a_stuck_ledger(service: str, log: Path, *args: str):
+    """Start ``stockpile service SERVICE --site stuck ARGS`` (its stderr to ``log``)
+    against a router whose ledger queryable takes every query and never answers; yield
+    the process once its first query is held.  On the way out the process is killed if
+    it still runs, and the queryable and the router are closed."""
+    router, endpoint = open_router()
+    held: list = []
+    queryable = router.declare_queryable(query_key("stuck", "**"), held.append)
+    process = stockpile("service", service, "--site", "stuck", *args, *client_args(endpoint),
+                        stderr_path=log)
+    try:
+        wait_until(lambda: held or process.poll() is not None, 60,
+                   f"the {service} service's first query")
+        assert process.poll() is None, log.read_text()[-2000:]
+        yield process
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.wait()
+        held.clear()
+        queryable.undeclare()
+        router.close()
 
 
 def log_lines(path: Path) -> list[dict[str, str]]:
