@@ -249,19 +249,21 @@ class ParcelModel:
         return self.ground[ij] + sum(p[1] for p in self.cols[ij])
 
     def raise_to(self, surf, t):
+        """``t``: one time, or an array of a time per cell."""
         added = 0.0
         for ij, col in self.cols.items():
             s = surf[ij]
             if math.isnan(s) or s <= self.top(ij):
                 continue
+            t_ij = float(t[ij]) if np.ndim(t) else t
             a = s - self.top(ij)
             added += a
             if col and col[-1][0] == self.n:
                 p = col[-1]
-                p[2] = (p[2] * p[1] + t * a) / (p[1] + a)
+                p[2] = (p[2] * p[1] + t_ij * a) / (p[1] + a)
                 p[1] += a
             else:
-                col.append([self.n, a, float(t)])
+                col.append([self.n, a, float(t_ij)])
         return added
 
     def clamp(self, floor):
@@ -315,8 +317,12 @@ def _run_ops(ops, seed):
             surf[rng.random(geometry.shape) < 0.2] = np.nan
             before = [stack.surface_k(k).copy() for k in range(stack.n_deposits + 1)]
             old = stack
-            stack, add = stack.raise_to(surf, t)
-            assert add == pytest.approx(ref.raise_to(surf, t) * area, rel=1e-12, abs=1e-15)
+            # one time for all cells, or (as the fold gives a pass's material) one per cell
+            t_raise = t if rng.random() < 0.5 else (
+                t - rng.integers(0, 10**9, geometry.shape)).astype(np.float64)
+            stack, add = stack.raise_to(surf, t_raise)
+            assert add == pytest.approx(ref.raise_to(surf, t_raise) * area, rel=1e-12,
+                                        abs=1e-15)
             added += add
             for k in range(old.n_deposits + 1):  # the old stack is unchanged
                 assert np.array_equal(old.surface_k(k), before[k])
@@ -385,6 +391,10 @@ def test_layer_stack_basics_and_errors():
         stack.raise_to(np.full(geometry.shape, np.inf), T0)
     with pytest.raises(TypeError):
         stack.raise_to(np.full(geometry.shape, 2.0), float(T0))
+    with pytest.raises(ValueError):  # a time per cell, but (ny, nx)
+        stack.raise_to(np.full(geometry.shape, 2.0), np.full((3, 2), float(T0)))
+    with pytest.raises(ValueError):  # no time where the surface rises
+        stack.raise_to(np.full(geometry.shape, 2.0), np.full(geometry.shape, np.nan))
     with pytest.raises(ValueError):
         stack.clamp(np.full(geometry.shape, np.nan))
     s1, add = stack.raise_to(np.array([[2.0, np.nan, 0.5], [3.0, 1.0, 1.5]]), T0 + H)

@@ -1,7 +1,7 @@
 """The fold's guards around real change: refreshing cells a stacking pass reached since they
 were last seen, charging a cut only with the drops seen in its footprint, undoing what
-rose in a footprint while the cut dug, and lifting never-seen and stale flanks to the repose
-cone.
+rose in a footprint while the cut dug, lifting never-seen and stale flanks to the repose
+cone, and dating a pass's material by when the stacker crossed it.
 
 States are built by hand (a declared pile, a settled height map, pass and cut records) so
 each test isolates one rule; the numbers checked come from the Kalman formulas and the
@@ -309,3 +309,41 @@ def test_a_completed_cell_s_later_rise_goes_to_the_passes_after_its_completion()
     np.testing.assert_allclose(state.stack.thickness(3)[:, far], 0.1, atol=1e-9)
     np.testing.assert_array_equal(state.stack.thickness(2)[:, far], a_m)
     np.testing.assert_array_equal(state.completed_ns[:, hidden], 70 * NS)
+
+
+def test_a_pass_layer_seen_late_is_dated_when_the_stacker_crossed_it():
+    # the grade of a lot is looked up by deposition time: material of pass B seen at 90 s
+    # (the scanner trails the stacker) was laid when the stacker passed over it
+    state = _state(F.FoldConfig("P1"))
+    g = state.pile.geometry                      # 20 m along y, 0.25 m cells
+    state.stack = state.stack.open_deposit(DepositInfo(2, "B", "L1", 20 * NS))
+    state.passes["B"] = F.PassRecord("B", "L1", "stk1", 20 * NS, 2, 60 * NS,
+                                     start_y_m=20.0, end_y_m=0.0)
+    state.stack, _ = state.stack.raise_to(np.full(g.shape, 1.3), F._deposition_ns(state, 90 * NS))
+    got = state.stack.deposition_time_ns(2)
+    for iy in (0, 39, 79):
+        y_m = (iy + 0.5) * g.cell_m
+        # the stacker ran from y = 20 m at 20 s to y = 0 at 60 s: 2 s per metre
+        want_ns = 20 * NS + (20.0 - y_m) * 2 * NS
+        assert np.all(np.abs(got[:, iy] - want_ns) <= 2048), (iy, got[0, iy], want_ns)
+
+
+def test_a_deposition_time_is_never_after_the_rise_was_seen_nor_outside_the_pass():
+    state = _state(F.FoldConfig("P1"))
+    g = state.pile.geometry
+    state.stack = state.stack.open_deposit(DepositInfo(2, "B", "L1", 20 * NS))
+    # still running, none ended before it: the run is assumed to end now (30 s), so
+    # y = 0 is crossed at 30 s and y = 20 m at 20 s
+    state.passes["B"] = F.PassRecord("B", "L1", "stk1", 20 * NS, 2, None,
+                                     start_y_m=20.0, end_y_m=0.0)
+    times = np.asarray(F._deposition_ns(state, 30 * NS))
+    assert times.shape == g.shape
+    assert times.max() <= 30 * NS and times.min() >= 20 * NS
+    assert times[0, -1] < times[0, 0]            # the far end (y = 20 m) was crossed first
+    # a pass that declared no rail positions: the time seen, clipped to the pass
+    state.passes["B"] = F.PassRecord("B", "L1", "stk1", 20 * NS, 2, 60 * NS)
+    assert F._deposition_ns(state, 90 * NS) == 60 * NS
+    assert F._deposition_ns(state, 40 * NS) == 40 * NS
+    # material outside any pass (a flagged deposit): when it was seen
+    state.stack = state.stack.open_deposit(DepositInfo(3, "", "", 70 * NS, flagged=True))
+    assert F._deposition_ns(state, 95 * NS) == 95 * NS

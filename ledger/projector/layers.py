@@ -300,7 +300,7 @@ class LayerStack:
         return LayerStack(self._geometry, self._surfaces + (self._surfaces[-1],),
                           self._times + (zeros,), self._infos + (info,), self._epoch_ns)
 
-    def raise_to(self, surface_m, t_ns: int) -> tuple["LayerStack", float]:
+    def raise_to(self, surface_m, t_ns) -> tuple["LayerStack", float]:
         """Add the material between the top and a higher observed surface to the top deposit.
 
         Parameters
@@ -308,8 +308,9 @@ class LayerStack:
         surface_m : array_like, shape (nx, ny)
             Observed surface (m); NaN = no observation.  Cells where it is at or below the top
             are left alone (lowering happens only through :meth:`clamp`).
-        t_ns : int
-            When the material arrived (UTC ns).
+        t_ns : int or ndarray, shape (nx, ny)
+            When the material arrived (UTC ns): one integer for every cell, or a float64
+            array giving each cell's time (finite where the surface rises).
 
         Returns
         -------
@@ -320,10 +321,18 @@ class LayerStack:
         Raises
         ------
         ValueError
-            On a wrong shape, +inf heights, or a stack with no deposit.
+            On a wrong shape, +inf heights, a non-finite time where the surface rises, or
+            a stack with no deposit.
+        TypeError
+            When ``t_ns`` is neither an integer nor an array.
         """
-        if isinstance(t_ns, bool) or not isinstance(t_ns, (int, np.integer)):
-            raise TypeError(f"t_ns must be an integer (UTC ns), got {type(t_ns).__name__}")
+        if isinstance(t_ns, np.ndarray):
+            times = _check_layer(self._geometry, t_ns, "t_ns")
+        elif isinstance(t_ns, bool) or not isinstance(t_ns, (int, np.integer)):
+            raise TypeError(f"t_ns must be an integer (UTC ns) or an (nx, ny) array, "
+                            f"got {type(t_ns).__name__}")
+        else:
+            times = None
         surf = _check_layer(self._geometry, surface_m, "surface_m")
         if np.any(np.isposinf(surf)):
             raise ValueError("surface_m must not contain +inf (NaN = no observation)")
@@ -334,8 +343,15 @@ class LayerStack:
             up = surf > top  # NaN compares False
         if not up.any():
             return self, 0.0
-        epoch = int(t_ns) if self._epoch_ns is None else self._epoch_ns
-        t_rel = float(int(t_ns) - epoch)
+        if times is None:
+            epoch = int(t_ns) if self._epoch_ns is None else self._epoch_ns
+            t_rel = float(int(t_ns) - epoch)
+        else:
+            t_up = times[up]
+            if not np.isfinite(t_up).all():
+                raise ValueError("t_ns must be finite wherever the surface rises")
+            epoch = int(t_up.min()) if self._epoch_ns is None else self._epoch_ns
+            t_rel = t_up - float(epoch)
         lower = self._surfaces[-2]
         old = (top - lower)[up]
         add = surf[up] - top[up]
