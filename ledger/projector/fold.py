@@ -47,7 +47,7 @@ from schemas.events import decode_payload, timestamp_ns
 from ledger.projector import georef, heightmap, profile, slump
 from ledger.projector.envelope import Reclaimer, cut_floor
 from ledger.projector.grades import AssayRecord
-from ledger.projector.grid import GridGeometry
+from ledger.projector.grid import GridGeometry, cell_centre
 from ledger.projector.layers import DepositInfo, LayerStack, Removal
 
 __all__ = ["FOLD_VERSION", "FoldConfig", "PileInfo", "PassRecord", "CutRecord", "ProjectorState",
@@ -580,7 +580,7 @@ def _refresh_crossed(state: ProjectorState, obs, t_ns: int,
     seen = np.isfinite(prev)
     if not seen.any():
         return
-    y = g.origin_y_m + (obs.iy + 0.5) * g.cell_m
+    y = _row_y_m(g)[obs.iy]
     earliest = float(np.min(prev[seen]))
     passes = list(state.passes.values())
     typical = _typical_pass_s(passes)
@@ -993,7 +993,7 @@ def _stale(state: ProjectorState, t_ns: int) -> np.ndarray:
     if not passes:
         return stale
     typical = _typical_pass_s(passes)
-    y = geometry.origin_y_m + (np.arange(geometry.ny) + 0.5) * geometry.cell_m
+    y = _row_y_m(geometry)
     last_crossing = np.full(geometry.ny, -np.inf)
     for record in passes:
         crossing = _crossing_ns(record, y, t_ns, typical)
@@ -1018,6 +1018,11 @@ def _slump_face(state: ProjectorState, floor_m: np.ndarray) -> float:
     state.stack, moved, _raised = slump.slump(state.stack, tan, region)
     state.count("slumps")
     return moved.volume_m3
+
+
+def _row_y_m(geometry: GridGeometry) -> np.ndarray:
+    """Where each row of cells lies along the rail: the y (m) of its centres, shape (ny,)."""
+    return cell_centre(geometry, 0, np.arange(geometry.ny))[1]
 
 
 def _typical_pass_s(passes) -> float | None:
@@ -1069,7 +1074,7 @@ def _rise_to_crossing_passes(state: ProjectorState, surface: np.ndarray,
     typical = _typical_pass_s(passes)
     geometry = state.pile.geometry
     iy = cells % geometry.ny
-    y = geometry.origin_y_m + (iy + 0.5) * geometry.cell_m
+    y = _row_y_m(geometry)[iy]
     seen = seen_before_ns.ravel()[cells]
     if not np.isfinite(seen).all():
         # a cell never seen itself lies between (or beside) seen ones: it was last seen
@@ -1127,9 +1132,9 @@ def _deposition_ns(state: ProjectorState, t_ns: int) -> int | np.ndarray:
     if not (math.isfinite(record.start_y_m) and math.isfinite(record.end_y_m)):
         return seen
     geometry = state.pile.geometry
-    y = geometry.origin_y_m + (np.arange(geometry.ny) + 0.5) * geometry.cell_m
+    y = _row_y_m(geometry)
     crossing = _crossing_ns(record, y, t_ns, _typical_pass_s(state.passes.values()))
-    crossing = np.clip(crossing, float(record.started_ns), float(max(seen, record.started_ns)))
+    crossing = np.clip(crossing, float(record.started_ns), float(seen))
     return np.broadcast_to(crossing[None, :], geometry.shape)
 
 
