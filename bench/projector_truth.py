@@ -18,6 +18,9 @@ grid (the grid's: the footprint's edge cells differ), and the projector's layer 
 and height map above that floor as of the cut's start (the surface's error, against the
 true surface on the projector's grid).  One fold gives the states at every cut's start.
 
+After the cuts, each pass's deposition times against the simulator's (mean and rms error,
+s): the grade of a cut's material is looked up by them.
+
 Targets (issue 5): pile tonnes within 1 % of truth; each cut's tonnes within 3 % and
 its Fe within 0.3 percentage points once all assays are known.
 """
@@ -195,7 +198,54 @@ def report(result: dict) -> bool:
               f"{mine.assayed_fraction:>7.2f} {mine.residual_m3:>+9.3f}  "
               f"{'PASS' if good else 'MISS'}")
     print("counters: " + ", ".join(f"{k} {v:,}" for k, v in sorted(state.counters.items())))
+    deposition_times(result)
     return ok
+
+
+def deposition_times(result: dict) -> None:
+    """Per pass: our deposition times against the simulator's, where both hold its material.
+
+    A lot's grade follows belt time (an assay per window of tens of seconds), so a cut's Fe
+    depends on when each cell's material was laid.  The simulator keeps a thickness-weighted
+    mean time per cell and deposit on its own grid; ours is the layer stack's, per cell of
+    ours, compared at the simulator cell holding our cell's centre, weighted by our
+    thickness.  Not a target; a diagnosis.
+    """
+    import numpy as np
+
+    from ledger.projector.grid import cell_centres
+
+    arrays = np.load(result["sim_dir"] / "truth.npz")
+    truth, state = result["truth"], result["state"].state
+    grid = truth["world"]["grid"]
+    geometry, stack = state.pile.geometry, state.stack
+    x, y = cell_centres(geometry)
+    jx = np.floor((x - grid["origin_x_m"]) / grid["cell_m"]).astype(np.int64)
+    jy = np.floor((y - grid["origin_y_m"]) / grid["cell_m"]).astype(np.int64)
+    on = (jx >= 0) & (jx < grid["nx"]) & (jy >= 0) & (jy < grid["ny"])
+    jx, jy = np.clip(jx, 0, grid["nx"] - 1), np.clip(jy, 0, grid["ny"] - 1)
+    slot_of = {s["deposit_id"]: s["slot"] for s in truth["world"]["slots"]}
+    rows = []
+    for p in truth["passes"]:
+        mine = state.passes.get(p["pass_id"])
+        slot = slot_of.get(p["deposit"])
+        if mine is None or slot is None or mine.deposit_index > stack.n_deposits:
+            continue
+        ours = stack.deposition_time_ns(mine.deposit_index)
+        thick = stack.thickness(mine.deposit_index)
+        true_t = arrays["time_ns"][slot][jy, jx]
+        both = on & (thick > 0) & np.isfinite(ours) & (arrays["thickness"][slot][jy, jx] > 0)
+        if not both.any():
+            continue
+        d_s = (ours[both] - true_t[both]) / 1e9
+        w = thick[both]
+        rows.append((p["pass_id"], (p["t1_ns"] - p["t0_ns"]) / 1e9, int(both.sum()),
+                     float(np.average(d_s, weights=w)),
+                     float(np.sqrt(np.average(d_s ** 2, weights=w)))))
+    if rows:
+        print("deposition time, ours - simulator's, per pass (s, weighted by our thickness):")
+        for pid, dur, n, mean, rms in rows:
+            print(f"  {pid:<12} {dur:5.0f} s pass  {n:>7,} cells  mean {mean:+6.1f}  rms {rms:6.1f}")
 
 
 def main(argv: list[str] | None = None) -> int:
