@@ -213,17 +213,18 @@ def deposition_times(result: dict) -> None:
     """
     import numpy as np
 
-    from ledger.projector.grid import cell_centres
+    from ledger.projector.grid import GridGeometry, cell_centres, cell_index, inside
 
     arrays = np.load(result["sim_dir"] / "truth.npz")
     truth, state = result["truth"], result["state"].state
     grid = truth["world"]["grid"]
+    sim_grid = GridGeometry(float(grid["origin_x_m"]), float(grid["origin_y_m"]),
+                            float(grid["cell_m"]), int(grid["nx"]), int(grid["ny"]))
     geometry, stack = state.pile.geometry, state.stack
     x, y = cell_centres(geometry)
-    jx = np.floor((x - grid["origin_x_m"]) / grid["cell_m"]).astype(np.int64)
-    jy = np.floor((y - grid["origin_y_m"]) / grid["cell_m"]).astype(np.int64)
-    on = (jx >= 0) & (jx < grid["nx"]) & (jy >= 0) & (jy < grid["ny"])
-    jx, jy = np.clip(jx, 0, grid["nx"] - 1), np.clip(jy, 0, grid["ny"] - 1)
+    on = inside(sim_grid, x, y)
+    jx, jy = cell_index(sim_grid, x, y)
+    jx, jy = np.clip(jx, 0, sim_grid.nx - 1), np.clip(jy, 0, sim_grid.ny - 1)
     slot_of = {s["deposit_id"]: s["slot"] for s in truth["world"]["slots"]}
     rows = []
     for p in truth["passes"]:
