@@ -210,6 +210,37 @@ def test_a_cut_undoes_the_rises_its_own_digging_caused_in_its_footprint():
     assert state.rises_journal == []
 
 
+def test_a_rise_the_map_first_saw_while_the_cut_dug_stays_if_no_look_preceded_it():
+    # a pass crossed the whole pile at 20-60 s; then, while a cut dug (from 100 s), the
+    # map saw rises in its footprint: where it had looked since the pass (at 0-9 s it
+    # had, but also at 70 s: seen after the crossing) the rise is the walls read high
+    # and is undone; where it had not looked since the pass crossed (the pile end's toe,
+    # first seen from the reclaimer) it is material that was there, and it stays
+    config = F.FoldConfig("P1", complete_unseen=False, fill_gap_cells=0, repose_deg=35.0)
+    state = _state(config, z0=1.0)
+    g = state.pile.geometry
+    state.passes["B"] = F.PassRecord("B", "L1", "stk1", 20 * NS, 1, 60 * NS,
+                                     start_y_m=0.0, end_y_m=20.0)
+    y = (np.arange(g.ny) + 0.5) * g.cell_m
+    looked = (y >= 2.0) & (y < 4.0)
+    first = (y >= 4.0) & (y < 6.0)
+    sighted = state.height.grid["last_update_ns"].copy()      # 9 s everywhere
+    sighted[:, looked] = 70 * NS
+    sighted[:, first & (y < 5.0)] = np.nan                    # never seen
+    elevation = state.height.grid["elevation"]
+    elevation[:, looked | first] = 1.4
+    state.height.grid["variance"][:, looked | first] = SD ** 2 / 10
+    F._follow_height(state, 110 * NS, drops=False, sighted_before_ns=sighted)
+    np.testing.assert_allclose(state.stack.surface()[:, looked | first], 1.4)
+    footprint = np.zeros(g.shape, bool)
+    footprint[:, y < 8.0] = True
+    undone = F._undo_digging_rises(state, 100 * NS, footprint)
+    top = state.stack.surface()
+    np.testing.assert_allclose(top[:, looked], 1.0)     # seen after the pass: the walls
+    np.testing.assert_allclose(top[:, first], 1.4)      # never seen, or not since 9 s
+    assert math.isclose(undone, 0.4 * g.cell_area_m2 * g.nx * looked.sum(), rel_tol=1e-9)
+
+
 def test_a_never_seen_cell_s_cone_is_not_the_maximum_of_the_seen_heights_noise():
     # a flank at repose (35 deg) falling along y was seen up to y = 12 m with 1 cm of
     # noise in its fused heights; beyond, nothing was seen and the stack is empty.
@@ -347,3 +378,30 @@ def test_a_deposition_time_is_never_after_the_rise_was_seen_nor_outside_the_pass
     # material outside any pass (a flagged deposit): when it was seen
     state.stack = state.stack.open_deposit(DepositInfo(3, "", "", 70 * NS, flagged=True))
     assert F._deposition_ns(state, 95 * NS) == 95 * NS
+
+
+def test_a_layer_is_dated_before_the_stacker_crossed_it_by_the_poured_cone_s_front():
+    # a ridge (crest at x = 0.875 m) takes a 0.3 m layer of pass B (20 m in 40 s from
+    # y = 20 m): the map has seen it, the stack not yet.  On the crest the cone's front
+    # arrives h = 0.3 / tan(35 deg) ahead of the boom and the cell fills as the boom
+    # closes in: on average h / 2 ahead, h / 2 / (0.5 m/s) before the crossing
+    state = _state(F.FoldConfig("P1", repose_deg=35.0))
+    g = state.pile.geometry
+    x = (np.arange(g.nx) + 0.5) * g.cell_m
+    ridge = 1.0 - 0.5 * np.abs(x - x[3])[:, None] * np.ones((1, g.ny))
+    stack = LayerStack.empty(g, 0.0).open_deposit(DepositInfo(1, "A", "L0", 0))
+    stack, _ = stack.raise_to(ridge, 0)
+    state.stack = stack.open_deposit(DepositInfo(2, "B", "L1", 20 * NS))
+    state.passes["B"] = F.PassRecord("B", "L1", "stk1", 20 * NS, 2, 60 * NS,
+                                     start_y_m=20.0, end_y_m=0.0)
+    state.height.grid["elevation"][:] = ridge + 0.3
+    times = np.asarray(F._deposition_ns(state, 90 * NS))
+    tan = math.tan(math.radians(35.0))
+    for iy in (0, 39, 79):
+        crossing_ns = 20 * NS + (20.0 - (iy + 0.5) * g.cell_m) * 2 * NS
+        want_ns = max(crossing_ns - 0.3 / tan / 2 / 0.5 * NS, 20 * NS)
+        assert abs(times[3, iy] - want_ns) <= 2048, (iy, times[3, iy], want_ns)
+        # down the flank the front comes earlier still, never before the pass began
+        assert np.all(times[[0, 7], iy] <= times[3, iy])
+    assert times.min() >= 20 * NS and times.max() <= 60 * NS
+    assert (times[[0, 7], 40] < times[3, 40]).all()

@@ -10,7 +10,8 @@ import pytest
 
 from ledger.projector.grid import GridGeometry
 from ledger.projector.layers import DepositInfo, LayerStack
-from ledger.projector.slump import estimate_repose_deg, relax_surface, repose_floor, slump
+from ledger.projector.slump import (estimate_repose_deg, pour_front_lead_m, relax_surface,
+                                    repose_floor, slump)
 
 CELL = 0.25
 TAN37 = math.tan(math.radians(37.0))
@@ -190,3 +191,48 @@ def test_the_fold_measures_slopes_over_a_run_long_enough_for_its_noise():
     state.pile = F.PileInfo("P1", GridGeometry(0.0, 0.0, 0.25, 10, 10), 0.0, 1.0, 1.65)
     state.point_sd_m = 0.05
     assert F._slope_baseline_cells(state) == 4
+
+
+def _poured_mean_distance_m(thickness_m: float, offset_m: float, tan_repose: float) -> float:
+    """Pour a cone from a boom closing in along a line, step by step, and weigh the boom's
+    distance by what each step added at a cell ``offset_m`` across the line that ends
+    ``thickness_m`` higher: the process itself, not the closed form."""
+    apex = thickness_m + tan_repose * offset_m         # the cone's level on the line
+    level, moments, added = 0.0, 0.0, 0.0
+    for s in np.linspace(10.0, 0.0, 400_001):          # the boom 10 m away, then closer
+        cone = apex - tan_repose * math.hypot(offset_m, s)
+        if cone > level:
+            moments += s * (cone - level)
+            added += cone - level
+            level = cone
+    assert math.isclose(level, thickness_m, rel_tol=1e-9)
+    return moments / added
+
+
+@pytest.mark.parametrize("thickness_m, offset_m", [(0.5, 0.0), (0.5, 3.0), (0.02, 0.1),
+                                                   (2.0, 12.0)])
+def test_pour_front_lead_is_the_poured_cone_s_mean_distance(thickness_m, offset_m):
+    tan = math.tan(math.radians(37.0))
+    got = pour_front_lead_m(np.array([[thickness_m]]), np.array([[offset_m]]), tan)
+    assert got.shape == (1, 1)
+    assert math.isclose(got[0, 0], _poured_mean_distance_m(thickness_m, offset_m, tan),
+                        rel_tol=1e-3)
+
+
+def test_pour_front_lead_on_the_line_is_half_the_reach_and_nothing_without_a_layer():
+    tan = 0.75
+    got = pour_front_lead_m(np.array([[0.3, 0.0, np.nan, -0.1]]), np.array([[0.0, 1.0, 1.0, 1.0]]),
+                            tan)
+    np.testing.assert_allclose(got, [[0.3 / tan / 2, 0.0, 0.0, 0.0]])
+    # the sign of the offset does not matter; further down the flank, earlier
+    both = pour_front_lead_m(np.full((1, 3), 0.3), np.array([[-2.0, 2.0, 4.0]]), tan)
+    assert both[0, 0] == both[0, 1] < both[0, 2]
+
+
+def test_pour_front_lead_rejects_bad_input():
+    with pytest.raises(ValueError, match="differ in shape"):
+        pour_front_lead_m(np.zeros((2, 3)), np.zeros((3, 2)), 0.7)
+    with pytest.raises(ValueError, match="2-D"):
+        pour_front_lead_m(np.zeros(3), np.zeros(3), 0.7)
+    with pytest.raises(ValueError, match="tan_repose"):
+        pour_front_lead_m(np.zeros((2, 2)), np.zeros((2, 2)), 0.0)

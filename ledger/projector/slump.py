@@ -8,7 +8,10 @@ Dry ore fines hold no slope steeper than their angle of repose (iron-ore fines a
   its composition moving with it (:func:`relax_surface`, :func:`slump`);
 - **the repose cone**: no point of a settled pile lies below ``z(q) - tan(repose) |p - q|``
   for any surface point ``q``.  A flank the scanner cannot see (the far side of the crest
-  from a machine on one rail) is at least that high (:func:`repose_floor`).
+  from a machine on one rail) is at least that high (:func:`repose_floor`);
+- **the pouring front**: ore poured from a moving boom settles as a repose cone around
+  the discharge point, so a cell gets its layer while the cone's front sweeps over it,
+  before the boom is above it (:func:`pour_front_lead_m`).
 
 The angle is estimated from the surface the scanner does see
 (:func:`estimate_repose_deg`): the mode of the slopes between 25 and 50 deg, where the
@@ -26,7 +29,7 @@ import numpy as np
 
 from ledger.projector.layers import LayerStack, Removal
 
-__all__ = ["estimate_repose_deg", "repose_floor", "relax_surface", "slump"]
+__all__ = ["estimate_repose_deg", "pour_front_lead_m", "repose_floor", "relax_surface", "slump"]
 
 _SQRT2 = math.sqrt(2.0)
 # the 8 neighbours of a column, (dx, dy) in cells
@@ -123,6 +126,50 @@ def repose_floor(elevation_m, cell_m: float, tan_repose: float) -> np.ndarray:
     for sign in (1, -1):
         z = _unshear(_cone_1d(_shear(z, sign), k * _SQRT2, axis=0), sign, e.shape)
     return np.where(np.isfinite(z), z, np.nan)
+
+
+def pour_front_lead_m(thickness_m, offset_m, tan_repose: float) -> np.ndarray:
+    """How far ahead of a moving boom a cell's layer is laid, on average (m).
+
+    A boom pouring along a line settles its ore as a repose cone around the discharge
+    point: the surface reaches ``a - tan_repose * r`` at distance r from it, a the apex.
+    At a cell ``offset_m`` from the line (across it) that ends with ``thickness_m`` of new
+    material, the cone's front arrives when the boom is still
+    ``D = sqrt(h^2 + 2 h |offset|)`` away along the line (``h = thickness / tan_repose``),
+    and the cell fills as the boom closes in: with ``f(s) = tan_repose sqrt(offset^2 +
+    s^2)`` its level when the boom is s away, the thickness-weighted mean of s is
+    ``(D f(D) - int_0^D f) / (f(D) - f(0))``; D / 2 on the line itself.  Once the boom has
+    passed, the cell is already at the cone's level and gets nothing more.
+
+    Parameters
+    ----------
+    thickness_m : array_like, shape (nx, ny)
+        The new layer's thickness at each cell (m, >= 0; NaN or <= 0: no lead).
+    offset_m : array_like, shape (nx, ny)
+        Distance from the boom's line, across it (m; the sign is ignored).
+    tan_repose : float
+        Tangent of the angle of repose (> 0).
+
+    Returns
+    -------
+    ndarray, shape (nx, ny)
+        The thickness-weighted mean distance (m, >= 0) between the boom and the cell
+        while the cell's layer was laid; divided by the boom's speed it is a time.
+    """
+    t = _check_2d("thickness_m", thickness_m)
+    x = np.abs(_check_2d("offset_m", offset_m))
+    if t.shape != x.shape:
+        raise ValueError(f"thickness_m {t.shape} and offset_m {x.shape} differ in shape")
+    tan = _check_tan(tan_repose)
+    h = np.where(np.isfinite(t) & (t > 0), t, 0.0) / tan
+    reach = np.sqrt(h * h + 2.0 * h * x)                   # D
+    r = np.hypot(x, reach)                                 # sqrt(offset^2 + D^2)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        # int_0^D sqrt(x^2 + s^2) ds, the x^2 asinh(D / x) term vanishing on the line
+        area = 0.5 * (reach * r + np.where(x > 0, x * x * np.arcsinh(reach / np.where(
+            x > 0, x, 1.0)), 0.0))
+        lead = np.where(reach > 0, (reach * r - area) / (r - x), 0.0)
+    return np.clip(np.nan_to_num(lead), 0.0, None)
 
 
 def _cone_1d(z: np.ndarray, k: float, axis: int) -> np.ndarray:
