@@ -236,3 +236,16 @@ def test_pour_front_lead_rejects_bad_input():
         pour_front_lead_m(np.zeros(3), np.zeros(3), 0.7)
     with pytest.raises(ValueError, match="tan_repose"):
         pour_front_lead_m(np.zeros((2, 2)), np.zeros((2, 2)), 0.0)
+
+
+def test_pour_front_lead_under_a_thin_layer_far_down_a_flank_is_two_thirds_of_the_reach():
+    # D << offset: the closed form cancels there (D r - x^2 asinh(D / x) ~ D^3 / 3x);
+    # the front arrives D = sqrt(2 h x) away and the cell fills like a parabola's chord
+    tan = 0.75
+    thickness = np.array([[1e-320, 1e-12, 1e-7, 1e-4]])
+    offset = np.full(thickness.shape, 50.0)
+    with np.errstate(over="raise", divide="raise", invalid="raise"):
+        got = pour_front_lead_m(thickness, offset, tan)
+    reach = np.sqrt((thickness / tan) ** 2 + 2 * (thickness / tan) * offset)
+    np.testing.assert_allclose(got, 2 * reach / 3, rtol=1e-4)
+    assert np.all(np.isfinite(got)) and np.all(got > 0)

@@ -165,11 +165,16 @@ def pour_front_lead_m(thickness_m, offset_m, tan_repose: float) -> np.ndarray:
     reach = np.sqrt(h * h + 2.0 * h * x)                   # D
     r = np.hypot(x, reach)                                 # sqrt(offset^2 + D^2)
     with np.errstate(invalid="ignore", divide="ignore"):
-        # int_0^D sqrt(x^2 + s^2) ds, the x^2 asinh(D / x) term vanishing on the line
-        area = 0.5 * (reach * r + np.where(x > 0, x * x * np.arcsinh(reach / np.where(
-            x > 0, x, 1.0)), 0.0))
-        lead = np.where(reach > 0, (reach * r - area) / (r - x), 0.0)
-    return np.clip(np.nan_to_num(lead), 0.0, None)
+        u = np.where(x > 0, reach / np.where(x > 0, x, 1.0), np.inf)
+        # (D f(D) - int_0^D f) / tan = (D r - x^2 asinh(D / x)) / 2, over
+        # (f(D) - f(0)) / tan = r - x = D^2 / (r + x) (no cancellation)
+        closed = (0.5 * (reach * r - np.where(x > 0, x * x * np.arcsinh(u), 0.0))
+                  * (r + x) / (reach * reach))
+        # far down a flank under a thin layer (D << x) the closed form cancels; its
+        # series there, x u (1/3 - u^2/10) (sqrt(1 + u^2) + 1), is exact to O(u^4)
+        series = reach * (1.0 / 3.0 - u * u / 10.0) * (np.sqrt(1.0 + u * u) + 1.0)
+        lead = np.where(u < 1e-2, series, closed)
+    return np.where(reach > 0, lead, 0.0)
 
 
 def _cone_1d(z: np.ndarray, k: float, axis: int) -> np.ndarray:
