@@ -697,7 +697,7 @@ def _follow_height(state: ProjectorState, t_ns: int, *, drops: bool = True,
                 state.stack = state.stack.open_deposit(
                     DepositInfo(state.stack.n_deposits + 1, "", "", t_ns, flagged=True))
         state.stack, added = state.stack.raise_to(np.where(up, elevation, np.nan),
-                                                  _deposition_ns(state, t_ns))
+                                                  _deposition_ns(state, t_ns, up))
         state.count("rises")
         if state.active_pass is None and state.cuts and not _settling_last_pass(state):
             # material rising outside a pass after a cut is what slumped into the cut's
@@ -928,7 +928,7 @@ def _complete_unseen(state: ProjectorState, t_ns: int,
     if left.any() and state.stack.n_deposits:
         # no pass crossed since the cell was seen: the top deposit's (it stands above it)
         state.stack, _added = state.stack.raise_to(np.where(left, level, np.nan),
-                                                   _deposition_ns(state, t_ns))
+                                                   _deposition_ns(state, t_ns, left))
     # a new array each time (never written in place: a snapshot's arrays are read-only)
     state.completed_ns = np.where(lift, float(t_ns), np.nan if state.completed_ns is None
                                   else state.completed_ns)
@@ -984,7 +984,7 @@ def _catch_up_rises(state: ProjectorState, t_ns: int) -> None:
         return
     before = state.stack.total_volume_m3()
     state.stack, _added = state.stack.raise_to(np.where(up, elevation, np.nan),
-                                               _deposition_ns(state, t_ns))
+                                               _deposition_ns(state, t_ns, up))
     _journal_rises(state, t_ns, np.flatnonzero(up), top)
     state.count("cells_caught_up", int(up.sum()))
     state.count("caught_up_mm3", int(round((state.stack.total_volume_m3() - before) * 1e3)))
@@ -1130,9 +1130,11 @@ def _rise_to_crossing_passes(state: ProjectorState, surface: np.ndarray,
         return risen & (surface > state.stack.surface())
 
 
-def _deposition_ns(state: ProjectorState, t_ns: int) -> int | np.ndarray:
+def _deposition_ns(state: ProjectorState, t_ns: int,
+                   rising: np.ndarray | None = None) -> int | np.ndarray:
     """When the top deposit's material seen rising at ``t_ns`` was deposited: one integer
-    (UTC ns) for every cell, or a float64 array of shape (nx, ny).
+    (UTC ns) for every cell, or a float64 array of shape (nx, ny).  ``rising``: the cells
+    (bool, (nx, ny)) about to rise, the only ones whose times are used (default all).
 
     Material of a pass was stacked as the stacker came over it (:func:`_crossing_ns`, a
     run along the rail), not when the scanner, which trails the stacker, saw it; the
@@ -1162,37 +1164,40 @@ def _deposition_ns(state: ProjectorState, t_ns: int) -> int | np.ndarray:
     geometry = state.pile.geometry
     y = _row_y_m(geometry)
     typical = _typical_pass_s(state.passes.values())
-    crossing = _crossing_ns(record, y, t_ns, typical)[None, :]
-    n = state.stack.n_deposits
+    times = np.repeat(_crossing_ns(record, y, t_ns, typical)[None, :], geometry.nx, axis=0)
+    ix, iy = np.nonzero(np.ones(geometry.shape, bool) if rising is None else rising)
     top = state.stack.surface()
     # the pass's layer as it stands now: the map's level (or the stack's) over the deposit
     # below the pass's
-    level = np.fmax(state.height.elevation, top)
-    lead_s = _pour_lead_s(state, record, level - state.stack.surface_k(n - 1), top, typical)
-    return np.clip(crossing - lead_s * 1e9, float(record.started_ns), float(seen))
+    level = np.fmax(state.height.elevation[ix, iy], top[ix, iy])
+    below = state.stack.surface_k(state.stack.n_deposits - 1)[ix, iy]
+    times[ix, iy] -= _pour_lead_s(state, record, level - below, ix, iy, top, typical) * 1e9
+    return np.clip(times, float(record.started_ns), float(seen))
 
 
 def _pour_lead_s(state: ProjectorState, record: PassRecord, thickness_m: np.ndarray,
-                 top_m: np.ndarray, typical_s: float | None) -> np.ndarray:
-    """How long before its stacker crossed each cell a pass laid its layer there, on
-    average (s, (nx, ny); 0 where unknown): :func:`slump.pour_front_lead_m` over the
-    stacker's speed along the rail.
+                 ix: np.ndarray, iy: np.ndarray, top_m: np.ndarray,
+                 typical_s: float | None) -> np.ndarray:
+    """How long before its stacker crossed cells ``(ix, iy)`` a pass laid its layer there,
+    on average (s, shape of ``ix``; 0 where unknown): :func:`slump.pour_front_lead_m` over
+    the stacker's speed along the rail.
 
-    The boom pours on the crest: each row's line is where the stack's top (``top_m``) is
-    highest.  ``thickness_m``: the pass's layer at each cell (m); ``typical_s``: the
-    duration assumed for a pass still running (:func:`_typical_pass_s`).
+    The boom pours on the crest: each row's line is where the stack's top (``top_m``,
+    (nx, ny)) is highest.  ``thickness_m``: the pass's layer at each cell (m);
+    ``typical_s``: the duration assumed for a pass still running (:func:`_typical_pass_s`).
     """
     geometry = state.pile.geometry
     t1 = record.ended_ns if record.ended_ns is not None else (
         None if typical_s is None else record.started_ns + typical_s * 1e9)
     run_m = abs(record.end_y_m - record.start_y_m)
-    if t1 is None or t1 <= record.started_ns or not run_m > 0:
-        return np.zeros(geometry.shape)
+    if t1 is None or t1 <= record.started_ns or not run_m > 0 or ix.size == 0:
+        return np.zeros(ix.shape)
     speed_m_s = run_m / ((t1 - record.started_ns) / 1e9)
     x = cell_centre(geometry, np.arange(geometry.nx), 0)[0]
     crest = x[np.argmax(top_m, axis=0)]
-    offset = x[:, None] - crest[None, :]
-    lead_m = slump.pour_front_lead_m(thickness_m, offset, _tan_repose(state, estimate=False))
+    offset = x[ix] - crest[iy]
+    lead_m = slump.pour_front_lead_m(thickness_m[None, :], offset[None, :],
+                                     _tan_repose(state, estimate=False))[0]
     return lead_m / speed_m_s
 
 
