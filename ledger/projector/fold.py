@@ -60,7 +60,7 @@ GEOMETRY_TYPES = ("pile_declared", "machine_declared", "stack_started", "stack_e
 #: The fold's version: bumped whenever a change makes the same events and config fold to
 #: a different state.  Snapshots are keyed by it as well as by the config, so those of an
 #: older fold are never used (:class:`ledger.projector.query.SnapshotStore`).
-FOLD_VERSION = 12
+FOLD_VERSION = 13
 
 DEFAULT_CELL_M = 0.25
 DEFAULT_VOXEL_M = 1.0
