@@ -1050,6 +1050,14 @@ def _typical_pass_s(passes) -> float | None:
     return float(np.median(ended)) if ended else None
 
 
+def _assumed_end_ns(record: PassRecord, typical_s: float | None) -> float | None:
+    """When a pass ended (UTC ns, float), or for one still running when it will, after the
+    typical duration of the passes before it (None when none has ended)."""
+    if record.ended_ns is not None:
+        return float(record.ended_ns)
+    return None if typical_s is None else float(record.started_ns) + typical_s * 1e9
+
+
 def _crossing_ns(record: PassRecord, y_m: np.ndarray, now_ns: int,
                  typical_s: float | None) -> np.ndarray:
     """When the stacker of a pass passed each position along the rail (UTC ns, float).
@@ -1059,11 +1067,8 @@ def _crossing_ns(record: PassRecord, y_m: np.ndarray, now_ns: int,
     duration of the passes before it (or now when none ended yet).
     """
     t0 = float(record.started_ns)
-    if record.ended_ns is not None:
-        t1 = float(record.ended_ns)
-    elif typical_s is not None:
-        t1 = t0 + typical_s * 1e9
-    else:
+    t1 = _assumed_end_ns(record, typical_s)
+    if t1 is None:
         t1 = float(max(now_ns, record.started_ns + 1))
     span = record.end_y_m - record.start_y_m
     if not math.isfinite(span) or span == 0:
@@ -1187,8 +1192,7 @@ def _pour_lead_s(state: ProjectorState, record: PassRecord, thickness_m: np.ndar
     ``typical_s``: the duration assumed for a pass still running (:func:`_typical_pass_s`).
     """
     geometry = state.pile.geometry
-    t1 = record.ended_ns if record.ended_ns is not None else (
-        None if typical_s is None else record.started_ns + typical_s * 1e9)
+    t1 = _assumed_end_ns(record, typical_s)
     run_m = abs(record.end_y_m - record.start_y_m)
     if t1 is None or t1 <= record.started_ns or not run_m > 0 or ix.size == 0:
         return np.zeros(ix.shape)
