@@ -60,7 +60,7 @@ GEOMETRY_TYPES = ("pile_declared", "machine_declared", "stack_started", "stack_e
 #: The fold's version: bumped whenever a change makes the same events and config fold to
 #: a different state.  Snapshots are keyed by it as well as by the config, so those of an
 #: older fold are never used (:class:`ledger.projector.query.SnapshotStore`).
-FOLD_VERSION = 13
+FOLD_VERSION = 14
 
 DEFAULT_CELL_M = 0.25
 DEFAULT_VOXEL_M = 1.0
@@ -273,11 +273,9 @@ class ProjectorState:
     pose_q: list[tuple[float, float, float, float]] = field(default_factory=list)
     pending: list[_Scan] = field(default_factory=list)
     flagged_loss_m3: float = 0.0
-    #: recent rises of the stack's top, ``(t_ns, flat cell indices, top before (m),
-    #: first sight (bool))`` (:func:`_journal_rises`), so a cut can undo those its own
-    #: digging caused
-    rises_journal: list[tuple[int, np.ndarray, np.ndarray, np.ndarray]] = field(
-        default_factory=list)
+    #: recent rises of the stack's top, ``(t_ns, flat cell indices, top before (m))``
+    #: (:func:`_journal_rises`), so a cut can undo those its own digging caused
+    rises_journal: list[tuple[int, np.ndarray, np.ndarray]] = field(default_factory=list)
     #: when each cell was last completed to the repose cone (UTC ns, NaN = never; shape
     #: (nx, ny); None until the first completion; replaced, never written in place): its
     #: material up to there is accounted for (:func:`_accounted_ns`)
@@ -733,16 +731,18 @@ def _follow_height(state: ProjectorState, t_ns: int, *, drops: bool = True,
 def _journal_rises(state: ProjectorState, t_ns: int, cells: np.ndarray,
                    top_before_m: np.ndarray, first_sight: np.ndarray | None = None) -> None:
     """Note in which of ``cells`` (flat indices) the stack's top rose, from what level
-    (``top_before_m``, (nx, ny)), at ``t_ns``, and whether the rise was the height map's
-    first sight of the cell since a pass crossed it (``first_sight``, (nx, ny) bool; None:
-    no sighting of its own, a catch-up or a completion); entries older than
-    ``dig_journal_s`` before it are dropped."""
-    cells = cells[state.stack.surface().reshape(-1)[cells] > top_before_m.reshape(-1)[cells]]
+    (``top_before_m``, (nx, ny)), at ``t_ns``; entries older than ``dig_journal_s``
+    before it are dropped.  A rise that was the height map's first sight of its cell since
+    a pass crossed it (``first_sight``, (nx, ny) bool; None for a catch-up or a
+    completion, which follow no sighting of their own) is not noted: its level before was
+    never measured, so no cut undoes it (:func:`_undo_digging_rises`)."""
+    rose = state.stack.surface().reshape(-1)[cells] > top_before_m.reshape(-1)[cells]
+    if first_sight is not None:
+        rose &= ~first_sight.reshape(-1)[cells]
+    cells = cells[rose]
     if cells.size:
-        first = (np.zeros(cells.size, bool) if first_sight is None
-                 else first_sight.reshape(-1)[cells])
         state.rises_journal.append((int(t_ns), cells.astype(np.int32),
-                                    top_before_m.reshape(-1)[cells], first))
+                                    top_before_m.reshape(-1)[cells]))
     oldest = t_ns - int(state.config.dig_journal_s * 1e9)
     while state.rises_journal and state.rises_journal[0][0] < oldest:
         state.rises_journal.pop(0)
@@ -757,17 +757,17 @@ def _undo_digging_rises(state: ProjectorState, start_ns: int, footprint: np.ndar
     high: bench-scale, +3 to +5 mm over a cut 1 cm deep.  What rose there then is not
     material the cut found, and it is not added to it.
 
-    A rise in a cell the map had not seen since a pass last crossed it stays: its level
-    before was never measured (a pile end's toe, hidden from the rail, is first seen
+    A rise in a cell the map had not seen since a pass last crossed it stays (it is not
+    journaled, :func:`_journal_rises`): its level before was never measured (a pile end's toe, hidden from the rail, is first seen
     from the reclaimer).  Undoing those took the demo scenario's first cuts 1-3 % light
     (seed 3: the stack above the floor 167.5 m3 before the undo, 162.1 m3 after,
     167.4 m3 true).
     """
     target = np.full(state.pile.geometry.shape, np.inf)
     flat = target.reshape(-1)
-    for t_ns, cells, before, first_sight in state.rises_journal:
+    for t_ns, cells, before in state.rises_journal:
         if t_ns >= start_ns:
-            np.minimum.at(flat, cells[~first_sight], before[~first_sight])
+            np.minimum.at(flat, cells, before)
     target[~footprint] = np.inf
     if not np.isfinite(target).any():
         return 0.0
