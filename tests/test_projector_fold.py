@@ -22,8 +22,8 @@ from hypothesis import strategies as st
 
 from ledger import open_ledger
 from ledger.projector import fold as F
-from ledger.projector.query import (FAR_FUTURE_NS, SnapshotStore, build_snapshots, project,
-                                    summarise)
+from ledger.projector.query import (FAR_FUTURE_NS, SnapshotStore, build_snapshots,
+                                    grade_inputs, project, summarise)
 from ledger.records import RecordedEvent
 from schemas import pb
 from schemas.events import Event, decode_payload, make_event, set_timestamp_ns
@@ -271,6 +271,45 @@ def test_a_past_cut_changes_grade_exactly_when_its_assay_arrives(yard):
     assert at_final.grade["Fe"] > at_provisional.grade["Fe"]            # 63.5 replaced 61.0
     # the cut's geometry does not depend on when assays arrived
     assert at_final.tonnes == pytest.approx(before.tonnes, rel=0.02)
+
+
+def test_grade_inputs_are_the_lots_and_assays_known_at_k_and_regrade_a_fold(yard):
+    """``grade_inputs`` gives the lots and the assays recorded by K; ``summarise`` grades
+    one folded state with other assays (how ``bench/projector_truth.py`` grades the cuts
+    with an exact lab) without touching its geometry."""
+    import dataclasses
+
+    events = yard["events"]
+    delays = [0] * len(events)
+    for i, e in enumerate(events):
+        if e.type == "assay":
+            delays[i] = (4 if decode_payload(e.type, e.payload).assay_id == "A1" else 7) * 3600 * S
+    store = _ledger(events, delays)
+    rec = {decode_payload(r.type, r.payload).assay_id: r.recorded_time_ns
+           for r in store.read(types=["assay"])}
+    v = yard["cut_end"]
+    for k, ids in ((rec["A1"] - 1, []), (rec["A1"], ["A1"]), (rec["A2"], ["A1", "A2"])):
+        lots, assays = grade_inputs(store, v, k)
+        assert yard["lot"] in lots and "Fe" in lots[yard["lot"]]
+        assert sorted(a.assay_id for a in assays) == ids
+        assert all(a.recorded_ns <= k for a in assays)
+    state = project(store, PILE, v, FAR_FUTURE_NS)
+    lots, assays = grade_inputs(store, v, FAR_FUTURE_NS)
+    again = summarise(state.state, lots, assays, valid_time_ns=v, known_time_ns=FAR_FUTURE_NS)
+    [cut] = [c for c in state.cuts if c.cut_id == "X-C01"]
+    [same] = [c for c in again.cuts if c.cut_id == "X-C01"]
+    assert same.grade == pytest.approx(cut.grade) and same.tonnes == cut.tonnes
+    # the final assay (63.5 % Fe) read as 60.0 %: the lot's share of the cut moves by
+    # 3.5 pp times that share, and its tonnes stay
+    lower = [dataclasses.replace(a, analytes={**a.analytes, "Fe": 60.0}) if a.assay_id == "A2"
+             else a for a in assays]
+    regraded = summarise(state.state, lots, lower, valid_time_ns=v,
+                         known_time_ns=FAR_FUTURE_NS)
+    [low] = [c for c in regraded.cuts if c.cut_id == "X-C01"]
+    share = sum(d["tonnes"] for d in cut.deposits if d["lot_id"] == yard["lot"]) / cut.tonnes
+    assert share > 0
+    assert low.tonnes == cut.tonnes
+    assert low.grade["Fe"] == pytest.approx(cut.grade["Fe"] - 3.5 * share, abs=1e-6)
 
 
 def test_stockpile_project_json_matches_the_python_api(yard, tmp_path):

@@ -31,8 +31,8 @@ from ledger.projector.grades import (AssayRecord, GradeClasses, effective_assays
                                      grade_classes)
 from ledger.projector.grid import GridGeometry
 
-__all__ = ["DepositSummary", "GradeJoin", "CutSummary", "PileState", "project", "SnapshotStore",
-           "CANONICAL_ANALYTES"]
+__all__ = ["DepositSummary", "GradeJoin", "CutSummary", "PileState", "project", "grade_inputs",
+           "summarise", "SnapshotStore", "CANONICAL_ANALYTES"]
 
 CANONICAL_ANALYTES = ("Fe", "SiO2", "Al2O3", "P", "LOI")
 FAR_FUTURE_NS = 2 ** 62
@@ -138,14 +138,24 @@ def project(store, pile_id: str, valid_time_ns: int | None = None,
     for event in store.as_of(v, k, types=list(F.GEOMETRY_TYPES), after=after):
         F.apply(state, event)
     view = F.flush(state)   # the state is ours alone (fresh, or loaded from a file)
+    lots, assays = grade_inputs(store, v, k)
+    return summarise(view, lots, assays, valid_time_ns=v, known_time_ns=k)
+
+
+def grade_inputs(store, valid_time_ns: int, known_time_ns: int
+                 ) -> tuple[dict[str, dict[str, float]], list[AssayRecord]]:
+    """The ledger's grade facts as of (V, K): ``lots`` (lot id -> planned grade, analyte ->
+    mass %) and every assay (:class:`ledger.projector.grades.AssayRecord`), the inputs of
+    :func:`summarise`."""
     lots, assays = {}, []
-    for event in store.as_of(v, k, types=["lot_declared", "assay"]):
+    for event in store.as_of(int(valid_time_ns), int(known_time_ns),
+                             types=["lot_declared", "assay"]):
         msg = _decode(event)
         if event.type == "lot_declared":
             lots[msg.lot_id] = dict(msg.planned_grade)
         else:
             assays.append(AssayRecord.from_message(msg, event.recorded_time_ns))
-    return summarise(view, lots, assays, valid_time_ns=v, known_time_ns=k)
+    return lots, assays
 
 
 def _decode(event):
