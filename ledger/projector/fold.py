@@ -758,10 +758,10 @@ def _undo_digging_rises(state: ProjectorState, start_ns: int, footprint: np.ndar
     material the cut found, and it is not added to it.
 
     A rise in a cell the map had not seen since a pass last crossed it stays (it is not
-    journaled, :func:`_journal_rises`): its level before was never measured (a pile end's toe, hidden from the rail, is first seen
-    from the reclaimer).  Undoing those took the demo scenario's first cuts 1-3 % light
-    (seed 3: the stack above the floor 167.5 m3 before the undo, 162.1 m3 after,
-    167.4 m3 true).
+    journaled, :func:`_journal_rises`): its level before was never measured (a pile end's
+    toe, hidden from the rail, is first seen from the reclaimer).  Undoing those took the
+    demo scenario's first cuts 1-3 % light (seed 3: the stack above the floor 167.5 m3
+    before the undo, 162.1 m3 after, 167.4 m3 true).
     """
     target = np.full(state.pile.geometry.shape, np.inf)
     flat = target.reshape(-1)
