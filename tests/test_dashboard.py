@@ -31,7 +31,7 @@ from services.ledger_client import LedgerClient
 from services.service import EventPublisher
 from test_audit import CUT, PILE, SEED, audit_ledger
 from zenoh_helpers import (client_args, log_lines, open_router, service_on_a_stuck_ledger, stockpile,
-                           stop, wait_liveliness, wait_until)
+                           stop, stop_all, wait_liveliness, wait_until)
 
 S = 1_000_000_000
 SITE = "dash"
@@ -328,8 +328,10 @@ def test_live_service_follows_the_ledger_service(ledger, tmp_path):
                    and int(_status(tmp_path / "dashboard.log").get("updates", 0)) > updates0,
                    60, "the dashboard's update after the live assay")
     finally:
-        codes = [stop(p) for p in (dashboard, service) if p is not None]
-        router.close()
+        try:
+            codes = stop_all(dashboard, service)
+        finally:
+            router.close()
     assert codes == [0, 0]
     with open_ledger(path, read_only=True) as store:
         everything = project(store, PILE)

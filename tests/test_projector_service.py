@@ -32,7 +32,7 @@ from zenoh_helpers import (
     log_lines,
     open_router,
     stockpile,
-    stop,
+    stop_all,
     wait_liveliness,
     wait_until,
 )
@@ -149,8 +149,10 @@ def test_projector_service_follows_the_ledger_and_rebuilds_on_late_geometry(
         assert answers[-1]["tonnes"] < before.tonnes
         final = answers[-1]
     finally:
-        codes = [stop(p) for p in (projector, ledger) if p is not None]
-        router.close()
+        try:
+            codes = stop_all(projector, ledger)
+        finally:
+            router.close()
     assert codes == [0, 0]
     with open_ledger(path, read_only=True) as store:
         after = project(store, PILE)

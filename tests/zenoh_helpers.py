@@ -72,6 +72,23 @@ def stop(process: subprocess.Popen, timeout_s: float = 30.0) -> int:
                              f"{stacks}") from None
 
 
+def stop_all(*processes: subprocess.Popen | None, timeout_s: float = 30.0) -> list[int]:
+    """:func:`stop` every process given (None skipped), each even when one before it hung;
+    their exit codes, or the first hang's AssertionError once all are stopped (a hung
+    dashboard must not leave its ledger service running after the test)."""
+    codes, failure = [], None
+    for process in processes:
+        if process is None:
+            continue
+        try:
+            codes.append(stop(process, timeout_s))
+        except AssertionError as exc:
+            failure = failure or exc
+    if failure is not None:
+        raise failure
+    return codes
+
+
 def _stacks_of(process: subprocess.Popen) -> str:
     """Ask a hung service for its threads' stacks (SIGUSR1, see services.service_cli) and
     return the tail of its log, where they are written; "" without a log file."""
