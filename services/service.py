@@ -187,27 +187,25 @@ class Stopper:
 
     ``stop.wait(t)`` doubles as an interruptible sleep for service loops.
 
-    The handler does not set the event itself: Python runs it in the main thread
-    between two bytecodes, which may be inside ``event.wait()`` while that holds the
-    event's lock, and ``Event.set()`` there would wait for that lock forever (seen: a
-    projector that ignored SIGTERM).  It writes the signal number to a pipe instead,
-    and one relay thread per process sets the event of the stopper installed last.
+    The stop does not depend on Python running the signal handler.  Python runs a
+    handler in the main thread between two bytecodes, which may be inside
+    ``event.wait()`` while that holds the event's lock (``Event.set()`` there would
+    wait for that lock forever: a projector that ignored SIGTERM), or never while the
+    main thread waits inside a library (a live dashboard ignored SIGTERM for 30 s on
+    CI).  So the process's signal wakeup fd (:func:`signal.set_wakeup_fd`) is a pipe:
+    the C-level handler writes the signal's number to it at once, and one relay
+    thread per process reads it and sets the event of the stopper installed last.
+    The Python handler, when it runs, writes to the same pipe (in case something
+    replaced the wakeup fd); a stop relayed twice is harmless.
     """
 
     def __init__(self, install: bool = True) -> None:
         self.event = threading.Event()
         self.signal_name: str | None = None
         if install and threading.current_thread() is threading.main_thread():
-            self._relay_fd = _signal_relay(self)
+            _signal_relay(self)
             for sig in (signal.SIGINT, signal.SIGTERM):
-                signal.signal(sig, self._on_signal)
-
-    def _on_signal(self, signum: int, _frame: object) -> None:
-        self.signal_name = signal.Signals(signum).name
-        try:                          # no lock taken here: see the class docstring
-            os.write(self._relay_fd, bytes((signum,)))
-        except BlockingIOError:       # the pipe is full of stops already on their way
-            pass
+                signal.signal(sig, _handled_by_the_relay)
 
     def set(self) -> None:
         self.event.set()
@@ -219,31 +217,45 @@ class Stopper:
         return self.event.wait(timeout_s)
 
 
+def _handled_by_the_relay(signum: int, _frame: object) -> None:
+    """Python-level handler of SIGINT/SIGTERM: the relay's pipe (:class:`Stopper`);
+    no lock is taken here."""
+    if _relay_write_fd is not None:
+        try:
+            os.write(_relay_write_fd, bytes((signum,)))
+        except BlockingIOError:       # the pipe is full of stops already on their way
+            pass
+
+
 _relay_lock = threading.Lock()
 _relay_write_fd: int | None = None
 _relay_target: Stopper | None = None
 
 
-def _signal_relay(stopper: Stopper) -> int:
-    """Make ``stopper`` the one the relay thread stops; return the pipe's write end
-    (the pipe and the thread are made once per process)."""
+def _signal_relay(stopper: Stopper) -> None:
+    """Make ``stopper`` the one the relay thread stops (the pipe, the wakeup fd and
+    the thread are set up once per process, from the main thread)."""
     global _relay_write_fd, _relay_target
     with _relay_lock:
         _relay_target = stopper
         if _relay_write_fd is None:
             read_fd, write_fd = os.pipe()
             os.set_blocking(write_fd, False)
+            signal.set_wakeup_fd(write_fd, warn_on_full_buffer=False)
             threading.Thread(target=_relay, args=(read_fd,), name="signal-relay",
                              daemon=True).start()
             _relay_write_fd = write_fd
-        return _relay_write_fd
 
 
 def _relay(read_fd: int) -> None:
-    while os.read(read_fd, 64):
+    while chunk := os.read(read_fd, 64):
         target = _relay_target
-        if target is not None:
-            target.event.set()
+        if target is None:
+            continue
+        for signum in chunk:
+            if signum in (signal.SIGINT, signal.SIGTERM):
+                target.signal_name = signal.Signals(signum).name
+                target.event.set()
 
 
 # -- status -------------------------------------------------------------------------------
