@@ -42,7 +42,7 @@ from typing import Any, Callable
 from schemas.events import EVENT_TYPES, decode_attachment, parse_key_expr, site_key_expr
 
 from replay.mcap_format import MASK64, SEQ_LOW_MASK, DEFAULT_CHUNK_BYTES, EventWriter, library_id
-from services.service import ServiceRuntime, SiteTime, Stopper, ZenohOptions, log
+from services.service import Inbox, ServiceRuntime, SiteTime, Stopper, ZenohOptions, log
 
 SERVICE = "recorder"
 DEFAULT_FLUSH_INTERVAL_S = 1.0
@@ -189,14 +189,15 @@ class FileNamer:
 class SampleQueue:
     """A bounded FIFO: ``put`` blocks while full; ``drain`` takes many at once.
 
-    A C ``SimpleQueue`` carries the items (the Zenoh callback pays one cheap put); a
+    An :class:`services.service.Inbox` carries the items (the Zenoh callback pays one
+    cheap put; the writer's wait for them keeps its timeout through signals); a
     producer that finds it full waits on a condition the consumer signals after
     draining.  :meth:`close` wakes a waiting consumer at once.
     """
 
     def __init__(self, capacity: int) -> None:
         self.capacity = int(capacity)
-        self._q: queue.SimpleQueue = queue.SimpleQueue()
+        self._q = Inbox()
         self._space = threading.Condition()
         self._blocked = 0
         self._closed = False
@@ -221,7 +222,7 @@ class SampleQueue:
         q = self._q
         try:
             wait = timeout_s > 0 and not self._closed
-            out = [q.get(timeout=timeout_s) if wait else q.get_nowait()]
+            out = [q.get(timeout_s) if wait else q.get_nowait()]
         except queue.Empty:
             return []
         get = q.get_nowait

@@ -56,7 +56,6 @@ from __future__ import annotations
 
 import argparse
 import math
-import queue
 import sys
 import time
 from collections import deque
@@ -66,7 +65,7 @@ from typing import Any, Callable, Iterable
 
 import numpy as np
 
-from services.service import DEFAULT_SITE, Stopper, ZenohOptions
+from services.service import DEFAULT_SITE, Inbox, Stopper, ZenohOptions
 
 SERVICE = "dashboard"
 APP_ID = "stockpile-dashboard"
@@ -1554,7 +1553,7 @@ def main(config: Config, *, stopper: Stopper | None = None) -> int:
         raise ValueError("--pile is required")
     if not config.serve and not config.rrd:
         raise ValueError("give --serve and/or --rrd PATH")
-    heads: queue.SimpleQueue = queue.SimpleQueue()
+    heads = Inbox()
     runtime = ServiceRuntime(SERVICE, config.site, config.zenoh, name=config.pile_id,
                              status_period_s=config.status_period_s, stopper=stopper)
     rec, uri = make_recording(config)
@@ -1589,7 +1588,7 @@ def main(config: Config, *, stopper: Stopper | None = None) -> int:
     return 0
 
 
-def _follow(config: Config, runtime, status, client, heads: queue.SimpleQueue, rec) -> None:
+def _follow(config: Config, runtime, status, client, heads: Inbox, rec) -> None:
     """The live loop: catch up, go live, update until stopped."""
     from services.projector_service import newest_head
 

@@ -85,6 +85,7 @@ from services.fusion import (
 from services.service import (
     DEFAULT_SITE,
     DEFAULT_STATUS_PERIOD_S,
+    Inbox,
     ServiceRuntime,
     Stopper,
     ZenohOptions,
@@ -494,7 +495,7 @@ def main(config: Config, *, stopper: Stopper | None = None) -> int:
     """Run the localizer until SIGINT/SIGTERM (or ``stopper``); return the exit code."""
     import zenoh.ext as zext
 
-    samples: queue.SimpleQueue = queue.SimpleQueue()
+    samples = Inbox()
 
     def on_sample(sample) -> None:
         attachment = sample.attachment.to_bytes() if sample.attachment is not None else None
@@ -529,7 +530,7 @@ def main(config: Config, *, stopper: Stopper | None = None) -> int:
         try:
             while not stop.is_set():
                 try:
-                    batch = [samples.get(timeout=0.02)]
+                    batch = [samples.get(0.02)]
                 except queue.Empty:
                     batch = []
                 while batch and len(batch) < MAX_BATCH:

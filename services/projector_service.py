@@ -32,7 +32,8 @@ from ledger.projector import fold as F
 from ledger.projector.grades import AssayRecord
 from ledger.projector.query import PileState, summarise
 from schemas.events import decode_payload
-from services.service import DEFAULT_SITE, ServiceRuntime, Stopper, ZenohOptions, json_safe
+from services.service import (DEFAULT_SITE, Inbox, ServiceRuntime, Stopper, ZenohOptions,
+                              json_safe)
 
 SERVICE = "projector"
 DEFAULT_REORDER_S = 5.0
@@ -189,10 +190,10 @@ def rebuild(client, projection: LiveProjection) -> int:
     return catch_up(client, projection, head)
 
 
-def newest_head(heads: queue.SimpleQueue, timeout_s: float) -> int | None:
+def newest_head(heads: Inbox, timeout_s: float) -> int | None:
     """The newest committed head announced (waiting up to ``timeout_s`` for one), or None."""
     try:
-        newest = heads.get(timeout=timeout_s)
+        newest = heads.get(timeout_s)
     except queue.Empty:
         return None
     while True:
@@ -206,7 +207,7 @@ def main(config: Config, *, stopper: Stopper | None = None) -> int:
     """Run the projector until SIGINT/SIGTERM (or ``stopper``); return the exit code."""
     from services.ledger_client import LedgerClient, LedgerUnavailable
 
-    heads: queue.SimpleQueue = queue.SimpleQueue()
+    heads = Inbox()
     runtime = ServiceRuntime(SERVICE, config.site, config.zenoh, name=config.pile_id,
                              status_period_s=config.status_period_s, stopper=stopper)
     projection = LiveProjection(config.pile_id, int(config.reorder_s * S))

@@ -10,6 +10,8 @@ A service is one small process on the yard network.  Each one has:
   them (:meth:`ServiceRuntime.open`);
 - a liveliness token ``stockpile/<site>/@live/<service>/<name>`` while it runs;
 - clean shutdown on SIGINT/SIGTERM (:class:`Stopper`);
+- an :class:`Inbox` between Zenoh's callbacks and the thread that handles what they
+  bring (a wait with a timeout that a signal cannot turn into one without);
 - structured log lines on stderr in logfmt (:func:`log`), and a one-line status
   every few seconds (:class:`StatusReporter`: rate, backlog, errors);
 - ledger-bound publishing through :class:`EventPublisher`: one source with its epoch
@@ -30,6 +32,7 @@ import argparse
 import json
 import math
 import os
+import queue
 import signal
 import sys
 import threading
@@ -190,13 +193,14 @@ class Stopper:
     The stop does not depend on Python running the signal handler.  Python runs a
     handler in the main thread between two bytecodes, which may be inside
     ``event.wait()`` while that holds the event's lock (``Event.set()`` there would
-    wait for that lock forever: a projector that ignored SIGTERM), or never while the
-    main thread waits inside a library (a live dashboard ignored SIGTERM for 30 s on
-    CI).  So the process's signal wakeup fd (:func:`signal.set_wakeup_fd`) is a pipe:
-    the C-level handler writes the signal's number to it at once, and one relay
-    thread per process reads it and sets the event of the stopper installed last.
-    The Python handler, when it runs, writes to the same pipe (in case something
-    replaced the wakeup fd); a stop relayed twice is harmless.
+    wait for that lock forever: a projector that ignored SIGTERM), or not at all while
+    the main thread waits inside C code that does not return.  So the process's
+    signal wakeup fd (:func:`signal.set_wakeup_fd`) is a pipe: the C-level handler
+    writes the signal's number to it at once, and one relay thread per process reads
+    it and sets the event of the stopper installed last.  The Python handler, when it
+    runs, writes to the same pipe (in case something replaced the wakeup fd); a stop
+    relayed twice is harmless.  A loop that waits for items between two looks at the
+    event waits on an :class:`Inbox`, whose timeout a signal cannot undo.
     """
 
     def __init__(self, install: bool = True) -> None:
@@ -256,6 +260,59 @@ def _relay(read_fd: int) -> None:
             if signum in (signal.SIGINT, signal.SIGTERM):
                 target.signal_name = signal.Signals(signum).name
                 target.event.set()
+
+
+# -- inbox ------------------------------------------------------------------------------
+
+
+class Inbox:
+    """A FIFO from Zenoh's callbacks (:meth:`put`, cheap) to one consumer thread
+    (:meth:`get` with a timeout).
+
+    Not ``queue.SimpleQueue.get(timeout=...)``: in CPython 3.11, when a signal
+    interrupts that wait and its handler returns after the deadline, the wait starts
+    again with a negative timeout, which means none, and lasts until the next item
+    (a live dashboard waited for a committed head that never came and so never saw
+    SIGTERM's stop).  Here an empty queue is waited on with an :class:`threading.Event`,
+    whose timeout holds through signals; the items still travel in a ``SimpleQueue``.
+    """
+
+    def __init__(self) -> None:
+        self._items: queue.SimpleQueue = queue.SimpleQueue()
+        self._bell = threading.Event()
+        self._waiting = False
+        #: the oldest item; :class:`queue.Empty` when there is none (the C method)
+        self.get_nowait: Callable[[], Any] = self._items.get_nowait
+        #: how many items wait (the C method)
+        self.qsize: Callable[[], int] = self._items.qsize
+
+    def put(self, item: object) -> None:
+        self._items.put(item)
+        if self._waiting:
+            self._bell.set()
+
+    def get(self, timeout_s: float) -> Any:
+        """The oldest item, waiting up to ``timeout_s`` seconds for one;
+        :class:`queue.Empty` when none came."""
+        try:
+            return self._items.get_nowait()
+        except queue.Empty:
+            if timeout_s <= 0:
+                raise
+        deadline = time.monotonic() + timeout_s
+        self._waiting = True        # from here a put rings the bell
+        try:
+            while True:
+                self._bell.clear()
+                try:                # an item put before the bell was cleared
+                    return self._items.get_nowait()
+                except queue.Empty:
+                    pass
+                remaining = deadline - time.monotonic()
+                if remaining <= 0 or not self._bell.wait(remaining):
+                    return self._items.get_nowait()
+        finally:
+            self._waiting = False
 
 
 # -- status -------------------------------------------------------------------------------

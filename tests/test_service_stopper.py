@@ -3,11 +3,17 @@ the stack dump a running service writes on SIGUSR1 (:mod:`services.service_cli`)
 
 from __future__ import annotations
 
+import queue
 import signal
 import subprocess
 import sys
+import threading
+import time
 from pathlib import Path
 
+import pytest
+
+from services.service import Inbox
 from tests.zenoh_helpers import log_lines, service_on_a_stuck_ledger, stop, wait_until
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -83,3 +89,50 @@ def test_a_running_service_dumps_its_threads_stacks_on_sigusr1_and_keeps_running
         code = stop(process, timeout_s=20)
     assert code == 0
     assert log_lines(log)[-1]["msg"] == "stopped"
+
+
+# A signal lands 10 ms into a 50 ms wait for a committed head, and its handler runs
+# for 200 ms, past the wait's deadline.  CPython 3.11's ``SimpleQueue.get(timeout=)``
+# then waited again without a timeout, until the next item: a live dashboard that
+# waited so never saw SIGTERM's stop.  A head put after 5 s tells a hang from a timeout.
+SIGNAL_OUTLASTS_A_WAIT_FOR_A_HEAD = """
+import os, signal, threading, time
+from services.projector_service import newest_head
+from services.service import Inbox
+heads = Inbox()
+signal.signal(signal.SIGUSR2, lambda signum, frame: time.sleep(0.2))
+threading.Timer(0.01, os.kill, (os.getpid(), signal.SIGUSR2)).start()
+threading.Timer(5.0, heads.put, (99,)).start()
+started = time.monotonic()
+got = newest_head(heads, 0.05)
+print(got, time.monotonic() - started < 2.0, flush=True)
+os._exit(0)
+"""
+
+
+def test_a_signal_whose_handler_outlasts_a_wait_for_a_head_ends_the_wait():
+    done = subprocess.run([sys.executable, "-c", SIGNAL_OUTLASTS_A_WAIT_FOR_A_HEAD],
+                          cwd=ROOT, timeout=30, capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.split() == ["None", "True"]
+
+
+def test_an_inbox_hands_items_over_in_order_and_wakes_a_waiting_get_at_once():
+    inbox = Inbox()
+    with pytest.raises(queue.Empty):
+        inbox.get_nowait()
+    started = time.monotonic()
+    with pytest.raises(queue.Empty):
+        inbox.get(0.05)
+    assert time.monotonic() - started >= 0.05
+    for item in (1, 2, 3):
+        inbox.put(item)
+    assert inbox.qsize() == 3
+    assert [inbox.get(0), inbox.get_nowait(), inbox.get(10.0)] == [1, 2, 3]
+    # a put from another thread ends a long wait at once, many times over
+    for item in range(200):
+        threading.Timer(0.001, inbox.put, (item,)).start()
+        started = time.monotonic()
+        assert inbox.get(10.0) == item
+        assert time.monotonic() - started < 5.0
+    assert inbox.qsize() == 0

@@ -101,7 +101,34 @@ def _stacks_of(process: subprocess.Popen) -> str:
         wait_until(lambda: Path(path).stat().st_size > size, 5, "the stack dump")
     except AssertionError:
         pass
-    return "; its log ends:\n" + Path(path).read_text(errors="replace")[-6000:]
+    return (_signal_state(process.pid) + "; its log ends:\n"
+            + Path(path).read_text(errors="replace")[-6000:])
+
+
+def _signal_state(pid: int) -> str:
+    """Where SIGTERM stands in a hung process (Linux /proc): pending, and caught, ignored
+    or blocked, per thread; "" elsewhere."""
+    bit = 1 << (signal.SIGTERM - 1)
+
+    def masks(status: Path) -> dict[str, int]:
+        out = {}
+        for line in status.read_text().splitlines():
+            key, _, value = line.partition(":")
+            if key in ("SigPnd", "ShdPnd", "SigBlk", "SigIgn", "SigCgt"):
+                out[key] = int(value.strip(), 16)
+        return out
+
+    try:
+        proc = masks(Path(f"/proc/{pid}/status"))
+        blocked = [task.name for task in Path(f"/proc/{pid}/task").iterdir()
+                   if masks(task / "status").get("SigBlk", 0) & bit]
+        threads = len(list(Path(f"/proc/{pid}/task").iterdir()))
+    except OSError:
+        return ""
+    flags = ", ".join(f"{key} {'yes' if proc.get(key, 0) & bit else 'no'}"
+                      for key in ("ShdPnd", "SigCgt", "SigIgn"))
+    return (f"; SIGTERM: {flags}, blocked in {len(blocked)} of {threads} threads"
+            f" (by tid: {', '.join(sorted(blocked)) or '-'})")
 
 
 @contextlib.contextmanager
