@@ -106,29 +106,27 @@ def _stacks_of(process: subprocess.Popen) -> str:
 
 
 def _signal_state(pid: int) -> str:
-    """Where SIGTERM stands in a hung process (Linux /proc): pending, and caught, ignored
-    or blocked, per thread; "" elsewhere."""
+    """Where SIGTERM stands in a hung process (Linux /proc): pending, caught, ignored, and
+    in how many threads blocked; "" elsewhere."""
     bit = 1 << (signal.SIGTERM - 1)
 
-    def masks(status: Path) -> dict[str, int]:
-        out = {}
+    def has_sigterm(status: Path, key: str) -> bool:
         for line in status.read_text().splitlines():
-            key, _, value = line.partition(":")
-            if key in ("SigPnd", "ShdPnd", "SigBlk", "SigIgn", "SigCgt"):
-                out[key] = int(value.strip(), 16)
-        return out
+            name, _, value = line.partition(":")
+            if name == key:
+                return bool(int(value.strip(), 16) & bit)
+        return False
 
     try:
-        proc = masks(Path(f"/proc/{pid}/status"))
-        blocked = [task.name for task in Path(f"/proc/{pid}/task").iterdir()
-                   if masks(task / "status").get("SigBlk", 0) & bit]
-        threads = len(list(Path(f"/proc/{pid}/task").iterdir()))
+        status = Path(f"/proc/{pid}/status")
+        flags = ", ".join(f"{key} {'yes' if has_sigterm(status, key) else 'no'}"
+                          for key in ("ShdPnd", "SigCgt", "SigIgn"))
+        tasks = list(Path(f"/proc/{pid}/task").iterdir())
+        blocked = sorted(t.name for t in tasks if has_sigterm(t / "status", "SigBlk"))
     except OSError:
         return ""
-    flags = ", ".join(f"{key} {'yes' if proc.get(key, 0) & bit else 'no'}"
-                      for key in ("ShdPnd", "SigCgt", "SigIgn"))
-    return (f"; SIGTERM: {flags}, blocked in {len(blocked)} of {threads} threads"
-            f" (by tid: {', '.join(sorted(blocked)) or '-'})")
+    return (f"; SIGTERM: {flags}, blocked in {len(blocked)} of {len(tasks)} threads"
+            f" (by tid: {', '.join(blocked) or '-'})")
 
 
 @contextlib.contextmanager
