@@ -18,12 +18,18 @@ envelope's own error: its difference from the true cut), the same on the project
 grid (the grid's: the footprint's edge cells differ), and the projector's layer stack
 and height map above that floor as of the cut's start (the surface's error, against the
 true surface on the projector's grid).  One fold gives the states at every cut's start.
+``seen %`` is the share of those cells the height map measured between the cut before
+and this one (the first cut: ever; a measurement held as change evidence counts): where it is small, the cut's surface is the model's
+prediction (the slide after the cut before), not a measurement.
 
 The column ``exact lab`` is each cut's Fe error again with every assay's analytes
 replaced by the simulator's true grade of its window: the simulator's lab measures with
 error (sd 0.15 pp Fe per window), which the ``d pp`` column holds and no projector can
 remove; the difference between the two columns is the lab's share.  A diagnosis: the
-verdicts use ``d pp``.
+verdicts use ``d pp``.  Likewise a cut's tonnes error (``err %``) splits into its volume's
+(``vol %``, the geometry's) and its bulk density's (``dens %``): the tonnes-weighted density
+the assays reported against the simulator's, whose lab measures density with 1 % error per
+window; a cut a few windows wide can carry 2 % of it (the verdicts use ``err %``).
 
 After the cuts, each pass's deposition times against the simulator's (mean and rms error,
 s): the grade of a cut's material is looked up by them.  With more than one run (several
@@ -39,6 +45,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import math
 import subprocess
 import sys
 import tempfile
@@ -125,13 +132,14 @@ def explain(result: dict) -> None:
           f"({unit} above our envelope floor at the cut's start)")
     print(f"{'cut':<8} {'true cut':>10} {'sim grid':>10} {'envelope %':>10} {'our grid':>10} "
           f"{'grid %':>7} {'our stack':>10} {'stack %':>8} {'our map':>10} {'map %':>7} "
-          f"{'stack-true mm':>13}")
+          f"{'stack-true mm':>13} {'seen %':>6}")
     xc, yc = arrays["x_centres"], arrays["y_centres"]
     sim_grid = GridGeometry(origin_x_m=float(xc[0] - (xc[1] - xc[0]) / 2),
                             origin_y_m=float(yc[0] - (yc[1] - yc[0]) / 2),
                             cell_m=float(xc[1] - xc[0]), nx=len(xc), ny=len(yc), frame="site")
     with open_ledger(result["ledger"], read_only=True) as store:
         befores = _states_before(store, pile_id, [c["t0_ns"] for c in truth["cuts"]])
+    previous_end_ns = None
     for c, true_z, before in zip(truth["cuts"], arrays["cut_surface_z"], befores):
         g = before.pile.geometry
         x, y = cell_centres(g)
@@ -151,12 +159,19 @@ def explain(result: dict) -> None:
         map_m3 = _above_m3(before.height.elevation, base, g.cell_area_m2)
         cells = np.isfinite(base) & ((surface > base) | (top > base))
         bias_mm = float(np.nanmean((top - surface)[cells])) * 1e3 if cells.any() else 0.0
+        # how much of that the height map saw since the cut before ended (the rest of the
+        # map is that cut's predicted slide, or older looks)
+        looked_ns = np.fmax(before.height.grid["last_update_ns"],
+                            before.height.grid["pending_since_ns"])
+        seen = looked_ns[cells] >= (previous_end_ns or 0)
+        seen_pct = 100.0 * float(seen.mean()) if cells.any() else float("nan")
+        previous_end_ns = c["t1_ns"]
         cut_m3 = c["true_volume_m3"]
         print(f"{c['cut_id']:<8} {cut_m3 * scale:>10.4g} {sim_m3 * scale:>10.4g} "
               f"{_pct(sim_m3, cut_m3):>+10.2f} {true_m3 * scale:>10.4g} "
               f"{_pct(true_m3, sim_m3):>+7.2f} {ours_m3 * scale:>10.4g} "
               f"{_pct(ours_m3, true_m3):>+8.2f} {map_m3 * scale:>10.4g} "
-              f"{_pct(map_m3, true_m3):>+7.2f} {bias_mm:>+13.2f}", flush=True)
+              f"{_pct(map_m3, true_m3):>+7.2f} {bias_mm:>+13.2f} {seen_pct:>6.0f}", flush=True)
 
 
 def _states_before(store, pile_id: str, times_ns: list[int]) -> list:
@@ -198,7 +213,7 @@ def report(result: dict) -> dict:
     state, truth = result["state"], result["truth"]
     world = truth["world"]
     ok = True
-    worst_pct, worst_pp, within = 0.0, 0.0, 0
+    worst_pct, worst_pp, worst_vol_pct, within = 0.0, 0.0, math.nan, 0
     err = (state.tonnes / world["tonnes"] - 1) * 100
     verdict = "PASS" if abs(err) <= TARGET_PILE_PCT else "MISS"
     ok &= verdict == "PASS"
@@ -212,42 +227,53 @@ def report(result: dict) -> dict:
     ours = {c.cut_id: c for c in state.cuts}
     exact = {c.cut_id: c for c in result["exact_lab"].cuts}
     worst_exact_pp = 0.0
-    print(f"{'cut':<8} {'ours t':>10} {'truth t':>10} {'err %':>7} {'belt t':>10} "
-          f"{'Fe ours':>8} {'Fe truth':>8} {'d pp':>6} {'exact lab':>9} {'assayed':>7} "
-          f"{'resid m3':>9}  verdict")
+    print(f"{'cut':<8} {'ours t':>10} {'truth t':>10} {'err %':>7} {'vol %':>6} {'dens %':>6} "
+          f"{'belt t':>10} {'Fe ours':>8} {'Fe truth':>8} {'d pp':>6} {'exact lab':>9} "
+          f"{'assayed':>7} {'resid m3':>9}  verdict")
     for c in truth["cuts"]:
         mine = ours.get(c["cut_id"])
         if mine is None:
             print(f"{c['cut_id']:<8} missing")
             ok = False
             continue
-        t_err = (mine.tonnes / c["true_tonnes"] - 1) * 100 if c["true_tonnes"] > 0 else float("nan")
+        t_err = _pct(mine.tonnes, c["true_tonnes"])
+        # (a folder kept from a simulator that did not report a cut's volume: NaN)
+        true_m3 = c.get("true_volume_m3", float("nan"))
+        v_err = _pct(mine.volume_m3, true_m3)
+        # the lab's share: the bulk density the assays gave against the simulator's
+        d_err = _pct(mine.tonnes / mine.volume_m3, c["true_tonnes"] / true_m3) \
+            if mine.volume_m3 > 0 and true_m3 > 0 else float("nan")
         fe = mine.grade.get("Fe", float("nan"))
         d_fe = fe - c["grade"]["Fe"]
         good = abs(t_err) <= TARGET_CUT_PCT and abs(d_fe) <= TARGET_FE_PP
         ok &= good
         within += good
         worst_pct, worst_pp = max(worst_pct, abs(t_err)), max(worst_pp, abs(d_fe))
+        if not math.isnan(v_err):   # NaN: no cut's volume known (yet)
+            worst_vol_pct = abs(v_err) if math.isnan(worst_vol_pct) else max(worst_vol_pct,
+                                                                              abs(v_err))
         d_exact = exact[c["cut_id"]].grade.get("Fe", float("nan")) - c["grade"]["Fe"]
         worst_exact_pp = max(worst_exact_pp, abs(d_exact))
         print(f"{c['cut_id']:<8} {_t(mine.tonnes):>10} {_t(c['true_tonnes']):>10} {t_err:>+7.2f} "
-              f"{_t(mine.tonnes_scale):>10} {fe:>8.2f} {c['grade']['Fe']:>8.2f} {d_fe:>+6.2f} "
+              f"{v_err:>+6.2f} {d_err:>+6.2f} {_t(mine.tonnes_scale):>10} {fe:>8.2f} {c['grade']['Fe']:>8.2f} {d_fe:>+6.2f} "
               f"{d_exact:>+9.2f} {mine.assayed_fraction:>7.2f} {mine.residual_m3:>+9.3f}  "
               f"{'PASS' if good else 'MISS'}")
     print("counters: " + ", ".join(f"{k} {v:,}" for k, v in sorted(state.counters.items())))
     deposition_times(result)
     return {"scenario": result["scenario"], "seed": result["seed"], "pile_pct": err,
             "cuts": len(truth["cuts"]), "within": within, "worst_pct": worst_pct,
-            "worst_pp": worst_pp, "worst_exact_pp": worst_exact_pp, "ok": ok}
+            "worst_pp": worst_pp, "worst_exact_pp": worst_exact_pp,
+            "worst_vol_pct": worst_vol_pct, "ok": ok}
 
 
 def summary(figures: list[dict]) -> None:
     """One line per run: pile error, cuts meeting both targets, worst tonnes and Fe."""
-    print(f"\n{'run':<22} {'pile %':>7} {'cuts met':>9} {'worst t %':>9} {'worst Fe pp':>11} "
-          f"{'exact lab':>9}  verdict")
+    print(f"\n{'run':<22} {'pile %':>7} {'cuts met':>9} {'worst t %':>9} {'worst vol %':>11} "
+          f"{'worst Fe pp':>11} {'exact lab':>9}  verdict")
     for f in figures:
         print(f"{f['scenario'] + ' seed ' + str(f['seed']):<22} {f['pile_pct']:>+7.2f} "
               f"{str(f['within']) + '/' + str(f['cuts']):>9} {f['worst_pct']:>9.2f} "
+              f"{f['worst_vol_pct']:>11.2f} "
               f"{f['worst_pp']:>11.2f} {f['worst_exact_pp']:>9.2f}  "
               f"{'PASS' if f['ok'] else 'MISS'}")
 
