@@ -19,8 +19,9 @@ grid (the grid's: the footprint's edge cells differ), and the projector's layer 
 and height map above that floor as of the cut's start (the surface's error, against the
 true surface on the projector's grid).  One fold gives the states at every cut's start.
 ``seen %`` is the share of those cells the height map measured between the cut before
-and this one (the first cut: ever; a measurement held as change evidence counts): where it is small, the cut's surface is the model's
-prediction (the slide after the cut before), not a measurement.
+and this one (the first cut: ever; a measurement held as change evidence counts): where
+it is small, the cut's surface is the model's prediction (the slide after the cut
+before), not a measurement.
 
 The column ``exact lab`` is each cut's Fe error again with every assay's analytes
 replaced by the simulator's true grade of its window: the simulator's lab measures with
@@ -255,7 +256,8 @@ def report(result: dict) -> dict:
         d_exact = exact[c["cut_id"]].grade.get("Fe", float("nan")) - c["grade"]["Fe"]
         worst_exact_pp = max(worst_exact_pp, abs(d_exact))
         print(f"{c['cut_id']:<8} {_t(mine.tonnes):>10} {_t(c['true_tonnes']):>10} {t_err:>+7.2f} "
-              f"{v_err:>+6.2f} {d_err:>+6.2f} {_t(mine.tonnes_scale):>10} {fe:>8.2f} {c['grade']['Fe']:>8.2f} {d_fe:>+6.2f} "
+              f"{v_err:>+6.2f} {d_err:>+6.2f} {_t(mine.tonnes_scale):>10} {fe:>8.2f} "
+              f"{c['grade']['Fe']:>8.2f} {d_fe:>+6.2f} "
               f"{d_exact:>+9.2f} {mine.assayed_fraction:>7.2f} {mine.residual_m3:>+9.3f}  "
               f"{'PASS' if good else 'MISS'}")
     print("counters: " + ", ".join(f"{k} {v:,}" for k, v in sorted(state.counters.items())))
@@ -267,7 +269,7 @@ def report(result: dict) -> dict:
 
 
 def summary(figures: list[dict]) -> None:
-    """One line per run: pile error, cuts meeting both targets, worst tonnes and Fe."""
+    """One line per run: pile error, cuts meeting both targets, worst tonnes, volume and Fe."""
     print(f"\n{'run':<22} {'pile %':>7} {'cuts met':>9} {'worst t %':>9} {'worst vol %':>11} "
           f"{'worst Fe pp':>11} {'exact lab':>9}  verdict")
     for f in figures:
