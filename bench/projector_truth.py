@@ -214,7 +214,8 @@ def report(result: dict) -> dict:
     state, truth = result["state"], result["truth"]
     world = truth["world"]
     ok = True
-    worst_pct, worst_pp, worst_vol_pct, within = 0.0, 0.0, math.nan, 0
+    worst_pct, worst_pp, within = 0.0, 0.0, 0
+    vol_errs = []
     err = (state.tonnes / world["tonnes"] - 1) * 100
     verdict = "PASS" if abs(err) <= TARGET_PILE_PCT else "MISS"
     ok &= verdict == "PASS"
@@ -250,9 +251,7 @@ def report(result: dict) -> dict:
         ok &= good
         within += good
         worst_pct, worst_pp = max(worst_pct, abs(t_err)), max(worst_pp, abs(d_fe))
-        if not math.isnan(v_err):   # NaN: no cut's volume known (yet)
-            worst_vol_pct = abs(v_err) if math.isnan(worst_vol_pct) else max(worst_vol_pct,
-                                                                              abs(v_err))
+        vol_errs.append(abs(v_err))
         d_exact = exact[c["cut_id"]].grade.get("Fe", float("nan")) - c["grade"]["Fe"]
         worst_exact_pp = max(worst_exact_pp, abs(d_exact))
         print(f"{c['cut_id']:<8} {_t(mine.tonnes):>10} {_t(c['true_tonnes']):>10} {t_err:>+7.2f} "
@@ -265,7 +264,9 @@ def report(result: dict) -> dict:
     return {"scenario": result["scenario"], "seed": result["seed"], "pile_pct": err,
             "cuts": len(truth["cuts"]), "within": within, "worst_pct": worst_pct,
             "worst_pp": worst_pp, "worst_exact_pp": worst_exact_pp,
-            "worst_vol_pct": worst_vol_pct, "ok": ok}
+            # NaN when no cut's volume is known
+            "worst_vol_pct": max((e for e in vol_errs if not math.isnan(e)), default=math.nan),
+            "ok": ok}
 
 
 def summary(figures: list[dict]) -> None:

@@ -220,9 +220,8 @@ class SampleQueue:
         """Up to ``limit`` items (and :data:`WAKE` markers); waits up to ``timeout_s``
         when there are none."""
         q = self._q
-        try:
-            wait = timeout_s > 0 and not self._closed
-            out = [q.get(timeout_s) if wait else q.get_nowait()]
+        try:                          # a closed queue is drained without waiting
+            out = [q.get(0.0 if self._closed else timeout_s)]
         except queue.Empty:
             return []
         get = q.get_nowait

@@ -110,19 +110,17 @@ def _signal_state(pid: int) -> str:
     in how many threads blocked; "" elsewhere."""
     bit = 1 << (signal.SIGTERM - 1)
 
-    def has_sigterm(status: Path, key: str) -> bool:
-        for line in status.read_text().splitlines():
-            name, _, value = line.partition(":")
-            if name == key:
-                return bool(int(value.strip(), 16) & bit)
-        return False
+    def sigterm_in(status: Path, keys: tuple[str, ...]) -> dict[str, bool]:
+        """For each signal mask ``key`` of a /proc status file (read once): SIGTERM's bit."""
+        masks = dict(line.partition(":")[::2] for line in status.read_text().splitlines())
+        return {key: bool(int(masks.get(key, "0").strip(), 16) & bit) for key in keys}
 
     try:
-        status = Path(f"/proc/{pid}/status")
-        flags = ", ".join(f"{key} {'yes' if has_sigterm(status, key) else 'no'}"
-                          for key in ("ShdPnd", "SigCgt", "SigIgn"))
+        process = sigterm_in(Path(f"/proc/{pid}/status"), ("ShdPnd", "SigCgt", "SigIgn"))
+        flags = ", ".join(f"{key} {'yes' if on else 'no'}" for key, on in process.items())
         tasks = list(Path(f"/proc/{pid}/task").iterdir())
-        blocked = sorted(t.name for t in tasks if has_sigterm(t / "status", "SigBlk"))
+        blocked = sorted(t.name for t in tasks
+                         if sigterm_in(t / "status", ("SigBlk",))["SigBlk"])
     except OSError:
         return ""
     return (f"; SIGTERM: {flags}, blocked in {len(blocked)} of {len(tasks)} threads"
