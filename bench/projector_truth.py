@@ -32,8 +32,10 @@ verdicts use ``d pp``.  Likewise a cut's tonnes error (``err %``) splits into it
 the assays reported against the simulator's, whose lab measures density with 1 % error per
 window; a cut a few windows wide can carry 2 % of it (the verdicts use ``err %``).
 
-After the cuts, each pass's deposition times against the simulator's (mean and rms error,
-s): the grade of a cut's material is looked up by them.  With more than one run (several
+After the cuts, the tonnes of each lot the pile holds, ours against the simulator's
+(material given to the wrong pass makes one lot heavy and the next light), and each
+pass's deposition times against the simulator's (mean and rms error, s): the grade of a
+cut's material is looked up by them.  With more than one run (several
 ``--seed``, or both scenarios) a last table gives each run's figures side by side: the
 seed is the noise and the machine's timing, so a target met on one seed only is not met.
 
@@ -260,25 +262,51 @@ def report(result: dict) -> dict:
               f"{d_exact:>+9.2f} {mine.assayed_fraction:>7.2f} {mine.residual_m3:>+9.3f}  "
               f"{'PASS' if good else 'MISS'}")
     print("counters: " + ", ".join(f"{k} {v:,}" for k, v in sorted(state.counters.items())))
+    worst_lot_pct = lot_tonnes(result)
     deposition_times(result)
     return {"scenario": result["scenario"], "seed": result["seed"], "pile_pct": err,
             "cuts": len(truth["cuts"]), "within": within, "worst_pct": worst_pct,
             "worst_pp": worst_pp, "worst_exact_pp": worst_exact_pp,
+            "worst_lot_pct": worst_lot_pct,
             # NaN when no cut's volume is known
             "worst_vol_pct": max((e for e in vol_errs if not math.isnan(e)), default=math.nan),
             "ok": ok}
 
 
 def summary(figures: list[dict]) -> None:
-    """One line per run: pile error, cuts meeting both targets, worst tonnes, volume and Fe."""
+    """One line per run: pile error, cuts meeting both targets, worst tonnes, volume and Fe,
+    and the worst lot's tonnes in the pile (a diagnosis, :func:`lot_tonnes`)."""
     print(f"\n{'run':<22} {'pile %':>7} {'cuts met':>9} {'worst t %':>9} {'worst vol %':>11} "
-          f"{'worst Fe pp':>11} {'exact lab':>9}  verdict")
+          f"{'worst Fe pp':>11} {'exact lab':>9} {'worst lot %':>11}  verdict")
     for f in figures:
         print(f"{f['scenario'] + ' seed ' + str(f['seed']):<22} {f['pile_pct']:>+7.2f} "
               f"{str(f['within']) + '/' + str(f['cuts']):>9} {f['worst_pct']:>9.2f} "
               f"{f['worst_vol_pct']:>11.2f} "
-              f"{f['worst_pp']:>11.2f} {f['worst_exact_pp']:>9.2f}  "
-              f"{'PASS' if f['ok'] else 'MISS'}")
+              f"{f['worst_pp']:>11.2f} {f['worst_exact_pp']:>9.2f} "
+              f"{f['worst_lot_pct']:>11.2f}  {'PASS' if f['ok'] else 'MISS'}")
+
+
+def lot_tonnes(result: dict) -> float:
+    """Per lot: the tonnes the pile holds now, ours (its deposits' tonnes) against the
+    simulator's; returns the worst error (%, NaN when the truth has no lots).
+
+    Which lot each piece of material belongs to is what a cut's grade is built from;
+    material given to the wrong pass shows here as one lot heavy and the next light (a
+    hidden flank completed with the next pass's layer).  Flagged material (outside any
+    pass) has no lot and is printed apart.  Not a target; a diagnosis.
+    """
+    state, truth = result["state"], result["truth"]
+    true_t = truth["world"].get("tonnes_by_lot", {})
+    ours: dict[str, float] = {}
+    for d in state.deposits:
+        ours[d.lot_id] = ours.get(d.lot_id, 0.0) + d.tonnes
+    errs = {lot: _pct(ours.get(lot, 0.0), t) for lot, t in sorted(true_t.items())}
+    if errs:
+        print("lots in the pile, ours vs truth (t): " + "; ".join(
+            f"{lot} {_t(ours.get(lot, 0.0))} vs {_t(true_t[lot])} ({e:+.2f} %)"
+            for lot, e in errs.items())
+              + (f"; flagged {_t(ours[''])}" if ours.get("", 0.0) > 0 else ""))
+    return max((abs(e) for e in errs.values() if not math.isnan(e)), default=math.nan)
 
 
 def deposition_times(result: dict) -> None:

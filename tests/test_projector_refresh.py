@@ -405,3 +405,75 @@ def test_a_layer_is_dated_before_the_stacker_crossed_it_by_the_poured_cone_s_fro
         assert np.all(times[[0, 7], iy] <= times[3, iy])
     assert times.min() >= 20 * NS and times.max() <= 60 * NS
     assert (times[[0, 7], 40] < times[3, 40]).all()
+
+
+def _ridge_with_a_pass(pouring_tail: bool, look_after_s: float):
+    """A ridge at repose (crest x = 2.625 m) on a 10 m x 10 m grid, and pass A (deposit 2)
+    laying 0.3 m on it, its stacker running y = 0 -> 10 m from 20 s to 60 s (0.25 m/s).
+    The scanner saw every row 30 s after the stacker crossed it, except a strip down the
+    far flank (1.5-2.25 m from the crest), seen ``look_after_s`` after the crossing
+    10 cm short of the layer's top.  Returns the state, the layer's top and the strip."""
+    config = F.FoldConfig("P1", fill_gap_cells=0, repose_deg=35.0, pouring_tail=pouring_tail)
+    state = _state(config, nx=40, ny=40, z0=0.0)
+    g = state.pile.geometry
+    tan = math.tan(math.radians(35.0))
+    x = (np.arange(g.nx) + 0.5) * g.cell_m
+    y = (np.arange(g.ny) + 0.5) * g.cell_m
+    crest = x[10]
+    below = np.broadcast_to(np.maximum(0.0, 2.5 - tan * np.abs(x - crest))[:, None], g.shape)
+    layer_top = np.broadcast_to(np.maximum(0.0, 2.8 - tan * np.abs(x - crest))[:, None], g.shape)
+    offset = (x - crest)[:, None] * np.ones((1, g.ny))
+    strip = (offset >= 1.5) & (offset <= 2.25)
+    crossed_ns = (20.0 + y / 0.25)[None, :] * NS * np.ones((g.nx, 1))
+    grid = state.height.grid
+    grid["elevation"][:] = np.where(strip, layer_top - 0.1, layer_top)
+    grid["last_update_ns"][:] = crossed_ns + np.where(strip, look_after_s, 30.0) * NS
+    stack = LayerStack.empty(g, 0.0).open_deposit(DepositInfo(1, "P0", "L0", 0))
+    stack, _ = stack.raise_to(below, 0)
+    stack = stack.open_deposit(DepositInfo(2, "A", "L1", 20 * NS))
+    state.stack, _ = stack.raise_to(grid["elevation"], crossed_ns)
+    state.passes["A"] = F.PassRecord("A", "L1", "stk1", 20 * NS, 2, 60 * NS,
+                                     start_y_m=0.0, end_y_m=g.length_y_m)
+    return state, layer_top, strip, crossed_ns
+
+
+def test_a_flank_seen_while_the_pass_still_poured_on_it_is_completed_as_that_pass_s():
+    # The far-flank strip lies 1.5-2.25 m from the crest under a 0.3 m layer: the poured
+    # cone reaches it while the boom is within sqrt(h^2 + 2 h offset) >= 1.24 m of it
+    # (h = 0.3 / tan 35 deg), 4.9 s of travel at 0.25 m/s.  Seen 2 s after the crossing
+    # it was still filling; at the next pass's start it rises to the repose cone of the
+    # seen flank above it (the layer's top), and the material is pass A's, dated when
+    # its stacker crossed.  Without the rule the strip stays 10 cm short, and the next
+    # pass's layer would take the rest.
+    tan = math.tan(math.radians(35.0))
+    h = 0.3 / tan
+    assert math.sqrt(h * h + 2 * h * 1.5) / 0.25 > 2.0 + 1.0
+    state, layer_top, strip, crossed_ns = _ridge_with_a_pass(True, 2.0)
+    before = state.stack.surface().copy()
+    a_before = state.stack.volume_m3(2)
+    F._complete_unseen(state, 100 * NS)
+    top = state.stack.surface()
+    np.testing.assert_allclose(top[strip], layer_top[strip], atol=1e-9)
+    np.testing.assert_array_equal(top[~strip], before[~strip])
+    area = state.pile.geometry.cell_area_m2
+    assert math.isclose(state.stack.volume_m3(2) - a_before, 0.1 * strip.sum() * area,
+                        rel_tol=1e-9)
+    times = state.stack.deposition_time_ns(2)
+    assert np.all(np.abs(times[strip] - crossed_ns[strip]) <= 2048)
+
+    state, _, _, _ = _ridge_with_a_pass(False, 2.0)
+    before = state.stack.surface().copy()
+    F._complete_unseen(state, 100 * NS)
+    np.testing.assert_array_equal(state.stack.surface(), before)
+
+
+def test_a_flank_seen_after_the_pass_s_cone_left_it_stays_as_seen():
+    # seen 8 s after the crossing (past the reach even 2.25 m down the flank: 1.54 m,
+    # 6.2 s), the strip's look is the layer as it ended: nothing is completed
+    tan = math.tan(math.radians(35.0))
+    h = 0.3 / tan
+    assert math.sqrt(h * h + 2 * h * 2.25) / 0.25 < 8.0 - 1.0
+    state, _, strip, _ = _ridge_with_a_pass(True, 8.0)
+    before = state.stack.surface().copy()
+    F._complete_unseen(state, 100 * NS)
+    np.testing.assert_array_equal(state.stack.surface(), before)

@@ -10,8 +10,8 @@ import pytest
 
 from ledger.projector.grid import GridGeometry
 from ledger.projector.layers import DepositInfo, LayerStack
-from ledger.projector.slump import (estimate_repose_deg, pour_front_lead_m, relax_surface,
-                                    repose_floor, slump)
+from ledger.projector.slump import (estimate_repose_deg, pour_front_lead_m, pour_reach_m,
+                                    relax_surface, repose_floor, slump)
 
 CELL = 0.25
 TAN37 = math.tan(math.radians(37.0))
@@ -193,6 +193,44 @@ def test_the_fold_measures_slopes_over_a_run_long_enough_for_its_noise():
     assert F._slope_baseline_cells(state) == 4
 
 
+def test_a_young_pile_s_slopes_are_measured_over_a_run_its_flanks_hold():
+    # the first pass's ridge at a laboratory: 10 cm high at 37 deg, flanks 13 cm across
+    # (27 cells of 5 mm), crest and toes rounded over 2 cm either side (as poured),
+    # fused heights 2 mm noisy.  Runs of 2 x 12 cells mostly straddle the crest or a toe
+    # and read the angle shallow; the fold keeps the half run within a quarter of a
+    # flank's run (at tan 35 deg, 0.1 / 0.700 / 0.005 / 4: 6 or 7 cells)
+    import ledger.projector.fold as F
+    from ledger.projector.heightmap import HeightMap
+
+    seed = 5
+    print("seed", seed)
+    rng = np.random.default_rng(seed)
+    cell, n, soft = 0.005, 120, 0.02
+    g = GridGeometry(0.0, 0.0, cell, n, n)
+    x = (np.arange(n) + 0.5) * cell
+    u = np.abs(x - x[n // 2])
+    z = 0.1 - TAN37 * np.where(u > soft, u, u * u / (2 * soft) + soft / 2)
+    toe = soft * TAN37
+    z = np.where(z > toe, z, np.where(z > -toe, (z + toe) ** 2 / (4 * toe), 0.0))
+    ridge = np.broadcast_to(z[:, None], (n, n)).copy()
+    noisy = ridge + rng.normal(0, 0.002, ridge.shape)
+    state = F.initial_state("P1")
+    state.pile = F.PileInfo("P1", g, 0.0, 0.02, 1.65)
+    state.point_sd_m = 0.015
+    state.stack = LayerStack.empty(g, 0.0)
+    state.height = HeightMap.empty(g)
+    state.height.grid["elevation"][:] = noisy
+    b = F._slope_baseline_cells(state)
+    assert b == int(noisy.max() / math.tan(math.radians(35.0)) / cell / 4) in (6, 7)
+    young = estimate_repose_deg(noisy, cell, baseline_cells=b)
+    long_run = estimate_repose_deg(noisy, cell, baseline_cells=12)
+    assert young == pytest.approx(37.0, abs=1.0)
+    assert long_run < 35.5 and abs(young - 37.0) < 0.5 * abs(long_run - 37.0)
+    # once the pile stands 30 cm its flanks hold the long run again
+    state.height.grid["elevation"][:] = 3.0 * noisy
+    assert F._slope_baseline_cells(state) == 12
+
+
 def _poured_mean_distance_m(thickness_m: float, offset_m: float, tan_repose: float) -> float:
     """Pour a cone from a boom closing in along a line, step by step, and weigh the boom's
     distance by what each step added at a cell ``offset_m`` across the line that ends
@@ -227,6 +265,26 @@ def test_pour_front_lead_on_the_line_is_half_the_reach_and_nothing_without_a_lay
     # the sign of the offset does not matter; further down the flank, earlier
     both = pour_front_lead_m(np.full((1, 3), 0.3), np.array([[-2.0, 2.0, 4.0]]), tan)
     assert both[0, 0] == both[0, 1] < both[0, 2]
+
+
+@pytest.mark.parametrize("thickness_m, offset_m", [(0.5, 0.0), (0.5, 3.0), (0.02, 0.1),
+                                                   (2.0, 12.0)])
+def test_pour_reach_is_where_the_cone_on_the_line_meets_the_layer_below(thickness_m, offset_m):
+    # the boom s away along its line: the cone there stands thickness + tan * offset on
+    # the line and reaches the cell while tan * (hypot(offset, s) - offset) < thickness;
+    # the bisection finds the s where it stops
+    tan = math.tan(math.radians(37.0))
+    lo, hi = 0.0, 100.0
+    for _ in range(200):
+        mid = 0.5 * (lo + hi)
+        if tan * (math.hypot(offset_m, mid) - offset_m) < thickness_m:
+            lo = mid
+        else:
+            hi = mid
+    got = pour_reach_m(np.array([[thickness_m, 0.0]]), np.array([[offset_m, offset_m]]), tan)
+    assert math.isclose(got[0, 0], lo, rel_tol=1e-9)
+    assert got[0, 1] == 0.0                                # no layer, no reach
+    assert pour_reach_m(np.array([[thickness_m]]), np.array([[-offset_m]]), tan)[0, 0] == got[0, 0]
 
 
 def test_pour_front_lead_rejects_bad_input():

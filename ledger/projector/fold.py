@@ -60,7 +60,7 @@ GEOMETRY_TYPES = ("pile_declared", "machine_declared", "stack_started", "stack_e
 #: The fold's version: bumped whenever a change makes the same events and config fold to
 #: a different state.  Snapshots are keyed by it as well as by the config, so those of an
 #: older fold are never used (:class:`ledger.projector.query.SnapshotStore`).
-FOLD_VERSION = 14
+FOLD_VERSION = 15
 
 DEFAULT_CELL_M = 0.25
 DEFAULT_VOXEL_M = 1.0
@@ -160,6 +160,11 @@ class FoldConfig:
         A never-seen cell's repose cone rises from the seen heights fitted with a plane
         over this many x this many cells (odd; 1: the heights as fused), so that it is
         not the maximum of their noise (:func:`_unseen_floor`).
+    pouring_tail : bool
+        A cell last seen while the cone of the last pass to cross it could still reach
+        it (:func:`_seen_while_pouring`) counts as crossed since it was seen: a hidden
+        flank's layer is completed to the repose cone at the next pass rather than taken
+        with the one after it.
     profile_fit_beams : int
         Each scan's kept ranges are fitted with a line over this many beams (odd; 1: as
         measured), never across a range jump, before they are georeferenced
@@ -194,6 +199,7 @@ class FoldConfig:
     catch_up_cells: int = 5
     dig_journal_s: float = 3600.0
     cone_smooth_cells: int = 5
+    pouring_tail: bool = True
     profile_fit_beams: int = 3
 
     def __post_init__(self) -> None:
@@ -844,15 +850,30 @@ def _tan_repose(state: ProjectorState, *, estimate: bool = True) -> float:
 
 def _slope_baseline_cells(state: ProjectorState) -> int:
     """Half the run (cells) the repose angle's slopes are measured over: at least 4, and
-    the run at least 8 point sds.
+    the run at least 8 point sds, but within a quarter of a flank's run.
 
     Noise in the heights makes a slope read steep, ``|g + n|^2 = |g|^2 + |n|^2``.  A
     laboratory pile's fused heights carry a few mm of it; over a 4 cm run (4 cells of
     5 mm either side) the angle read 0.1-0.2 deg steep, and every cut after the first, mostly
     material that slid off the face at that angle, came 1-4 % short.  At a yard (5 cm
     point sd, 25 cm cells) 4 cells already make a 2 m run.
+
+    A young pile's flanks are short: the first pass's ridge at a laboratory stands about
+    10 cm, its flanks about 14 cm across, and most 12 cm runs straddle the crest or the
+    toe.  The angle read 31.8-36.1 deg where the simulator's is 37, and hidden flanks
+    completed to that cone made the first lot 2-5 % heavy and the second as much light
+    (bench-scale seeds 2 and 4).  So the half run is at most a quarter of the seen
+    pile's height over tan(35 deg) (the angle assumed before one is estimated), and never
+    under 4 cells.
     """
-    return max(4, math.ceil(4.0 * state.point_sd_m / state.pile.geometry.cell_m))
+    cell = state.pile.geometry.cell_m
+    half_run = max(4, math.ceil(4.0 * state.point_sd_m / cell))
+    if state.stack is not None and state.height is not None and np.isfinite(
+            state.height.elevation).any():
+        height = float(np.nanmax(state.height.elevation)) - float(np.min(state.stack.ground()))
+        flank_cells = height / math.tan(math.radians(35.0)) / cell
+        half_run = min(half_run, max(4, int(flank_cells / 4)))
+    return half_run
 
 
 def _cone(state: ProjectorState, elevation: np.ndarray) -> np.ndarray:
@@ -862,9 +883,12 @@ def _cone(state: ProjectorState, elevation: np.ndarray) -> np.ndarray:
     return slump.repose_floor(elevation, state.pile.geometry.cell_m, tan)
 
 
-def _unseen_floor(state: ProjectorState, elevation: np.ndarray, t_ns: int) -> np.ndarray:
+def _unseen_floor(state: ProjectorState, elevation: np.ndarray, t_ns: int,
+                  pouring_ns: np.ndarray | None = None) -> np.ndarray:
     """The repose cone of the (gap-filled) ``elevation`` where a pass crossed a cell since
-    it was last seen, NaN elsewhere: a cell seen since is as measured, whatever the cone.
+    it was last seen (or it was seen while the pass still poured on it,
+    :func:`_seen_while_pouring`), NaN elsewhere: a cell seen since is as measured,
+    whatever the cone.
 
     A never-seen cell's cone rises from the seen heights fitted with a plane over
     ``cone_smooth_cells`` x ``cone_smooth_cells`` cells
@@ -873,15 +897,71 @@ def _unseen_floor(state: ProjectorState, elevation: np.ndarray, t_ns: int) -> np
     their maximum: from the raw heights it stood 2-3 sigma of their noise high.  A
     laboratory pile's never-seen ends (half of their material is completed) came 7 %
     heavy, and the first cut of a bench there 10-12 %; with fitted heights they are
-    within 1 %.
+    within 1 %.  A cell seen while poured on lies down a flank seen with few points, so
+    its cone rises from the fitted heights too.  ``pouring_ns``: the
+    :func:`_seen_while_pouring` of this state, when the caller has it.
     """
     stale = _stale(state, t_ns)
+    fitted = stale & ~np.isfinite(state.height.grid["last_update_ns"])
+    if state.config.pouring_tail:
+        if pouring_ns is None:
+            pouring_ns = _seen_while_pouring(state, t_ns)
+        pouring = np.isfinite(pouring_ns) & ~stale
+        stale = stale | pouring
+        fitted = fitted | pouring
     cone = _cone(state, elevation)
-    never = stale & ~np.isfinite(state.height.grid["last_update_ns"])
     n = int(state.config.cone_smooth_cells)
-    if n > 1 and never.any():
-        cone = np.where(never, _cone(state, heightmap.plane_fit_of_seen(elevation, n)), cone)
+    if n > 1 and fitted.any():
+        cone = np.where(fitted, _cone(state, heightmap.plane_fit_of_seen(elevation, n)), cone)
     return np.where(stale, cone, np.nan)
+
+
+def _seen_while_pouring(state: ProjectorState, t_ns: int) -> np.ndarray:
+    """When the last pass to cross each cell by ``t_ns`` crossed it (UTC ns, float64,
+    (nx, ny)) where the cell was last seen after that crossing but while the pass's cone
+    could still reach it; NaN elsewhere.  The pass has ended, and the look came less than
+    :func:`slump.pour_reach_m` of rail travel after the crossing.
+
+    A pass's flow varies, and each surge of the cone on its line reaches far down the
+    flanks, behind the boom as well as ahead of it (by the pass's median layer, offset
+    from the crest of each row).  A flank the scanner looked at only just after the
+    stacker passed was still filling: bench-scale seed 3, the far flank looked at 8-30 s
+    after the crossing was 4-13 mm low, and the next pass's layer took the rest (lot C
+    -4.2 %, D +2.7 % of the pile).  Only the last crossing of each row counts.
+    """
+    geometry = state.pile.geometry
+    out = np.full(geometry.shape, np.nan)
+    passes = list(state.passes.values())
+    if not passes or state.stack is None:
+        return out
+    typical = _typical_pass_s(passes)
+    y = _row_y_m(geometry)
+    crossings = np.stack([_crossing_ns(record, y, t_ns, typical) for record in passes])
+    crossings[crossings > t_ns] = -np.inf
+    latest = np.argmax(crossings, axis=0)
+    seen = state.height.grid["last_update_ns"]
+    x = cell_centre(geometry, np.arange(geometry.nx), 0)[0]
+    crest = x[np.argmax(state.stack.surface(), axis=0)]
+    for i in np.unique(latest):
+        record = passes[int(i)]
+        rows = (latest == i) & np.isfinite(crossings[i])
+        speed = _stacker_speed_m_s(record, typical)
+        if record.ended_ns is None or not rows.any() or not speed > 0:
+            continue
+        thickness = state.stack.thickness(record.deposit_index)
+        layer = thickness[thickness > 0]
+        if layer.size == 0:
+            continue
+        offset = x[:, None] - crest[None, rows]
+        reach = slump.pour_reach_m(np.full(offset.shape, float(np.median(layer))), offset,
+                                   _tan_repose(state, estimate=False))
+        crossed = np.broadcast_to(crossings[i, rows][None, :], offset.shape)
+        look = seen[:, rows]
+        with np.errstate(invalid="ignore"):
+            poured_on = (look >= crossed) & (look < np.minimum(crossed + reach / speed * 1e9,
+                                                                float(t_ns)))
+        out[:, rows] = np.where(poured_on, crossed, np.nan)
+    return out
 
 
 def _filled_elevation(state: ProjectorState) -> np.ndarray:
@@ -907,7 +987,8 @@ def _complete_unseen(state: ProjectorState, t_ns: int,
     elevation = _filled_elevation(state) if filled_m is None else filled_m
     if not np.isfinite(elevation).any():
         return None
-    floor = _unseen_floor(state, elevation, t_ns)
+    pouring_ns = _seen_while_pouring(state, t_ns) if state.config.pouring_tail else None
+    floor = _unseen_floor(state, elevation, t_ns, pouring_ns)
     top = state.stack.surface()
     # A stale cell's margin is the fixed part only.  A never-seen cell has no variance
     # of its own (one point's sd there, 3 x 15 mm + 6 mm at a laboratory pile, held
@@ -922,9 +1003,14 @@ def _complete_unseen(state: ProjectorState, t_ns: int,
         return floor
     level = np.where(lift, floor, np.nan)
     before = state.stack.total_volume_m3()
-    left = _rise_to_crossing_passes(state, level,
-                                    _accounted_ns(state, state.height.grid["last_update_ns"]),
-                                    t_ns)
+    accounted = _accounted_ns(state, state.height.grid["last_update_ns"])
+    if pouring_ns is not None:
+        # a look while a pass still poured saw part of its layer: that pass crossed since
+        # (unless a completion after its crossing already took the layer)
+        with np.errstate(invalid="ignore"):
+            open_ = np.isfinite(pouring_ns) & ~(accounted > state.height.grid["last_update_ns"])
+        accounted = np.where(open_, pouring_ns - 1.0, accounted)
+    left = _rise_to_crossing_passes(state, level, accounted, t_ns)
     if left.any() and state.stack.n_deposits:
         # no pass crossed since the cell was seen: the top deposit's (it stands above it)
         state.stack, _added = state.stack.raise_to(np.where(left, level, np.nan),
@@ -1192,17 +1278,25 @@ def _pour_lead_s(state: ProjectorState, record: PassRecord, thickness_m: np.ndar
     ``typical_s``: the duration assumed for a pass still running (:func:`_typical_pass_s`).
     """
     geometry = state.pile.geometry
-    t1 = _assumed_end_ns(record, typical_s)
-    run_m = abs(record.end_y_m - record.start_y_m)
-    if t1 is None or t1 <= record.started_ns or not run_m > 0 or ix.size == 0:
+    speed_m_s = _stacker_speed_m_s(record, typical_s)
+    if not speed_m_s > 0 or ix.size == 0:
         return np.zeros(ix.shape)
-    speed_m_s = run_m / ((t1 - record.started_ns) / 1e9)
     x = cell_centre(geometry, np.arange(geometry.nx), 0)[0]
     crest = x[np.argmax(top_m, axis=0)]
     offset = x[ix] - crest[iy]
     lead_m = slump.pour_front_lead_m(thickness_m[None, :], offset[None, :],
                                      _tan_repose(state, estimate=False))[0]
     return lead_m / speed_m_s
+
+
+def _stacker_speed_m_s(record: PassRecord, typical_s: float | None) -> float:
+    """The pass's stacker speed along the rail (m/s; NaN when its run or duration is
+    unknown): its run over its duration (:func:`_assumed_end_ns` for a running pass)."""
+    t1 = _assumed_end_ns(record, typical_s)
+    run_m = abs(record.end_y_m - record.start_y_m)
+    if t1 is None or t1 <= record.started_ns or not run_m > 0:
+        return math.nan
+    return run_m / ((t1 - record.started_ns) / 1e9)
 
 
 def _settling_last_pass(state: ProjectorState) -> bool:

@@ -29,7 +29,8 @@ import numpy as np
 
 from ledger.projector.layers import LayerStack, Removal
 
-__all__ = ["estimate_repose_deg", "pour_front_lead_m", "repose_floor", "relax_surface", "slump"]
+__all__ = ["estimate_repose_deg", "pour_front_lead_m", "pour_reach_m", "repose_floor",
+           "relax_surface", "slump"]
 
 _SQRT2 = math.sqrt(2.0)
 # the 8 neighbours of a column, (dx, dy) in cells
@@ -139,7 +140,8 @@ def pour_front_lead_m(thickness_m, offset_m, tan_repose: float) -> np.ndarray:
     and the cell fills as the boom closes in: with ``f(s) = tan_repose sqrt(offset^2 +
     s^2)`` its level when the boom is s away, the thickness-weighted mean of s is
     ``(D f(D) - int_0^D f) / (f(D) - f(0))``; D / 2 on the line itself.  Once the boom has
-    passed, the cell is already at the cone's level and gets nothing more.
+    passed, the cell is already at the cone's level and, in a steady flow, gets nothing
+    more (where the flow varies it does, for as far again: :func:`pour_reach_m`).
 
     Parameters
     ----------
@@ -156,13 +158,8 @@ def pour_front_lead_m(thickness_m, offset_m, tan_repose: float) -> np.ndarray:
         The thickness-weighted mean distance (m, >= 0) between the boom and the cell
         while the cell's layer was laid; divided by the boom's speed it is a time.
     """
-    t = _check_2d("thickness_m", thickness_m)
     x = np.abs(_check_2d("offset_m", offset_m))
-    if t.shape != x.shape:
-        raise ValueError(f"thickness_m {t.shape} and offset_m {x.shape} differ in shape")
-    tan = _check_tan(tan_repose)
-    h = np.where(np.isfinite(t) & (t > 0), t, 0.0) / tan
-    reach = np.sqrt(h * h + 2.0 * h * x)                   # D
+    reach = pour_reach_m(thickness_m, x, tan_repose)       # D
     r = np.hypot(x, reach)                                 # sqrt(offset^2 + D^2)
     with np.errstate(invalid="ignore", divide="ignore"):
         u = np.where(x > 0, reach / np.where(x > 0, x, 1.0), np.inf)
@@ -175,6 +172,38 @@ def pour_front_lead_m(thickness_m, offset_m, tan_repose: float) -> np.ndarray:
         series = reach * (1.0 / 3.0 - u * u / 10.0) * (np.sqrt(1.0 + u * u) + 1.0)
         lead = np.where(u < 1e-2, series, closed)
     return np.where(reach > 0, lead, 0.0)
+
+
+def pour_reach_m(thickness_m, offset_m, tan_repose: float) -> np.ndarray:
+    """How far along its line a moving boom's cone reaches a cell: ``D = sqrt(h^2 + 2 h
+    |offset|)`` with ``h = thickness / tan_repose`` (m).
+
+    The cone poured on the line stands ``h`` above the layer below at the discharge
+    point and meets it where ``tan_repose (sqrt(offset^2 + s^2) - |offset|) = thickness``,
+    the boom ``s = D`` away: a cell beside the line gets material while the boom is
+    within ``D`` of it, ahead of it (:func:`pour_front_lead_m`) and, where the flow
+    varies, after it has passed.  Far down a flank (large offset) the reach is long.
+
+    Parameters
+    ----------
+    thickness_m : array_like, shape (nx, ny)
+        The layer's thickness (m, >= 0; NaN or <= 0: no reach).
+    offset_m : array_like, shape (nx, ny)
+        Distance from the boom's line, across it (m; the sign is ignored).
+    tan_repose : float
+        Tangent of the angle of repose (> 0).
+
+    Returns
+    -------
+    ndarray, shape (nx, ny)
+        The reach (m, >= 0).
+    """
+    t = _check_2d("thickness_m", thickness_m)
+    x = np.abs(_check_2d("offset_m", offset_m))
+    if t.shape != x.shape:
+        raise ValueError(f"thickness_m {t.shape} and offset_m {x.shape} differ in shape")
+    h = np.where(np.isfinite(t) & (t > 0), t, 0.0) / _check_tan(tan_repose)
+    return np.sqrt(h * h + 2.0 * h * x)
 
 
 def _cone_1d(z: np.ndarray, k: float, axis: int) -> np.ndarray:
