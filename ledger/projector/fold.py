@@ -931,20 +931,16 @@ def _seen_while_pouring(state: ProjectorState, t_ns: int) -> np.ndarray:
     """
     geometry = state.pile.geometry
     out = np.full(geometry.shape, np.nan)
-    passes = list(state.passes.values())
+    passes, latest, last_crossing = _last_crossings(state, t_ns)
     if not passes or state.stack is None:
         return out
     typical = _typical_pass_s(passes)
-    y = _row_y_m(geometry)
-    crossings = np.stack([_crossing_ns(record, y, t_ns, typical) for record in passes])
-    crossings[crossings > t_ns] = -np.inf
-    latest = np.argmax(crossings, axis=0)
     seen = state.height.grid["last_update_ns"]
     x = cell_centre(geometry, np.arange(geometry.nx), 0)[0]
     crest = x[np.argmax(state.stack.surface(), axis=0)]
     for i in np.unique(latest):
         record = passes[int(i)]
-        rows = (latest == i) & np.isfinite(crossings[i])
+        rows = (latest == i) & np.isfinite(last_crossing)
         speed = _stacker_speed_m_s(record, typical)
         if record.ended_ns is None or not rows.any() or not speed > 0:
             continue
@@ -955,7 +951,7 @@ def _seen_while_pouring(state: ProjectorState, t_ns: int) -> np.ndarray:
         offset = x[:, None] - crest[None, rows]
         reach = slump.pour_reach_m(np.full(offset.shape, float(np.median(layer))), offset,
                                    _tan_repose(state, estimate=False))
-        crossed = np.broadcast_to(crossings[i, rows][None, :], offset.shape)
+        crossed = np.broadcast_to(last_crossing[rows][None, :], offset.shape)
         look = seen[:, rows]
         with np.errstate(invalid="ignore"):
             poured_on = (look >= crossed) & (look < np.minimum(crossed + reach / speed * 1e9,
@@ -1091,21 +1087,27 @@ def _stale(state: ProjectorState, t_ns: int, seen_ns: np.ndarray | None = None) 
     """Cells (nx, ny) never seen, or crossed by a pass's stacker since last seen by ``t_ns``
     (``seen_ns``: when each cell was last seen, UTC ns, NaN never; default the height
     map's ``last_update_ns``)."""
-    geometry = state.pile.geometry
     seen = state.height.grid["last_update_ns"] if seen_ns is None else seen_ns
-    stale = ~np.isfinite(seen)
-    passes = list(state.passes.values())
-    if not passes:
-        return stale
-    typical = _typical_pass_s(passes)
-    y = _row_y_m(geometry)
-    last_crossing = np.full(geometry.ny, -np.inf)
-    for record in passes:
-        crossing = _crossing_ns(record, y, t_ns, typical)
-        crossing = np.where(crossing <= t_ns, crossing, -np.inf)
-        last_crossing = np.maximum(last_crossing, crossing)
+    _passes, _latest, last_crossing = _last_crossings(state, t_ns)
     with np.errstate(invalid="ignore"):
-        return stale | (seen < last_crossing[None, :])
+        return ~np.isfinite(seen) | (seen < last_crossing[None, :])
+
+
+def _last_crossings(state: ProjectorState,
+                    t_ns: int) -> tuple[list[PassRecord], np.ndarray, np.ndarray]:
+    """The passes, and for each row along the rail (shape (ny,)) the index into them of the
+    pass whose stacker crossed it last by ``t_ns`` and when (UTC ns, float64; -inf where
+    none has, index 0 there)."""
+    passes = list(state.passes.values())
+    ny = state.pile.geometry.ny
+    if not passes:
+        return passes, np.zeros(ny, dtype=np.intp), np.full(ny, -np.inf)
+    typical = _typical_pass_s(passes)
+    y = _row_y_m(state.pile.geometry)
+    crossings = np.stack([_crossing_ns(record, y, t_ns, typical) for record in passes])
+    crossings[crossings > t_ns] = -np.inf
+    latest = np.argmax(crossings, axis=0)
+    return passes, latest, crossings[latest, np.arange(ny)]
 
 
 def _slump_face(state: ProjectorState, floor_m: np.ndarray) -> float:
