@@ -66,6 +66,7 @@ import numpy as np  # noqa: E402
 
 from accuracy import NS_PER_S, Case, Rig, grid_for, simulate, thesis_piles  # noqa: E402
 from ledger.projector.georef import georeference, interpolate_poses  # noqa: E402
+from ledger.projector.ground import height_corrections  # noqa: E402
 from ledger.projector.heightmap import HeightMap, fuse, rasterize  # noqa: E402
 from ledger.projector.fold import FoldConfig  # noqa: E402
 from ledger.projector.profile import clean_profile  # noqa: E402
@@ -132,8 +133,19 @@ def print_section(number: int, s: Section) -> None:
 # 1. scans -> height map
 # --------------------------------------------------------------------------------------
 
-STAGES = ("interpolate_poses", "clean_profile", "georeference", "rasterize", "fuse")
+STAGES = ("interpolate_poses", "clean_profile", "georeference", "ground_reference",
+          "rasterize", "fuse")
 TARGET_POINTS_S = 1_000_000
+
+
+def _ground_offsets(geometry, t_scan, pts, sd):
+    """The fold's ground reference with its defaults (every cell bare: no stack here)."""
+    config = FoldConfig("bench")
+    return height_corrections(t_scan, pts, geometry, np.ones(geometry.shape, bool), 0.0,
+                              point_sd_m=sd, half_window_ns=int(config.ground_window_s * 1e9),
+                              min_points=config.ground_min_points, max_offset_m=20.0 * sd,
+                              deadband_sigma=config.ground_deadband_sigma,
+                              deadband_m=0.5 * sd)[0]
 
 
 def _pipeline(hm, t_scan, ranges, angle_min, inc, t_pose, pose_tr, pose_q, batch, sd,
@@ -149,12 +161,14 @@ def _pipeline(hm, t_scan, ranges, angle_min, inc, t_pose, pose_tr, pose_q, batch
         t2 = clock()
         pts = georeference(clean, angle_min, inc, tr, q)
         t3 = clock()
-        obs = rasterize(hm.geometry, pts)
+        pts[..., 2] -= _ground_offsets(hm.geometry, t_scan[sl], pts, sd)[:, None]
         t4 = clock()
-        hm, _ = fuse(hm, obs, int(t_scan[sl][-1]), sd, inplace=True)   # as the fold does
+        obs = rasterize(hm.geometry, pts)
         t5 = clock()
+        hm, _ = fuse(hm, obs, int(t_scan[sl][-1]), sd, inplace=True)   # as the fold does
+        t6 = clock()
         if timer is not None:
-            for name, dt in zip(STAGES, (t1 - t0, t2 - t1, t3 - t2, t4 - t3, t5 - t4)):
+            for name, dt in zip(STAGES, np.diff([t0, t1, t2, t3, t4, t5, t6])):
                 timer[name] += dt
     return hm
 

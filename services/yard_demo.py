@@ -11,7 +11,8 @@
 
 runs the scenario to its end, stops the producers, waits until the ledger holds
 every event they say they published, stops the ledger, and checks the result
-(:func:`check_exactly_once`, :func:`localizer_rmse`).  Outputs in ``out_dir``:
+(:func:`check_exactly_once`, :func:`localizer_rmse`); then folds the ledger into the
+layered model and sets it beside the simulator's truth (:func:`projector_vs_truth`).  Outputs in ``out_dir``:
 ``ledger.duckdb``, ``sim/`` (truth.json, truth.npz, the raw streams), ``logs/``,
 ``summary.json``.
 """
@@ -19,6 +20,7 @@ every event they say they published, stops the ledger, and checks the result
 from __future__ import annotations
 
 import json
+import math
 import re
 import time
 from dataclasses import fields
@@ -30,6 +32,7 @@ import numpy as np
 from schemas.events import decode_payload
 
 from ledger import open_ledger
+from ledger.projector.query import project
 from services.ledger_client import LedgerClient
 from services.orchestrate import Supervisor
 
@@ -162,7 +165,7 @@ def scan_timing(store, truth_npz: Path) -> dict[str, float]:
 
 
 def pile_book(store) -> dict[str, Any]:
-    """The pile by belt scales and assays as known at the end (until the projector lands).
+    """The pile by belt scales and assays as known at the end (beside the layered model).
 
     Tonnes in = stack passes' belt tonnes, out = reclaim cuts' belt tonnes.  Grade =
     the stacked tonnes weighted by each lot's mean assayed grade (FINAL over
@@ -213,6 +216,56 @@ def pile_book(store) -> dict[str, Any]:
     return {"stacked_t": total_in, "reclaimed_t": reclaimed, "pile_t": total_in - reclaimed,
             "grade_pct": grade, "assayed_fraction": assayed / total_in if total_in else 0.0,
             "assays": len(assays), "superseded": len(superseded)}
+
+
+def projector_vs_truth(store, truth: dict[str, Any]) -> dict[str, Any]:
+    """The layered model as of the end (``stockpile project``) beside the simulator's truth.
+
+    Pile tonnes, each cut's tonnes and Fe grade (all assays known), and what the fold's
+    ground reference did: the scanner heights it corrected from the ground each scan
+    saw (on the live path, the localizer's height error).
+    """
+    pile_id = truth["scenario"].get("pile_id", "P1")
+    started = time.monotonic()
+    state = project(store, pile_id)
+    fold_s = time.monotonic() - started
+    world_t = float(truth["world"]["tonnes"])
+    true_cuts = {c["cut_id"]: c for c in truth["cuts"]}
+    cuts = []
+    for c in state.cuts:
+        tc = true_cuts.get(c.cut_id)
+        if tc is None or tc["true_tonnes"] <= 0:
+            continue
+        cuts.append({"cut_id": c.cut_id, "tonnes": c.tonnes, "true_tonnes": tc["true_tonnes"],
+                     "tonnes_error_pct": 100 * (c.tonnes / tc["true_tonnes"] - 1),
+                     "fe_pct": c.grade.get("Fe", float("nan")),
+                     "true_fe_pct": tc["grade"]["Fe"],
+                     "fe_error_pp": c.grade.get("Fe", float("nan")) - tc["grade"]["Fe"]})
+    counters = state.counters
+    fused = counters.get("scans_fused", 0)
+    return {"pile_id": pile_id, "fold_s": fold_s, "tonnes": state.tonnes, "true_tonnes": world_t,
+            "tonnes_error_pct": 100 * (state.tonnes / world_t - 1) if world_t > 0 else math.nan,
+            "flagged_tonnes": sum(d.tonnes for d in state.deposits if d.flagged),
+            "cuts": cuts, "scans_fused": fused,
+            "scans_ground_referenced": counters.get("scans_ground_referenced", 0),
+            "ground_offset_mean_mm": counters.get("ground_offset_abs_sum_mm", 0) / max(fused, 1),
+            "ground_offset_max_mm": counters.get("ground_offset_max_mm", 0)}
+
+
+def _say_projector(result: dict[str, Any]) -> None:
+    _say(f"   pile {result['tonnes']:,.0f} t (true {result['true_tonnes']:,.0f} t, "
+         f"{result['tonnes_error_pct']:+.2f} %); in flagged deposits {result['flagged_tonnes']:,.0f} t;"
+         f" folded in {result['fold_s']:.0f} s")
+    _say(f"   scanner heights referenced to the ground in {result['scans_ground_referenced']:,} of "
+         f"{result['scans_fused']:,} scans: corrected by {result['ground_offset_mean_mm']:.0f} mm "
+         f"on average (largest {result['ground_offset_max_mm']:,} mm), the localizer's error")
+    if result["cuts"]:
+        _say(f"   {'cut':<10} {'tonnes':>9} {'true':>9} {'error':>8}   {'Fe %':>6} {'true':>6} "
+             f"{'error':>7}")
+        for c in result["cuts"]:
+            _say(f"   {c['cut_id']:<10} {c['tonnes']:>9,.1f} {c['true_tonnes']:>9,.1f} "
+                 f"{c['tonnes_error_pct']:>+7.2f}%   {c['fe_pct']:>6.2f} {c['true_fe_pct']:>6.2f} "
+                 f"{c['fe_error_pp']:>+6.2f}pp")
 
 
 def _wait_recorded(recorder, events: int, timeout_s: float) -> None:
@@ -329,7 +382,9 @@ def run_yard_demo(out_dir: Path, *, seed: int = 1, speed: float = 40.0, idle_spe
         book = pile_book(store)
         rmse = localizer_rmse(store, sim_dir / "truth.npz")
         timing = scan_timing(store, sim_dir / "truth.npz")
-    truth = json.loads((sim_dir / "truth.json").read_text())
+        truth = json.loads((sim_dir / "truth.json").read_text())
+        _say("\n== folding the ledger into the layered model (stockpile project) ...")
+        model = projector_vs_truth(store, truth)
 
     _say("\n== events per type in the ledger")
     for type_name, n in sorted(stats.per_type.items(), key=lambda kv: -kv[1]):
@@ -343,8 +398,7 @@ def run_yard_demo(out_dir: Path, *, seed: int = 1, speed: float = 40.0, idle_spe
          f"{'verified' if verify.ok else 'BROKEN'} ({verify.rows_checked:,} rows)")
     for entry in quarantine[:5]:
         _say(f"   quarantined {entry.type} from {entry.source}: {entry.reason[:100]}")
-    _say("\n== the pile as known at the end (belt scales and assays; the layered model comes "
-         "with the projector)")
+    _say("\n== the pile by belt scales and assays as known at the end")
     world = truth["world"]
     true_in = sum(p["true_tonnes"] for p in truth["passes"])
     true_out = sum(c["true_tonnes"] for c in truth["cuts"])
@@ -376,15 +430,19 @@ def run_yard_demo(out_dir: Path, *, seed: int = 1, speed: float = 40.0, idle_spe
         if pacing:
             _say("   (the simulator fell behind its schedule at times, see its pacing line: the "
                  "telegrams it then wrote in a burst carry that lag)")
+    _say("\n== the layered model as of the end (stockpile project) against the simulator's truth")
+    _say_projector(model)
     ok = (verify.ok and not gaps and all(r["exact"] and not r["open_gaps"] for r in exact)
           and all(code == 0 for code in rc.values()))
     summary = {"ok": ok, "exit_codes": rc, "published": published, "exactly_once": exact,
                "per_type": stats.per_type, "open_gaps": len(gaps), "quarantined": len(quarantine),
-               "verify_ok": verify.ok, "pile_book": book, "localizer": rmse, "scan_timing": timing,
+               "verify_ok": verify.ok, "pile_book": book, "projector": model, "localizer": rmse,
+               "scan_timing": timing,
                "speed": speed, "sim_pacing": pacing, "sim_max_lag_s": sim_max_lag_s, "wall_s": time.monotonic() - started}
     (out_dir / "summary.json").write_text(json.dumps(summary, indent=2, default=list))
     _say(f"\n{'all checks hold' if ok else 'CHECKS FAILED'}: exit codes {rc}; "
          f"done in {time.monotonic() - started:.0f} s -> {out_dir}/summary.json")
     _say(f"Try:\n  .venv/bin/stockpile ledger stats --ledger {ledger_path}\n"
+         f"  .venv/bin/stockpile project --ledger {ledger_path} --pile {model['pile_id']}\n"
          f"  .venv/bin/stockpile ledger export --ledger {ledger_path} --types reclaim_cut assay")
     return 0 if ok else 1

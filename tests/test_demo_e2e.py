@@ -42,3 +42,9 @@ def test_demo_runs_every_service_and_the_ledger_holds_each_event_exactly_once(pr
     assert timing["scan_time_abs_error_median_ms"] / speed < 3.0 + lag_ms, timing
     assert timing["scan_time_abs_error_p99_ms"] / speed < 50.0 + lag_ms, timing
     assert summary["localizer"]["localizer_samples"] > 100
+    # the ledger folded into the layered model: every scan fused, most of them referenced
+    # to the ground they saw (the localizer's scanner height is what they correct)
+    model = summary["projector"]
+    assert model["scans_fused"] >= 0.95 * published["bwr1.scanner"][1], model
+    assert model["scans_ground_referenced"] >= 0.5 * model["scans_fused"], model
+    assert model["tonnes"] > 0 and model["true_tonnes"] > 0
