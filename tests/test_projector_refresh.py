@@ -13,6 +13,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 
 import ledger.projector.fold as F
 from ledger.projector.grid import GridGeometry
@@ -120,8 +121,10 @@ def test_refresh_reach_is_the_height_over_tan_repose():
     assert np.array_equal(refreshed, y <= 5.0 + reach)
 
 
-def test_only_a_drop_in_the_cut_s_footprint_is_the_cut_s():
-    config = F.FoldConfig("P1", complete_unseen=False, fill_gap_cells=0, repose_deg=35.0)
+@pytest.mark.parametrize("follow_far", [False, True])
+def test_only_a_drop_in_the_cut_s_footprint_is_the_cut_s(follow_far):
+    config = F.FoldConfig("P1", complete_unseen=False, fill_gap_cells=0, repose_deg=35.0,
+                          follow_far_drops=follow_far)
     state = _state(config, z0=1.0)
     g = state.pile.geometry
     # the cut took the cells y < 1 m down to 0.5 m
@@ -135,7 +138,8 @@ def test_only_a_drop_in_the_cut_s_footprint_is_the_cut_s():
     # then the scans see the surface 0.3 m lower in the footprint's half y in [0.5, 1) m
     # (the wheel dug deeper than its envelope), beside it at y in [1.5, 2) m (the face
     # slid into the hole) and far off at y in [15, 16) m
-    elevation = state.stack.surface().copy()
+    before = state.stack.surface().copy()
+    elevation = before.copy()
     inside = (y >= 0.5) & (y < 1.0)
     beside = (y >= 1.5) & (y < 2.0)
     far = (y >= 15.0) & (y < 16.0)
@@ -144,14 +148,20 @@ def test_only_a_drop_in_the_cut_s_footprint_is_the_cut_s():
     state.height.grid["variance"][:] = SD ** 2 / 10
     volume = 0.3 * g.cell_area_m2 * g.nx
     F._follow_height(state, 60 * NS)
+    # in the footprint (grown by a cell) the measurement wins and the cut is charged
     assert math.isclose(cut.residual_m3, volume * inside.sum(), rel_tol=1e-9)
-    assert math.isclose(state.flagged_loss_m3, volume * (beside.sum() + far.sum()),
-                        rel_tol=1e-9)
-    assert state.counters["unexplained_loss_mm3"] == round(
-        volume * (beside.sum() + far.sum()) * 1e3)
-    # the measurement wins everywhere
-    near = inside | beside
-    np.testing.assert_allclose(state.stack.surface()[:, near | far], elevation[:, near | far])
+    np.testing.assert_allclose(state.stack.surface()[:, inside], elevation[:, inside])
+    away = beside | far
+    if follow_far:
+        # away from it the measurement wins too, as an unexplained loss
+        assert math.isclose(state.flagged_loss_m3, volume * away.sum(), rel_tol=1e-9)
+        assert state.counters["unexplained_loss_mm3"] == round(volume * away.sum() * 1e3)
+        np.testing.assert_allclose(state.stack.surface()[:, away], elevation[:, away])
+    else:
+        # away from it the stack keeps its own surface; the gap is reported
+        assert state.flagged_loss_m3 == 0.0 and "unexplained_loss_mm3" not in state.counters
+        np.testing.assert_array_equal(state.stack.surface()[:, away], before[:, away])
+        assert state.counters["far_drops_mm3"] == round(volume * away.sum() * 1e3)
 
 
 def test_a_never_seen_flank_rises_to_the_cone_beyond_the_fixed_margin_only():

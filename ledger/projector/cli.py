@@ -72,6 +72,10 @@ def cmd_project(args: argparse.Namespace) -> int:
         print(f"\n  unexplained loss {unexplained_m3:,.1f} m3: drops seen outside any cut's "
               "footprint, such as a face sliding into a cut's hole (the surface follows "
               "them; no cut is charged)")
+    far_m3 = state.counters.get("far_drops_mm3", 0) / 1e3
+    if far_m3:
+        print(f"\n  measured below the model away from the cuts: {far_m3:,.1f} m3 (the "
+              "surface keeps its own slid faces there; FoldConfig.follow_far_drops)")
     return 0
 
 
