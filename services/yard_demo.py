@@ -12,9 +12,9 @@
 runs the scenario to its end, stops the producers, waits until the ledger holds
 every event they say they published, stops the ledger, and checks the result
 (:func:`check_exactly_once`, :func:`localizer_rmse`); then folds the ledger into the
-layered model and sets it beside the simulator's truth (:func:`projector_vs_truth`).  Outputs in ``out_dir``:
-``ledger.duckdb``, ``sim/`` (truth.json, truth.npz, the raw streams), ``logs/``,
-``summary.json``.
+layered model and sets it beside the simulator's truth (:func:`projector_vs_truth`).
+Outputs in ``out_dir``: ``ledger.duckdb``, ``sim/`` (truth.json, truth.npz, the raw
+streams), ``logs/``, ``summary.json``.
 """
 
 from __future__ import annotations
@@ -236,14 +236,15 @@ def projector_vs_truth(store, truth: dict[str, Any]) -> dict[str, Any]:
         tc = true_cuts.get(c.cut_id)
         if tc is None or tc["true_tonnes"] <= 0:
             continue
+        fe = c.grade.get("Fe", math.nan)
         cuts.append({"cut_id": c.cut_id, "tonnes": c.tonnes, "true_tonnes": tc["true_tonnes"],
                      "tonnes_error_pct": 100 * (c.tonnes / tc["true_tonnes"] - 1),
-                     "fe_pct": c.grade.get("Fe", float("nan")),
-                     "true_fe_pct": tc["grade"]["Fe"],
-                     "fe_error_pp": c.grade.get("Fe", float("nan")) - tc["grade"]["Fe"]})
+                     "fe_pct": fe, "true_fe_pct": tc["grade"]["Fe"],
+                     "fe_error_pp": fe - tc["grade"]["Fe"]})
     counters = state.counters
     fused = counters.get("scans_fused", 0)
-    return {"pile_id": pile_id, "fold_s": fold_s, "tonnes": state.tonnes, "true_tonnes": world_t,
+    return {"pile_id": pile_id, "fold_s": fold_s, "tonnes": state.tonnes,
+            "true_tonnes": world_t,
             "tonnes_error_pct": 100 * (state.tonnes / world_t - 1) if world_t > 0 else math.nan,
             "flagged_tonnes": sum(d.tonnes for d in state.deposits if d.flagged),
             "cuts": cuts, "scans_fused": fused,
@@ -253,19 +254,21 @@ def projector_vs_truth(store, truth: dict[str, Any]) -> dict[str, Any]:
 
 
 def _say_projector(result: dict[str, Any]) -> None:
-    _say(f"   pile {result['tonnes']:,.0f} t (true {result['true_tonnes']:,.0f} t, "
-         f"{result['tonnes_error_pct']:+.2f} %); in flagged deposits {result['flagged_tonnes']:,.0f} t;"
-         f" folded in {result['fold_s']:.0f} s")
-    _say(f"   scanner heights referenced to the ground in {result['scans_ground_referenced']:,} of "
-         f"{result['scans_fused']:,} scans: corrected by {result['ground_offset_mean_mm']:.0f} mm "
-         f"on average (largest {result['ground_offset_max_mm']:,} mm), the localizer's error")
-    if result["cuts"]:
+    """Print :func:`projector_vs_truth`'s result: the pile, the height corrections, the cuts."""
+    r = result
+    _say(f"   pile {r['tonnes']:,.0f} t (true {r['true_tonnes']:,.0f} t, "
+         f"{r['tonnes_error_pct']:+.2f} %); in flagged deposits {r['flagged_tonnes']:,.0f} t; "
+         f"folded in {r['fold_s']:.0f} s")
+    _say(f"   scanner heights referenced to the ground in {r['scans_ground_referenced']:,} of "
+         f"{r['scans_fused']:,} scans: corrected by {r['ground_offset_mean_mm']:.0f} mm on "
+         f"average (largest {r['ground_offset_max_mm']:,} mm), the localizer's error")
+    if r["cuts"]:
         _say(f"   {'cut':<10} {'tonnes':>9} {'true':>9} {'error':>8}   {'Fe %':>6} {'true':>6} "
              f"{'error':>7}")
-        for c in result["cuts"]:
+        for c in r["cuts"]:
             _say(f"   {c['cut_id']:<10} {c['tonnes']:>9,.1f} {c['true_tonnes']:>9,.1f} "
-                 f"{c['tonnes_error_pct']:>+7.2f}%   {c['fe_pct']:>6.2f} {c['true_fe_pct']:>6.2f} "
-                 f"{c['fe_error_pp']:>+6.2f}pp")
+                 f"{c['tonnes_error_pct']:>+7.2f}%   {c['fe_pct']:>6.2f} "
+                 f"{c['true_fe_pct']:>6.2f} {c['fe_error_pp']:>+6.2f}pp")
 
 
 def _wait_recorded(recorder, events: int, timeout_s: float) -> None:
@@ -437,8 +440,8 @@ def run_yard_demo(out_dir: Path, *, seed: int = 1, speed: float = 40.0, idle_spe
     summary = {"ok": ok, "exit_codes": rc, "published": published, "exactly_once": exact,
                "per_type": stats.per_type, "open_gaps": len(gaps), "quarantined": len(quarantine),
                "verify_ok": verify.ok, "pile_book": book, "projector": model, "localizer": rmse,
-               "scan_timing": timing,
-               "speed": speed, "sim_pacing": pacing, "sim_max_lag_s": sim_max_lag_s, "wall_s": time.monotonic() - started}
+               "scan_timing": timing, "speed": speed, "sim_pacing": pacing,
+               "sim_max_lag_s": sim_max_lag_s, "wall_s": time.monotonic() - started}
     (out_dir / "summary.json").write_text(json.dumps(summary, indent=2, default=list))
     _say(f"\n{'all checks hold' if ok else 'CHECKS FAILED'}: exit codes {rc}; "
          f"done in {time.monotonic() - started:.0f} s -> {out_dir}/summary.json")
