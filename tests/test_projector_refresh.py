@@ -135,15 +135,20 @@ def test_only_a_drop_in_the_cut_s_footprint_is_the_cut_s(follow_far):
     cut = F.CutRecord("C1", "B1", "bwr1", 40 * NS, 50 * NS, 0.0, [removal],
                       predicted_m3=removal.volume_m3)
     state.cuts.append(cut)
+    # a strip at y in [18, 19) m holds no material
+    bare = (y >= 18.0) & (y < 19.0)
+    state.stack, _ = state.stack.clamp(np.where(bare[None, :], 0.0, np.inf)
+                                       * np.ones(g.shape))
     # then the scans see the surface 0.3 m lower in the footprint's half y in [0.5, 1) m
     # (the wheel dug deeper than its envelope), beside it at y in [1.5, 2) m (the face
-    # slid into the hole) and far off at y in [15, 16) m
+    # slid into the hole), far off at y in [15, 16) m, and the bare strip's ground
+    # too (a cone under never-seen cells can reach below it)
     before = state.stack.surface().copy()
     elevation = before.copy()
     inside = (y >= 0.5) & (y < 1.0)
     beside = (y >= 1.5) & (y < 2.0)
     far = (y >= 15.0) & (y < 16.0)
-    elevation[:, inside | beside | far] -= 0.3
+    elevation[:, inside | beside | far | bare] -= 0.3
     state.height.grid["elevation"][:] = elevation
     state.height.grid["variance"][:] = SD ** 2 / 10
     volume = 0.3 * g.cell_area_m2 * g.nx
@@ -161,6 +166,8 @@ def test_only_a_drop_in_the_cut_s_footprint_is_the_cut_s(follow_far):
         # away from it the stack keeps its own surface; the gap is reported
         assert state.flagged_loss_m3 == 0.0 and "unexplained_loss_mm3" not in state.counters
         np.testing.assert_array_equal(state.stack.surface()[:, away], before[:, away])
+        # the gap reported is what the stack holds above the measurement: none below the
+        # ground of the bare strip
         assert state.counters["far_drops_mm3"] == round(volume * away.sum() * 1e3)
 
 

@@ -63,7 +63,7 @@ GEOMETRY_TYPES = ("pile_declared", "machine_declared", "stack_started", "stack_e
 #: The fold's version: bumped whenever a change makes the same events and config fold to
 #: a different state.  Snapshots are keyed by it as well as by the config, so those of an
 #: older fold are never used (:class:`ledger.projector.query.SnapshotStore`).
-FOLD_VERSION = 17
+FOLD_VERSION = 18
 
 DEFAULT_CELL_M = 0.25
 DEFAULT_VOXEL_M = 1.0
@@ -818,8 +818,9 @@ def _follow_height(state: ProjectorState, t_ns: int, *, drops: bool = True,
         far = down & ~near
         if state.cuts and not state.config.follow_far_drops:
             # the stack keeps its own slid face away from the cut; the gap is reported
-            with np.errstate(invalid="ignore"):
-                below = float(np.sum(np.where(far, top - elevation, 0.0)))
+            with np.errstate(invalid="ignore"):   # no deeper than the ground
+                below = float(np.sum(np.where(
+                    far, top - np.maximum(elevation, state.stack.ground()), 0.0)))
             state.counters["far_drops_mm3"] = int(round(
                 below * state.pile.geometry.cell_area_m2 * 1e3))
             down, far = near, np.zeros_like(far)
