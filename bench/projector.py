@@ -140,12 +140,8 @@ TARGET_POINTS_S = 1_000_000
 
 def _ground_offsets(geometry, t_scan, pts, sd):
     """The fold's ground reference with its defaults (every cell bare: no stack here)."""
-    config = FoldConfig("bench")
     return height_corrections(t_scan, pts, geometry, np.ones(geometry.shape, bool), 0.0,
-                              point_sd_m=sd, half_window_ns=int(config.ground_window_s * 1e9),
-                              min_points=config.ground_min_points, max_offset_m=20.0 * sd,
-                              deadband_sigma=config.ground_deadband_sigma,
-                              deadband_m=0.5 * sd)[0]
+                              **FoldConfig("bench").ground_kwargs(sd))[0]
 
 
 def _pipeline(hm, t_scan, ranges, angle_min, inc, t_pose, pose_tr, pose_q, batch, sd,

@@ -246,6 +246,18 @@ class FoldConfig:
     ground_deadband_sigma: float = 3.0
     ground_deadband_m: float | None = None
 
+    def ground_kwargs(self, point_sd_m: float) -> dict[str, Any]:
+        """The keyword arguments of :func:`ledger.projector.ground.height_corrections` for
+        this config and a point height noise (m): the defaults resolved."""
+        sd = float(point_sd_m)
+        return {"point_sd_m": sd, "half_window_ns": int(self.ground_window_s * 1e9),
+                "min_points": self.ground_min_points,
+                "max_offset_m": (20.0 * sd if self.ground_max_offset_m is None
+                                 else float(self.ground_max_offset_m)),
+                "deadband_sigma": self.ground_deadband_sigma,
+                "deadband_m": (0.5 * sd if self.ground_deadband_m is None
+                               else float(self.ground_deadband_m))}
+
     def __post_init__(self) -> None:
         for name in ("cone_smooth_cells", "profile_fit_beams"):
             value = int(getattr(self, name))
@@ -561,16 +573,11 @@ def _reference_ground(state: ProjectorState, t_ns: np.ndarray, points: np.ndarra
     referenced / held / unreferenced, and the applied offsets' sum and largest
     ``|offset|`` (mm).
     """
-    config, pile = state.config, state.pile
-    sd = state.point_sd_m
+    pile = state.pile
     bare = (state.stack.surface() - state.stack.ground()) <= state.margin_m
-    applied, seen = ground.height_corrections(
-        t_ns, points, pile.geometry, bare, pile.ground_z_m, point_sd_m=sd,
-        half_window_ns=int(config.ground_window_s * 1e9), min_points=config.ground_min_points,
-        max_offset_m=(20.0 * sd if config.ground_max_offset_m is None
-                      else float(config.ground_max_offset_m)),
-        deadband_sigma=config.ground_deadband_sigma,
-        deadband_m=0.5 * sd if config.ground_deadband_m is None else config.ground_deadband_m)
+    applied, seen = ground.height_corrections(t_ns, points, pile.geometry, bare,
+                                              pile.ground_z_m,
+                                              **state.config.ground_kwargs(state.point_sd_m))
     _hold_ground_offsets(state, t_ns, seen, applied)
     state.count("scans_ground_referenced", int(seen.sum()))
     if applied.size:

@@ -145,12 +145,8 @@ def pour_front_lead_m(thickness_m, offset_m, tan_repose: float) -> np.ndarray:
 
     Parameters
     ----------
-    thickness_m : array_like, shape (nx, ny)
-        The new layer's thickness at each cell (m, >= 0; NaN or <= 0: no lead).
-    offset_m : array_like, shape (nx, ny)
-        Distance from the boom's line, across it (m; the sign is ignored).
-    tan_repose : float
-        Tangent of the angle of repose (> 0).
+    thickness_m, offset_m, tan_repose
+        As for :func:`pour_reach_m` (NaN or <= 0 thickness: no lead).
 
     Returns
     -------
