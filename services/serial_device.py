@@ -8,7 +8,8 @@ A device service is a *pipeline* (bytes in, events out) run by :func:`run_serial
 4. build the pipeline, announce the liveliness token ("token present" means "reading"),
    call ``pipeline.start(port)``;
 5. read chunks until SIGINT/SIGTERM or the device goes away (``device closed``, exit 0):
-   ``pipeline.feed(data, arrived_s)`` for bytes, ``pipeline.idle()`` after a silent timeout.
+   ``pipeline.feed(data, arrived_s)`` for bytes, ``pipeline.idle()`` after a silent timeout,
+   ``pipeline.finish()`` once at the end.
 """
 
 from __future__ import annotations
@@ -46,6 +47,9 @@ class DevicePipeline:
     def idle(self) -> None:
         """The line was silent for a whole read timeout."""
         self.log_clock_when_ready()
+
+    def finish(self) -> None:
+        """Called once when reading ends (device closed or a stop): publish what waits."""
 
     def site_ns(self, monotonic_s: float) -> int | None:
         """Site time of a local monotonic reading, or None before the site clock is known."""
@@ -132,3 +136,4 @@ def _read_loop(config, port: serial.Serial, runtime: ServiceRuntime,
             pipeline.feed(data, time.monotonic())
         else:
             pipeline.idle()
+    pipeline.finish()

@@ -29,6 +29,7 @@ which the demo and the end-to-end tests compare with the ledger.
 from __future__ import annotations
 
 import argparse
+import bisect
 import json
 import math
 import os
@@ -621,6 +622,11 @@ def _pid() -> int:
 # -- site time ----------------------------------------------------------------------------
 
 
+#: clock ticks :meth:`SiteTime.interpolate` keeps (at the demo's 40x, 10 site seconds
+#: apart: about a minute of local time)
+TICKS_KEPT = 256
+
+
 def _pace_segment_start(pairs: list[tuple[float, int]], pace_change: float,
                         min_step_s: float = 0.0005) -> int:
     """Index of the first (arrival s, site ns) pair of the newest run of steps whose
@@ -653,6 +659,12 @@ class SiteTime:
     segment the line is fitted to, so the line never spans a change of pace (fitted
     across one it was off by seconds of site time for the next ``window`` pairs).
     ``now_ns()`` before the first clock event raises :class:`LookupError`.
+
+    A reading that already has a tick after it is better placed by :meth:`interpolate`:
+    on the straight line between the ticks that arrived just before and just after it.
+    That follows every change of pace, also one the line has not seen yet (a simulator
+    that falls behind its schedule runs slower for a while, then catches up), so a
+    service that can wait for the next tick (the scanner) dates its readings that way.
     """
 
     def __init__(self, mode: str = "wall", *, window: int = 20,
@@ -665,6 +677,9 @@ class SiteTime:
         self.window = int(window)
         self.pace_change = float(pace_change)
         self._pairs: list[tuple[float, int]] = []  # (monotonic s, site ns)
+        # every tick kept, in arrival order, for interpolate(): monotonic s, site ns
+        self._ticks_s: list[float] = []
+        self._ticks_ns: list[int] = []
         self._fit: tuple[float, float, int] | None = None  # (mono0, ns per s, site0)
         self._lock = threading.Lock()
         self._subscriber = None
@@ -696,6 +711,10 @@ class SiteTime:
             if self._pairs and int(site_ns) <= self._pairs[-1][1]:
                 return
             self._pairs.append((monotonic_s, int(site_ns)))
+            if not self._ticks_s or monotonic_s >= self._ticks_s[-1]:
+                self._ticks_s.append(monotonic_s)
+                self._ticks_ns.append(int(site_ns))
+                del self._ticks_s[:-TICKS_KEPT], self._ticks_ns[:-TICKS_KEPT]
             del self._pairs[:-self.window]
             del self._pairs[:_pace_segment_start(self._pairs, self.pace_change)]
             pairs = self._pairs
@@ -727,6 +746,23 @@ class SiteTime:
                 raise LookupError("no clock event received yet")
             m0, slope, s0 = self._fit
         return s0 + int((monotonic_s - m0) * slope)
+
+    def interpolate(self, monotonic_s: float) -> int | None:
+        """Site time (ns) at a local ``time.monotonic()`` reading, on the line between the
+        ticks that arrived just before and just after it; None while no tick has arrived
+        after it yet, or when it is older than the ticks kept (then use :meth:`at`).  In
+        wall mode, :meth:`at`."""
+        if self.mode == "wall":
+            return self.at(monotonic_s)
+        with self._lock:
+            ticks_s, ticks_ns = self._ticks_s, self._ticks_ns
+            if not ticks_s or not ticks_s[0] <= monotonic_s <= ticks_s[-1]:
+                return None
+            i = bisect.bisect_right(ticks_s, monotonic_s)
+            if i == len(ticks_s):      # exactly at the newest tick's arrival
+                return ticks_ns[-1]
+            m0, m1, s0, s1 = ticks_s[i - 1], ticks_s[i], ticks_ns[i - 1], ticks_ns[i]
+        return s0 + int(round((monotonic_s - m0) / (m1 - m0) * (s1 - s0)))
 
     def now_ns(self) -> int:
         return self.at(time.monotonic())

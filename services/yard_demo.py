@@ -431,8 +431,9 @@ def run_yard_demo(out_dir: Path, *, seed: int = 1, speed: float = 40.0, idle_spe
              f"{timing['scan_time_abs_error_p99_ms']:.1f} ms site time "
              f"(at {speed:g}x a real-time delay of 1 ms is {speed:g} ms of site time)")
         if pacing:
-            _say("   (the simulator fell behind its schedule at times, see its pacing line: the "
-                 "telegrams it then wrote in a burst carry that lag)")
+            _say("   (the simulator fell behind its schedule at times, see its pacing line; it "
+                 "then moves its schedule on, and a service that reads late on a busy machine "
+                 "dates its scans late)")
     _say("\n== the layered model as of the end (stockpile project) against the simulator's truth")
     _say_projector(model)
     ok = (verify.ok and not gaps and all(r["exact"] and not r["open_gaps"] for r in exact)

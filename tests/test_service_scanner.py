@@ -326,6 +326,51 @@ def test_site_time_follows_a_change_of_pace_at_once(seed):
         SiteTime("site", pace_change=1.0)
 
 
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_site_time_between_ticks_follows_a_pace_the_line_has_not_seen(seed):
+    """A simulator at 40x that falls behind (10x for a while) and catches up (400x):
+    readings placed between the ticks around them stay within the ticks' delivery jitter
+    (times the pace) of the true site time; the fitted line, extrapolating from the ticks
+    before, is seconds off right after each change."""
+    rng = np.random.default_rng(seed)
+    print(f"seed {seed}")
+    clock = SiteTime("site")
+    jitter_s = 0.001
+    # the true schedule: (local s, site ns) corners of a piecewise-linear map
+    corners = [(100.0, 1_800_000_000_000_000_000)]
+    for local_step_s, speed in [(5.0, 40.0), (2.0, 10.0), (0.5, 400.0), (5.0, 40.0)]:
+        m0, s0 = corners[-1]
+        corners.append((m0 + local_step_s, s0 + int(round(local_step_s * speed * 1e9))))
+    local = np.array([m for m, _ in corners])
+    site = np.array([s for _, s in corners], dtype=np.float64)
+    tick_local = np.arange(local[0], local[-1], 0.25)   # a tick every 10 site s at 40x
+    for m in tick_local:
+        clock.observe(m + abs(rng.normal(0.0, jitter_s)), int(np.interp(m, local, site)))
+    readings = rng.uniform(local[0] + 0.3, tick_local[-1] - 0.3, 400)
+    truth = np.interp(readings, local, site)
+    placed = np.array([clock.interpolate(m) for m in readings], dtype=np.float64)
+    # a tick delivered up to ~4 jitter sds late, at 400x: 1.6 s; at 40x 0.16 s
+    err_s = np.abs(placed - truth) / 1e9
+    assert np.median(err_s) < 0.1 and err_s.max() < 2.0, (np.median(err_s), err_s.max())
+    # the fitted line, read right after the pace changes, is off by far more
+    after = np.array([local[1] + 0.2, local[2] + 0.2, local[3] + 0.2])
+    line_err = []
+    for m_read in after:
+        line = SiteTime("site")
+        for m in tick_local[tick_local < m_read]:
+            line.observe(m, int(np.interp(m, local, site)))
+        line_err.append(float(abs(line.at(m_read) - np.interp(m_read, local, site)) / 1e9))
+    print("between ticks: median %.3f s, max %.3f s; fitted line after the changes: %s"
+          % (np.median(err_s), err_s.max(), [round(e, 2) for e in line_err]))
+    assert max(line_err) > 2 * err_s.max(), line_err
+    # none before the first tick or after the newest one; wall mode is the wall clock
+    assert clock.interpolate(tick_local[0] - 1.0) is None
+    assert clock.interpolate(tick_local[-1] + 1.0) is None
+    wall = SiteTime("wall")
+    now = time.monotonic()
+    assert abs(wall.interpolate(now) - time.time_ns()) < 1e9
+
+
 def test_a_device_that_cannot_be_opened_is_one_error_line_and_exit_2(tmp_path):
     missing = tmp_path / "no-such-tty"
     run = subprocess.run([sys.executable, "-m", "services.cli", "service", "scanner",

@@ -6,6 +6,7 @@ import json
 import subprocess
 import sys
 import threading
+import time
 from dataclasses import replace
 from pathlib import Path
 
@@ -159,3 +160,50 @@ def test_cut_surfaces_are_what_each_cut_acted_on(tmp_path):
     plain = Simulation(scenario, 3, tmp_path / "plain")
     plain.run(duration_h=0.05)
     assert "cut_surface_z" not in np.load(tmp_path / "plain" / "truth.npz")
+
+
+def test_clock_ticks_every_second_while_a_machine_works_and_where_it_stops(tmp_path):
+    """The demo's clock ticks every site second while a machine works (10 s while the
+    yard waits) and once more where the yard stops working, so that the scanner, which
+    dates telegrams between the ticks around them, has the corner where a paced run
+    changes pace.  The yard's working spells are read off the encoder's cadence (10 Hz
+    while a machine works, 0.1 Hz while the yard waits), not the simulator's flag."""
+    scenario = replace(demo(), lots=demo().lots[:1], passes_per_lot=1, cuts_per_bench=(2,))
+    Simulation(scenario, 3, tmp_path).run(duration_h=0.5)
+    events = [decode_line(line) for line in (tmp_path / "events.jsonl").read_text().splitlines()]
+    ticks = np.array([e.valid_time_ns for e in events if e.type == "clock"])
+    readings = np.array([e.valid_time_ns for e in events if e.type == "joint_reading"])
+    assert np.all(np.diff(ticks) > 0)
+    step_s = np.diff(readings) / 1e9
+    working = np.flatnonzero(np.isclose(step_s, 0.1))
+    assert working.size > 1000
+    for i in working:   # every working step has a tick within a second after its start
+        k = np.searchsorted(ticks, readings[i])
+        assert k < len(ticks) and ticks[k] - readings[i] <= 1_000_000_000
+    stops = [readings[i + 1] for i in range(len(step_s) - 1)
+             if np.isclose(step_s[i], 0.1) and step_s[i + 1] > 5.0]
+    assert len(stops) == 2   # the last pass (and the survey after it), the last cut
+    for stop_ns in stops:    # the yard stopped during the last 10 Hz step before it
+        assert np.any((ticks > stop_ns - 100_000_000) & (ticks <= stop_ns)), stop_ns
+
+
+def test_a_paced_run_that_falls_behind_moves_its_schedule_on(tmp_path):
+    """One handler stalls for 1 s of wall time half way through a paced run: the run
+    gives that second up (site time ran slower for a moment) instead of catching up in a
+    burst, in which telegrams and clock ticks would arrive together."""
+    sim = Simulation(demo(), 4, tmp_path)
+    site_s, speed, stall_s = 120.0, 40.0, 1.0
+    real_gnss, stalled = sim._on_gnss, []
+
+    def slow_gnss(t, period, at):
+        if not stalled and t - demo().start_ns > site_s / 2 * 1e9:
+            stalled.append(t)
+            time.sleep(stall_s)   # the stall under test, not a synchronisation
+        real_gnss(t, period, at)
+
+    sim._on_gnss = slow_gnss
+    stats = sim.run(duration_h=site_s / 3600, speed=speed)
+    assert stalled and stats.rebases >= 1
+    assert stats.given_up_s >= 0.9 * stall_s
+    # nominal 3 s of wall time; caught up it would take about that, given up 4 s
+    assert stats.wall_s >= site_s / speed + 0.8 * stall_s, stats.wall_s

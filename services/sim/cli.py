@@ -103,7 +103,8 @@ def _print_summary(stats, out: Path) -> None:
     if stats.late_events:
         print(f"  pacing: {stats.late_events:,} events handled > 5 ms behind schedule "
               f"(largest lag {stats.max_lag_s:.2f} s real); device bytes and clock events "
-              "were late with them")
+              f"were late with them; the schedule moved on {stats.rebases:,} times, giving up "
+              f"{stats.given_up_s:.1f} s real")
     print(f"  stacked {sum(p['true_tonnes'] for p in truth['passes']):,.3f} t in {stats.passes} passes; "
           f"reclaimed {sum(c['true_tonnes'] for c in truth['cuts']):,.3f} t in {stats.cuts} cuts; "
           f"{stats.assays} assays")

@@ -18,7 +18,13 @@ Output of one run (all deterministic for a given scenario and seed):
 
 Time is site time (UTC ns).  The site clock is published as ``clock`` events every
 ``clock_period_s``; at ``speed`` > 0 the run is paced against the wall clock
-(``speed`` site seconds per wall second), at 0 it runs as fast as it can.
+(``speed`` site seconds per wall second), at 0 it runs as fast as it can.  A ``clock``
+event is also published where the yard starts or stops working (where a paced run
+changes from ``speed`` to ``idle_speed`` or back), so that a service that dates its
+readings between ticks has the corner of the site-time line; while a machine works the
+ticks come every ``clock_busy_period_s`` if set.  A paced run that falls more than
+``REBASE_S`` behind its schedule (a loaded machine) moves the schedule on rather than
+catching up in a burst.
 
 Scan events (``scan_events``, CLI ``--scan-events``).  A yard gets its ``scan`` events
 from the scanner service (which decodes the LMS200 byte stream) and the scanner's
@@ -118,6 +124,11 @@ class Motion:
 
 #: a paced event handled this much (real seconds) behind schedule counts as late
 LATE_S = 0.005
+#: a paced run that falls further behind than this (real seconds) gives the lost time up:
+#: its schedule moves on (site time runs slower for a moment) rather than catching up in a
+#: burst, in which telegrams and clock ticks arrive together and a service that maps
+#: arrival onto site time dates them seconds off
+REBASE_S = 0.05
 
 
 @dataclass
@@ -134,9 +145,12 @@ class RunStats:
     site_s: float = 0.0
     dropped_pty_bytes: int = 0
     #: paced runs: events handled more than LATE_S (real time) behind their schedule,
-    #: and the largest lag, real seconds (a slow step, then a burst to catch up)
+    #: and the largest lag, real seconds (a slow step; beyond REBASE_S the schedule moves on)
     late_events: int = 0
     max_lag_s: float = 0.0
+    #: times the schedule moved on (REBASE_S), and the real seconds it gave up in all
+    rebases: int = 0
+    given_up_s: float = 0.0
 
 
 @dataclass
@@ -167,6 +181,7 @@ class Simulation:
         self.out_dir = Path(self.out_dir)
         self.out_dir.mkdir(parents=True, exist_ok=True)
         self.jsonl = JsonlSink(self.out_dir / "events.jsonl")
+        self._last_tick_ns = -1   # the newest clock event's site time
         all_sinks = [self.jsonl, *self.sinks]
         epoch = sc.start_ns // NS_PER_S
         self.producers = {name: Producer(source, epoch, all_sinks) for name, source in (
@@ -355,7 +370,7 @@ class Simulation:
         self.belts = belts
 
         next_report = time.monotonic() + 10.0
-        t_prev, wall_due = t0, 0.0
+        t_prev, wall_due, schedule0, busy = t0, 0.0, wall0, None
         while queue:
             t, _, kind, payload = heapq.heappop(queue)
             if t > end_ns:
@@ -369,18 +384,28 @@ class Simulation:
                 self.progress(f"site time {(t - t0) / 3.6e12:6.2f} of {(end_ns - t0) / 3.6e12:.2f} h: "
                               f"{self.jsonl.count:,} events, {self.stats.scans:,} scans, "
                               f"{self.stats.passes} passes, {self.stats.cuts} cuts")
+            was_busy, busy = busy, self._busy(t_prev)
+            if was_busy is not None and busy != was_busy:
+                # a tick where the yard starts or stops working (a paced run changes pace
+                # there), so that a service dating its readings between ticks (the
+                # scanner) has the corner of the site-time line
+                self._tick(t_prev)
             if speed > 0:
                 # pacing site time against the wall clock; idle stretches (no machine
                 # moves, only late assays to wait for) run at idle_speed
-                rate = idle_speed if (idle_speed and not self._busy(t_prev)) else speed
+                rate = idle_speed if (idle_speed and not busy) else speed
                 wall_due += (t - t_prev) / NS_PER_S / rate
-                t_prev = t
-                lag = wall_due - (time.monotonic() - wall0)
+                lag = wall_due - (time.monotonic() - schedule0)
                 if lag > 0:
                     time.sleep(lag)
                 elif -lag > LATE_S:
                     self.stats.late_events += 1
                     self.stats.max_lag_s = max(self.stats.max_lag_s, -lag)
+                    if -lag > REBASE_S:
+                        schedule0 -= lag          # lag < 0: the schedule moves on by it
+                        self.stats.rebases += 1
+                        self.stats.given_up_s -= lag
+            t_prev = t
             getattr(self, f"_on_{kind}")(t, payload, at)
         self.stats.site_s = (end_ns - t0) / NS_PER_S
         self.stats.wall_s = time.monotonic() - wall0
@@ -393,8 +418,15 @@ class Simulation:
         return self.motion.at(t)
 
     def _on_clock(self, t: int, period: int, at) -> None:
-        self.producers["clock"].emit(_stamp(pb.Clock(), "time", t))
-        at(t + period, "clock", period)
+        self._tick(t)
+        busy_s = self.scenario.clock_busy_period_s
+        at(t + (int(busy_s * NS_PER_S) if busy_s and self._busy(t) else period), "clock", period)
+
+    def _tick(self, t: int) -> None:
+        """One ``clock`` event at site time ``t`` (never two at one time, never back)."""
+        if t > self._last_tick_ns:
+            self._last_tick_ns = t
+            self.producers["clock"].emit(_stamp(pb.Clock(), "time", t))
 
     def _busy(self, t: int) -> bool:
         """Whether a machine works (full sensor rates) or the yard waits for assays."""

@@ -84,6 +84,9 @@ class Scenario:
     gnss_hz: float = 1.0
     encoder_hz: float = 10.0
     clock_period_s: float = 10.0
+    #: the clock's period while a machine works (None: ``clock_period_s``); a service
+    #: dating its readings between ticks follows a paced run's unsteady pace closer
+    clock_busy_period_s: float | None = None
     idle_hz: float = 0.1   # every sensor's rate cap while no machine moves (late assays)
 
     @property
@@ -104,7 +107,7 @@ def demo() -> Scenario:
     # the lab composites one-minute increments (a cross-belt sampler's cadence): the
     # belt grade drifts within a pass, and a cut at the pile's end takes the part of
     # each pass stacked there, so a grade per pass could not say what a cut delivered
-    return Scenario(name="demo", assay_window_s=60.0)
+    return Scenario(name="demo", assay_window_s=60.0, clock_busy_period_s=1.0)
 
 
 def load() -> Scenario:
