@@ -65,10 +65,9 @@ arrival is placed on the line between the ticks around it
 (:meth:`~services.service.SiteTime.interpolate`).  The simulator's pace is not steady:
 it changes around every cut, and on a loaded machine it falls behind.  A line fitted
 to the ticks lags such a change: at the demo's 40x its scans were dated 1.1 s (median)
-from their true times, and the first cut read 32 % heavy.  Placed between ticks (with
-the simulator's tick at every change of pace and every second while a machine works),
-0.17 s while a machine works; what is left is mostly the service reading late on a busy
-machine (40 ms of site time per real ms).
+from their true times, and the first cut read 32 % heavy.  Placed between ticks (the
+simulator ticks where its pace changes, every site second while a machine works and
+right before each telegram it writes to the pty), 27 ms.
 
 The service stops on SIGINT/SIGTERM (exit 0), when the device goes away (the pty master
 closed, a USB adapter unplugged: logged as ``device closed``, exit 0), and exits 2 with one

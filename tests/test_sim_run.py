@@ -92,6 +92,14 @@ def test_scanner_telegrams_through_a_pty_give_back_the_cast_ranges(tmp_path):
     telegram_reader = lms200.TelegramReader()
     telegrams = telegram_reader.feed(bytes(received["lms"]))
     assert telegram_reader.crc_errors == 0 and len(telegrams) == stats.scans == len(sim.cast_scans)
+    # while a machine works (all of this run) the clock ticks as each telegram leaves:
+    # at its scan's time plus its transfer time, which the scanner service subtracts
+    ticks = {decode_line(line).valid_time_ns
+             for line in (tmp_path / "events.jsonl").read_text().splitlines()
+             if '"type":"clock"' in line}
+    scan_ns = np.load(tmp_path / "truth.npz")["scanner_poses"][:, 0].astype(np.int64)
+    transfer_ns = [len(t) * 10 * 10**9 // demo().scanner_baud for t in telegrams]
+    assert all(int(t) + d in ticks for t, d in zip(scan_ns, transfer_ns))
     unit_m = 0.001 if sim.unit_mm else 0.01
     for telegram, (cast, status) in zip(telegrams, sim.cast_scans):
         decoded = lms200.decode_measurement(telegram).ranges_m
