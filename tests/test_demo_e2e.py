@@ -36,10 +36,12 @@ def test_demo_runs_every_service_and_the_ledger_holds_each_event_exactly_once(pr
     # site-time errors scale with the speed-up, so bound them in real-time milliseconds
     timing, speed = summary["scan_timing"], summary["speed"]
     assert timing["scans"] >= published["bwr1.scanner"][1]
-    # a simulator that fell behind its schedule (a loaded machine) wrote telegrams late
-    # by up to its largest lag: that much is the simulator's, not the scanner's
+    # dated between the simulator's clock ticks (one right before each telegram), the
+    # typical scan is off by the real-time delay of the pty and the read, about a ms
+    # (0.8 ms measured at 30x); a simulator that fell behind its schedule (a loaded
+    # machine) wrote a few telegrams late by up to its largest lag
     lag_ms = 1000.0 * summary["sim_max_lag_s"]
-    assert timing["scan_time_abs_error_median_ms"] / speed < 3.0 + lag_ms, timing
+    assert timing["scan_time_abs_error_median_ms"] / speed < 3.0, timing
     assert timing["scan_time_abs_error_p99_ms"] / speed < 50.0 + lag_ms, timing
     assert summary["localizer"]["localizer_samples"] > 100
     # the ledger folded into the layered model: every scan fused, most of them referenced
