@@ -622,9 +622,9 @@ def _pid() -> int:
 # -- site time ----------------------------------------------------------------------------
 
 
-#: clock ticks :meth:`SiteTime.interpolate` keeps (at the demo's 40x, 10 site seconds
-#: apart: about a minute of local time)
-TICKS_KEPT = 256
+#: clock ticks :meth:`SiteTime.interpolate` keeps (the demo's simulator ticks before
+#: each telegram while a machine works, 200 a second at 40x: 20 s of local time)
+TICKS_KEPT = 4096
 
 
 def _pace_segment_start(pairs: list[tuple[float, int]], pace_change: float,
@@ -663,8 +663,8 @@ class SiteTime:
     A reading that already has a tick after it is better placed by :meth:`interpolate`:
     on the straight line between the ticks that arrived just before and just after it.
     That follows every change of pace, also one the line has not seen yet (a simulator
-    that falls behind its schedule runs slower for a while, then catches up), so a
-    service that can wait for the next tick (the scanner) dates its readings that way.
+    that falls behind its schedule runs slower for a while), so a service that can wait
+    for the next tick (the scanner) dates its readings that way.
     """
 
     def __init__(self, mode: str = "wall", *, window: int = 20,
