@@ -459,23 +459,23 @@ class _ScanPipeline(DevicePipeline):
             return
         self.status.add("telegrams", len(telegrams))
         ends = telegram_end_offsets(window, telegrams)
-        if self.site_time.mode == "site" and self.site_time.ready.is_set():
-            # dated once the clock tick after the arrival is in (:meth:`_release`)
-            self.log_clock_when_ready()
-            for telegram, end in zip(telegrams, ends):
-                self._waiting.append((telegram, self._window_end_s, len(window) - end,
-                                      self._previous_read_s))
+        if not self.site_time.ready.is_set():
+            for telegram in telegrams:          # counted as waiting for the clock
+                self._telegram(telegram, None, 0, None)
             return
-        window_end_ns = self.site_ns(self._window_end_s)
-        not_before_ns = None if window_end_ns is None else self.site_ns(self._previous_read_s)
+        # dated by :meth:`_release`: at once on the wall clock, on the site clock once the
+        # tick after the arrival is in
+        self.log_clock_when_ready()
         for telegram, end in zip(telegrams, ends):
-            self._telegram(telegram, window_end_ns, len(window) - end, not_before_ns)
+            self._waiting.append((telegram, self._window_end_s, len(window) - end,
+                                  self._previous_read_s))
 
     def _release(self, final: bool = False, at_most: int | None = None) -> None:
-        """Date and publish the waiting telegrams (site mode) whose arrival has a clock
-        tick after it (``at_most`` of them): on the line between the ticks around it
-        (:meth:`SiteTime.interpolate`).  One that waited ``MAX_TICK_WAIT_S`` (or all, when
-        ``final``) is dated by the clock's line instead, as one without waiting is."""
+        """Date and publish the waiting telegrams whose arrival has a clock tick after it
+        (``at_most`` of them): on the line between the ticks around it
+        (:meth:`SiteTime.interpolate`; the wall clock has every reading at once).  One
+        that waited ``MAX_TICK_WAIT_S`` (or all, when ``final``) is dated by the clock's
+        line instead."""
         now_s = time.monotonic()
         budget = len(self._waiting) if at_most is None else at_most
         while self._waiting and budget > 0:
@@ -486,11 +486,13 @@ class _ScanPipeline(DevicePipeline):
                 if not (final or now_s - arrived_s > MAX_TICK_WAIT_S):
                     return
                 window_end_ns = self.site_ns(arrived_s)
-            not_before_ns = self.site_time.interpolate(previous_s)
-            if not_before_ns is None:
-                not_before_ns = self.site_ns(previous_s)
             self._waiting.popleft()
-            self._telegram(telegram, window_end_ns, bytes_behind, not_before_ns)
+            self._telegram(telegram, window_end_ns, bytes_behind, self._placed_ns(previous_s))
+
+    def _placed_ns(self, monotonic_s: float) -> int | None:
+        """Site time of a local reading: between the ticks around it, else the clock's line."""
+        placed = self.site_time.interpolate(monotonic_s)
+        return placed if placed is not None else self.site_ns(monotonic_s)
 
     def _telegram(self, telegram: bytes, window_end_ns: int | None, bytes_behind: int,
                   not_before_ns: int | None) -> None:
