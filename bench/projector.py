@@ -390,13 +390,17 @@ def section_as_of(args) -> Section:
         hours = (last - first) / 3.6e12
         config = FoldConfig(pile_id=pile)
         with SnapshotStore(snap_path) as snaps:
-            # snapshots of another fold config or version (its defaults or code changed
-            # since they were built) never serve this one's queries: build this one's
+            # snapshots of another fold version (its code changed since they were built)
+            # are never read again: deleted; another config's never serve this one's
+            # queries: this one's are built
+            old, freed = snaps.drop_other_versions()
+            if old:
+                notes.append(f"deleted {old} snapshots of another fold version "
+                             f"({freed / 2**30:,.1f} GiB) from {snap_path.name}")
             mine = snaps.count(config)
             stale = snaps.count() - mine
             if stale:
-                notes.append(f"{stale} snapshots of another fold config or version in "
-                             f"{snap_path.name} "
+                notes.append(f"{stale} snapshots of another fold config in {snap_path.name} "
                              "are ignored (delete the file and its .d folder to free the space)")
             reach = snaps.latest_valid_ns(config) if mine else None
             if mine and (reach is None or reach < last - every_s * NS_PER_S):

@@ -199,6 +199,16 @@ def test_a_snapshot_taken_knowing_everything_serves_an_earlier_known_time(yard, 
         assert snaps.count() == 0 and snaps.latest_valid_ns(config) is None
         assert not any(f.exists() for f in files)
         assert snaps.find(store, config, t1, head_k) is None
+        # a snapshot another version of the fold took is never read again: deleted
+        with monkeypatch.context() as m:
+            m.setattr(F, "FOLD_VERSION", F.FOLD_VERSION - 1)
+            snaps.save(_state, rows[-1].global_seq, head_k)
+            assert snaps.drop_other_versions() == (0, 0)    # its own version's are kept
+        (older,) = snaps.folder.glob("*.snap.zst")
+        size = older.stat().st_size
+        assert snaps.count() == 1 and snaps.count(config) == 0
+        assert snaps.drop_other_versions() == (1, size)
+        assert snaps.count() == 0 and not older.exists()
     store.close()
 
 

@@ -399,6 +399,22 @@ class SnapshotStore:
             (self.folder / name).unlink(missing_ok=True)
         return len(names)
 
+    def drop_other_versions(self) -> tuple[int, int]:
+        """Delete the snapshots another version of the fold took (rows and files): this
+        version never reads them (:func:`_config_key`).  Returns ``(snapshots, bytes)``
+        deleted."""
+        mine = f"fold v{F.FOLD_VERSION} %"
+        names = self._con.execute(f"SELECT payload FROM {self.TABLE} WHERE config NOT LIKE ?",
+                                  [mine]).fetchall()
+        self._con.execute(f"DELETE FROM {self.TABLE} WHERE config NOT LIKE ?", [mine])
+        freed = 0
+        for (name,) in names:
+            path = self.folder / name
+            if path.exists():
+                freed += path.stat().st_size
+                path.unlink()
+        return len(names), freed
+
     def find(self, store, config: F.FoldConfig, valid_ns: int, known_ns: int):
         """``(state, position)`` of the latest usable snapshot for (V, K), or None."""
         rows = self._con.execute(
