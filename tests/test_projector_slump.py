@@ -10,7 +10,8 @@ import pytest
 
 from ledger.projector.grid import GridGeometry
 from ledger.projector.layers import DepositInfo, LayerStack
-from ledger.projector.slump import (estimate_repose_deg, pour_front_lead_m, pour_reach_m,
+from ledger.projector.slump import (estimate_repose_deg, pour_end_lead_m, pour_front_lead_m,
+                                    pour_reach_m,
                                     relax_surface, repose_floor, slump)
 
 CELL = 0.25
@@ -307,3 +308,106 @@ def test_pour_front_lead_under_a_thin_layer_far_down_a_flank_is_two_thirds_of_th
     reach = np.sqrt((thickness / tan) ** 2 + 2 * (thickness / tan) * offset)
     np.testing.assert_allclose(got, 2 * reach / 3, rtol=1e-4)
     assert np.all(np.isfinite(got)) and np.all(got > 0)
+
+
+def _poured_end_travel_m(thickness_m: float, offset_m: float, beyond_m: float,
+                         tan_repose: float) -> float:
+    """Pour from a boom closing in along its line that stops ``beyond_m`` short of a cell
+    (the cell lies past the end of its run), step by step, and weigh the travel the boom
+    still had to go by what each step added at the cell, which ends ``thickness_m``
+    higher: the process itself, not the closed form."""
+    apex = thickness_m + tan_repose * math.hypot(offset_m, beyond_m)
+    level, moments, added = 0.0, 0.0, 0.0
+    for s in np.linspace(10.0, beyond_m, 400_001):
+        cone = apex - tan_repose * math.hypot(offset_m, s)
+        if cone > level:
+            moments += (s - beyond_m) * (cone - level)
+            added += cone - level
+            level = cone
+    assert math.isclose(level, thickness_m, rel_tol=1e-9)
+    return moments / added
+
+
+@pytest.mark.parametrize("thickness_m, offset_m, beyond_m", [
+    (0.03, 0.0, 0.02), (0.03, 0.1, 0.05), (0.5, 3.0, 1.0), (2.0, 12.0, 0.5), (0.5, 0.0, 4.0)])
+def test_pour_end_lead_is_the_travel_left_while_the_cone_fills_a_cell_past_the_end(
+        thickness_m, offset_m, beyond_m):
+    got = pour_end_lead_m(np.array([[thickness_m]]), np.array([[offset_m]]),
+                          np.array([[beyond_m]]), TAN37)
+    assert got.shape == (1, 1)
+    assert math.isclose(got[0, 0], _poured_end_travel_m(thickness_m, offset_m, beyond_m, TAN37),
+                        rel_tol=1e-3)
+
+
+def test_pour_end_lead_at_the_end_is_the_front_lead_and_past_it_shorter_down_a_flank():
+    thickness = np.full((1, 4), 0.3)
+    offset = np.array([[0.0, 1.0, 2.0, -2.0]])
+    at_end = pour_end_lead_m(thickness, offset, np.zeros((1, 4)), TAN37)
+    np.testing.assert_array_equal(at_end, pour_front_lead_m(thickness, offset, TAN37))
+    past = pour_end_lead_m(thickness, offset, np.full((1, 4), 0.5), TAN37)
+    # on the line the cone's front is a straight slope: the same lead wherever the boom
+    # stops; beside it the cell past the end gets only the cone's last stretch
+    assert past[0, 0] == pytest.approx(at_end[0, 0], rel=1e-9)
+    assert np.all(past[0, 1:] < at_end[0, 1:]) and past[0, 2] == past[0, 3]
+    # no layer, no lead; thin layers stay finite
+    np.testing.assert_array_equal(
+        pour_end_lead_m(np.array([[0.0, np.nan, -1.0]]), np.ones((1, 3)), np.ones((1, 3)),
+                        TAN37), np.zeros((1, 3)))
+    thin = pour_end_lead_m(np.array([[1e-12, 1e-7]]), np.full((1, 2), 0.1),
+                           np.full((1, 2), 0.05), TAN37)
+    assert np.all(np.isfinite(thin)) and np.all(thin >= 0) and np.all(thin < 1e-5)
+
+
+def test_pour_end_lead_rejects_bad_input():
+    with pytest.raises(ValueError, match="differ in shape"):
+        pour_end_lead_m(np.zeros((2, 2)), np.zeros((2, 2)), np.zeros((2, 3)), 0.7)
+    with pytest.raises(ValueError, match="beyond_m must be >= 0"):
+        pour_end_lead_m(np.zeros((1, 1)), np.zeros((1, 1)), np.full((1, 1), -0.1), 0.7)
+
+
+def test_a_pass_s_material_is_dated_earlier_only_toward_and_past_the_end_of_its_run():
+    """Along the run a crossing-attributed rise keeps the crossing; within the cone's
+    reach of the run's end the front's lead counts in proportion, in full at the end, and
+    past the end the travel the boom still had to go (slump.pour_end_lead_m)."""
+    import ledger.projector.fold as F
+
+    g = GridGeometry(0.0, 0.0, 0.01, 60, 200)              # 0.6 m x 2 m, 1 cm cells
+    state = F.initial_state(F.FoldConfig(pile_id="P1", repose_deg=37.0))
+    state.pile = F.PileInfo("P1", g, 0.0, 0.02, 1.65)
+    x = (np.arange(g.nx) + 0.5) * g.cell_m
+    ridge = np.clip(0.2 - TAN37 * np.abs(x - 0.305), 0.0, None)   # crest on cell 30
+    stack = LayerStack.empty(g, 0.0).open_deposit(DepositInfo(1, "P", "L", 0))
+    stack, _ = stack.raise_to(np.repeat(ridge[:, None], g.ny, axis=1), 0)
+    state.stack = stack
+    s_ns = 1_000_000_000
+    record = F.PassRecord("P", "L", "stk", 0, 1, ended_ns=100 * s_ns, start_y_m=0.2,
+                          end_y_m=1.2)                      # 1 m in 100 s: 1 cm/s
+    rows = np.array([50, 100, 110, 115, 119, 125, 150])     # y = 0.505 ... 1.505 m
+    ix = np.full(rows.shape, 30)                            # the crest
+    ix_flank = np.full(rows.shape, 45)                      # 0.15 m down the flank
+    thickness = np.full(rows.shape, 0.03)
+    tan = TAN37
+    for cols in (ix, ix_flank):
+        cells = cols * g.ny + rows
+        crossing = F._crossing_ns(record, (rows + 0.5) * g.cell_m, 200 * s_ns, None)
+        got = F._crossing_dates(state, record, cells, thickness, crossing, None)
+        y = (rows + 0.5) * g.cell_m
+        offset = np.abs((cols - 30) * g.cell_m)[None, :]
+        reach = pour_reach_m(thickness[None, :], offset, tan)[0]
+        front = pour_front_lead_m(thickness[None, :], offset, tan)[0]
+        ahead = 1.2 - y
+        mid = ahead >= reach
+        assert mid.any() and (~mid).any()
+        np.testing.assert_array_equal(got[mid], crossing[mid])
+        near = ~mid & (ahead > 0)
+        np.testing.assert_allclose((crossing - got)[near] / s_ns,
+                                   (front * (1 - ahead / reach) / 0.01)[near], rtol=1e-9)
+        past = ahead <= 0
+        assert np.all(crossing[past] == 100 * s_ns)
+        end = pour_end_lead_m(thickness[None, :], offset, np.clip(-ahead, 0, None)[None, :],
+                              tan)[0]
+        np.testing.assert_allclose((crossing - got)[past] / s_ns, (end / 0.01)[past], rtol=1e-9)
+    # never before the pass started
+    early = F._crossing_dates(state, record, np.array([30 * g.ny + 150]), np.array([5.0]),
+                              np.array([1.0 * s_ns]), None)
+    assert early[0] == 0.0

@@ -63,7 +63,7 @@ GEOMETRY_TYPES = ("pile_declared", "machine_declared", "stack_started", "stack_e
 #: The fold's version: bumped whenever a change makes the same events and config fold to
 #: a different state.  Snapshots are keyed by it as well as by the config, so those of an
 #: older fold are never used (:class:`ledger.projector.query.SnapshotStore`).
-FOLD_VERSION = 19
+FOLD_VERSION = 20
 
 DEFAULT_CELL_M = 0.25
 DEFAULT_VOXEL_M = 1.0
@@ -1291,8 +1291,9 @@ def _rise_to_crossing_passes(state: ProjectorState, surface: np.ndarray,
                              seen_before_ns: np.ndarray, t_ns: int,
                              observed_ns: np.ndarray | None = None) -> np.ndarray:
     """Give each risen cell's material to the passes whose stacker crossed it since it
-    was last seen, in equal shares, deposited when the stacker crossed; returns the
-    cells still risen (no such pass, or a later deposit already holds material there).
+    was last seen, in equal shares, deposited when the stacker crossed (earlier near
+    and past the end of its run: :func:`_crossing_dates`); returns the cells still
+    risen (no such pass, or a later deposit already holds material there).
 
     The crossings counted end at ``t_ns``, or earlier where ``observed_ns`` (the height
     map's layer) says the new level was first seen earlier: a rise sighted before a pass
@@ -1334,8 +1335,11 @@ def _rise_to_crossing_passes(state: ProjectorState, surface: np.ndarray,
     for record, crossing, hit in cands:
         position += hit
         if hit.any():
+            share = (rise / np.maximum(count, 1))[hit]
             updates.append((record.deposit_index, cells[hit],
-                            (top + rise * (position / np.maximum(count, 1)))[hit], crossing[hit]))
+                            (top + rise * (position / np.maximum(count, 1)))[hit],
+                            _crossing_dates(state, record, cells[hit], share, crossing[hit],
+                                            typical)))
     state.stack, raised = state.stack.raise_deposits(updates)
     done = sum(int(r.sum()) for r in raised)
     if done:
@@ -1343,6 +1347,46 @@ def _rise_to_crossing_passes(state: ProjectorState, surface: np.ndarray,
     # what is left: cells not fully raised (a later deposit already held material)
     with np.errstate(invalid="ignore"):
         return risen & (surface > state.stack.surface())
+
+
+def _crossing_dates(state: ProjectorState, record: PassRecord, cells: np.ndarray,
+                    thickness_m: np.ndarray, crossing_ns: np.ndarray,
+                    typical_s: float | None) -> np.ndarray:
+    """When a pass laid its material in ``cells`` (flat indices, ``thickness_m`` of it
+    each), given when its stacker crossed them (UTC ns, float64, shape of ``cells``).
+
+    Along the run the crossing stands: the cone's front lays a cell's layer before the
+    boom comes (:func:`slump.pour_front_lead_m`), but a varying flow lays part of it
+    after the boom has passed, for about as far again (:func:`slump.pour_reach_m`), and
+    the two offset (dated by the front alone, a pass's material was 7-9 s early on
+    bench-scale seed 2).  Toward the end of the run fewer releases come after the
+    crossing: with less run left than the cone's reach the front's lead counts in
+    proportion, in full at the end, and past the end (the pile's end slope, where the
+    crossing is the pass's end) the boom stops short of the cell and the lead is the
+    mean travel it still had to go (:func:`slump.pour_end_lead_m`).  Dated at the
+    crossing, the last 0.1 m of each bench-scale pass (where the reclaimer's first cuts
+    take from) read 13-32 s after the simulator's times; a lot's assays cover 30 s.
+    Never before the pass started.
+    """
+    speed_m_s = _stacker_speed_m_s(record, typical_s)
+    if not speed_m_s > 0 or cells.size == 0:
+        return crossing_ns
+    geometry = state.pile.geometry
+    ix, iy = np.divmod(cells, geometry.ny)
+    x = cell_centre(geometry, np.arange(geometry.nx), 0)[0]
+    crest = x[np.argmax(state.stack.surface(), axis=0)]     # the boom on each row's crest
+    offset = (x[ix] - crest[iy])[None, :]
+    thickness = np.asarray(thickness_m, np.float64)[None, :]
+    ahead = (record.end_y_m - _row_y_m(geometry)[iy]) * np.sign(record.end_y_m
+                                                                 - record.start_y_m)
+    tan = _tan_repose(state, estimate=False)
+    lead_m = slump.pour_end_lead_m(thickness, offset, np.clip(-ahead, 0.0, None)[None, :],
+                                   tan)[0]
+    reach = slump.pour_reach_m(thickness, offset, tan)[0]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        weight = np.where(ahead <= 0, 1.0, np.clip(1.0 - ahead / reach, 0.0, 1.0))
+    weight = np.where(reach > 0, weight, 0.0)
+    return np.maximum(crossing_ns - weight * lead_m / speed_m_s * 1e9, float(record.started_ns))
 
 
 def _deposition_ns(state: ProjectorState, t_ns: int,

@@ -29,7 +29,8 @@ import numpy as np
 
 from ledger.projector.layers import LayerStack, Removal
 
-__all__ = ["estimate_repose_deg", "pour_front_lead_m", "pour_reach_m", "repose_floor",
+__all__ = ["estimate_repose_deg", "pour_front_lead_m", "pour_end_lead_m", "pour_reach_m",
+           "repose_floor",
            "relax_surface", "slump"]
 
 _SQRT2 = math.sqrt(2.0)
@@ -168,6 +169,58 @@ def pour_front_lead_m(thickness_m, offset_m, tan_repose: float) -> np.ndarray:
         series = reach * (1.0 / 3.0 - u * u / 10.0) * (np.sqrt(1.0 + u * u) + 1.0)
         lead = np.where(u < 1e-2, series, closed)
     return np.where(reach > 0, lead, 0.0)
+
+
+def pour_end_lead_m(thickness_m, offset_m, beyond_m, tan_repose: float) -> np.ndarray:
+    """How far before the end of its run a boom laid a cell's layer, on average (m), for a
+    cell ``beyond_m`` past the run's end along its line.
+
+    The boom stops ``e = beyond_m`` short of the cell (along the line), so the cell fills
+    only while the boom closes in from the front's arrival ``D`` to ``e``: the cone
+    stands ``h + sqrt(offset^2 + e^2) tan_repose`` above the layer below on the line
+    (``h = thickness / tan_repose``) so that the cell ends ``thickness_m`` higher, its
+    front arrives ``D = sqrt((h + sqrt(offset^2 + e^2))^2 - offset^2)`` away, and the
+    thickness-weighted mean distance is ``[(s r - offset^2 asinh(s / offset)) / 2]_e^D
+    / (r(D) - r(e))`` with ``r(s) = sqrt(offset^2 + s^2)``.  Returned: that mean less
+    ``e``, the boom's travel still to go (divided by its speed, how long before the end
+    of the pass).  At ``e = 0`` it is :func:`pour_front_lead_m`.
+
+    Parameters
+    ----------
+    thickness_m, offset_m, tan_repose
+        As for :func:`pour_reach_m` (NaN or <= 0 thickness: no lead).
+    beyond_m : array_like, shape (nx, ny)
+        How far past the end of the run each cell lies along the line (m, >= 0).
+
+    Returns
+    -------
+    ndarray, shape (nx, ny)
+        The mean travel left (m, >= 0) while the cell's layer was laid.
+    """
+    t = _check_2d("thickness_m", thickness_m)
+    x = np.abs(_check_2d("offset_m", offset_m))
+    e = _check_2d("beyond_m", beyond_m)
+    if not (t.shape == x.shape == e.shape):
+        raise ValueError(f"thickness_m {t.shape}, offset_m {x.shape} and beyond_m {e.shape} "
+                         "differ in shape")
+    if np.any(e < 0):
+        raise ValueError("beyond_m must be >= 0")
+    h = np.where(np.isfinite(t) & (t > 0), t, 0.0) / _check_tan(tan_repose)
+    r_e = np.hypot(x, e)
+    reach = np.sqrt(np.maximum((h + r_e) ** 2 - x * x, 0.0))          # D >= e
+    r_d = r_e + h
+    with np.errstate(invalid="ignore", divide="ignore"):
+        def moment(s, r):       # int s^2 / r ds = (s r - x^2 asinh(s / x)) / 2
+            return 0.5 * (s * r - np.where(x > 0, x * x * np.arcsinh(
+                s / np.where(x > 0, x, 1.0)), 0.0))
+        mean = (moment(reach, r_d) - moment(e, r_e)) / h     # r(D) - r(e) = h
+        # a layer too thin for the difference to hold its digits: the cell fills evenly
+        # over the boom's last stretch
+        thin = h < 1e-9 * np.maximum(1.0, reach)
+        mean = np.where(thin, 0.5 * (reach + e), mean)
+    lead = np.clip(mean - e, 0.0, None)
+    lead = np.where(e > 0, lead, pour_front_lead_m(t, x, tan_repose))
+    return np.where(h > 0, lead, 0.0)
 
 
 def pour_reach_m(thickness_m, offset_m, tan_repose: float) -> np.ndarray:
