@@ -1364,9 +1364,10 @@ def _crossing_dates(state: ProjectorState, record: PassRecord, cells: np.ndarray
     proportion, in full at the end, and past the end (the pile's end slope, where the
     crossing is the pass's end) the boom stops short of the cell and the lead is the
     mean travel it still had to go (:func:`slump.pour_end_lead_m`).  Dated at the
-    crossing, the last 0.1 m of each bench-scale pass (where the reclaimer's first cuts
-    take from) read 13-32 s after the simulator's times; a lot's assays cover 30 s.
-    Never before the pass started.
+    crossing, the bench-scale passes' last 0.12 m and the end slope past them (where
+    the reclaimer's first cuts take from) read 9-32 s after the simulator's times (seed
+    3), 5-18 s with this; a lot's assays there cover 30 s.  Never before the pass
+    started.
     """
     speed_m_s = _stacker_speed_m_s(record, typical_s)
     if not speed_m_s > 0 or cells.size == 0:
