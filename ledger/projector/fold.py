@@ -1052,8 +1052,7 @@ def _seen_while_pouring(state: ProjectorState, t_ns: int) -> np.ndarray:
         return out
     typical = _typical_pass_s(passes)
     seen = state.height.grid["last_update_ns"]
-    x = cell_centre(geometry, np.arange(geometry.nx), 0)[0]
-    crest = x[np.argmax(state.stack.surface(), axis=0)]
+    x, crest = _row_crests_m(geometry, state.stack.surface())
     for i in np.unique(latest):
         record = passes[int(i)]
         rows = (latest == i) & np.isfinite(last_crossing)
@@ -1374,8 +1373,7 @@ def _crossing_dates(state: ProjectorState, record: PassRecord, cells: np.ndarray
         return crossing_ns
     geometry = state.pile.geometry
     ix, iy = np.divmod(cells, geometry.ny)
-    x = cell_centre(geometry, np.arange(geometry.nx), 0)[0]
-    crest = x[np.argmax(state.stack.surface(), axis=0)]     # the boom on each row's crest
+    x, crest = _row_crests_m(geometry, state.stack.surface())   # the boom on each crest
     offset = (x[ix] - crest[iy])[None, :]
     thickness = np.asarray(thickness_m, np.float64)[None, :]
     ahead = (record.end_y_m - _row_y_m(geometry)[iy]) * np.sign(record.end_y_m
@@ -1450,12 +1448,18 @@ def _pour_lead_s(state: ProjectorState, record: PassRecord, thickness_m: np.ndar
     speed_m_s = _stacker_speed_m_s(record, typical_s)
     if not speed_m_s > 0 or ix.size == 0:
         return np.zeros(ix.shape)
-    x = cell_centre(geometry, np.arange(geometry.nx), 0)[0]
-    crest = x[np.argmax(top_m, axis=0)]
+    x, crest = _row_crests_m(geometry, top_m)
     offset = x[ix] - crest[iy]
     lead_m = slump.pour_front_lead_m(thickness_m[None, :], offset[None, :],
                                      _tan_repose(state, estimate=False))[0]
     return lead_m / speed_m_s
+
+
+def _row_crests_m(geometry: GridGeometry, top_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(x, crest)``: the cells' x centres (nx,) and, per row, the x of the highest cell of
+    ``top_m`` (ny,), where a stacker's boom pours (m)."""
+    x = cell_centre(geometry, np.arange(geometry.nx), 0)[0]
+    return x, x[np.argmax(top_m, axis=0)]
 
 
 def _stacker_speed_m_s(record: PassRecord, typical_s: float | None) -> float:

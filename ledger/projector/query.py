@@ -391,22 +391,20 @@ class SnapshotStore:
 
     def drop(self, config: F.FoldConfig) -> int:
         """Delete the snapshots folded with ``config`` (rows and files); returns how many."""
-        key = [config.pile_id, _config_key(config)]
-        names = self._con.execute(
-            f"SELECT payload FROM {self.TABLE} WHERE pile_id = ? AND config = ?", key).fetchall()
-        self._con.execute(f"DELETE FROM {self.TABLE} WHERE pile_id = ? AND config = ?", key)
-        for (name,) in names:
-            (self.folder / name).unlink(missing_ok=True)
-        return len(names)
+        return self._delete("pile_id = ? AND config = ?",
+                            [config.pile_id, _config_key(config)])[0]
 
     def drop_other_versions(self) -> tuple[int, int]:
         """Delete the snapshots another version of the fold took (rows and files): this
         version never reads them (:func:`_config_key`).  Returns ``(snapshots, bytes)``
         deleted."""
-        mine = f"fold v{F.FOLD_VERSION} %"
-        names = self._con.execute(f"SELECT payload FROM {self.TABLE} WHERE config NOT LIKE ?",
-                                  [mine]).fetchall()
-        self._con.execute(f"DELETE FROM {self.TABLE} WHERE config NOT LIKE ?", [mine])
+        return self._delete("config NOT LIKE ?", [f"fold v{F.FOLD_VERSION} %"])
+
+    def _delete(self, where: str, params: list) -> tuple[int, int]:
+        """Delete the rows ``where`` selects and their files: ``(rows, file bytes)``."""
+        names = self._con.execute(f"SELECT payload FROM {self.TABLE} WHERE {where}",
+                                  params).fetchall()
+        self._con.execute(f"DELETE FROM {self.TABLE} WHERE {where}", params)
         freed = 0
         for (name,) in names:
             path = self.folder / name
