@@ -18,6 +18,8 @@ envelope's own error: its difference from the true cut), the same on the project
 grid (the grid's: the footprint's edge cells differ), and the projector's layer stack
 and height map above that floor as of the cut's start (the surface's error, against the
 true surface on the projector's grid).  One fold gives the states at every cut's start.
+Then each buried deposit top as the first cut finds it, against the simulator's layers
+as stacked: as fused and as that cut fits them (``FoldConfig.boundary_fit_cells``).
 ``seen %`` is the share of those cells the height map measured between the cut before
 and this one (the first cut: ever; a measurement held as change evidence counts): where
 it is small, the cut's surface is the model's prediction (the slide after the cut
@@ -175,6 +177,52 @@ def explain(result: dict) -> None:
               f"{_pct(true_m3, sim_m3):>+7.2f} {ours_m3 * scale:>10.4g} "
               f"{_pct(ours_m3, true_m3):>+8.2f} {map_m3 * scale:>10.4g} "
               f"{_pct(map_m3, true_m3):>+7.2f} {bias_mm:>+13.2f} {seen_pct:>6.0f}", flush=True)
+    if "first_cut_thickness" in arrays and befores:
+        _buried_tops(befores[0], arrays, truth, ground_m)
+
+
+def _buried_tops(before, arrays, truth: dict, ground_m: float) -> None:
+    """Each deposit's top under the top one as the first cut finds it, ours against the
+    simulator's layers as stacked (``first_cut_thickness``): mean and rms (mm) over the
+    cells where the simulator has both that deposit and one above it, as fused and as
+    that cut fits them (``FoldConfig.boundary_fit_cells``)."""
+    import numpy as np
+    from scipy.interpolate import RegularGridInterpolator
+
+    from ledger.projector import fold as F
+    from ledger.projector.grid import cell_centres
+
+    thickness = arrays["first_cut_thickness"].astype(np.float64)
+    tops = ground_m + np.cumsum(thickness, axis=0)
+    slot_lots = [s["lot"] for s in sorted(truth["world"]["slots"], key=lambda s: s["slot"])]
+    stack = before.stack
+    ours = [k for k in range(1, stack.n_deposits + 1) if not stack.info(k).flagged]
+    if len(ours) != len(tops) or [stack.info(k).lot_id for k in ours] != slot_lots[:len(tops)]:
+        print("\n(buried tops: our deposits and the simulator's layers do not pair one to one)")
+        return
+    fitted = before.copy()
+    F._fit_buried_boundaries(fitted)
+    x, y = cell_centres(stack.geometry)
+    points = np.column_stack([y.ravel(), x.ravel()])
+
+    def on_ours(z_m):
+        return RegularGridInterpolator((arrays["y_centres"], arrays["x_centres"]), z_m,
+                                       bounds_error=False)(points).reshape(x.shape)
+
+    print("\nburied tops at the first cut, ours - the simulator's (mm): as fused / as fitted")
+    print(f"{'deposit':<16} {'cells':>7} {'mean':>7} {'rms':>7} {'mean':>7} {'rms':>7}")
+    below, top = np.full(x.shape, ground_m), on_ours(tops[-1])
+    for slot, k in enumerate(ours[:-1]):
+        level = on_ours(tops[slot])
+        cells = (level - below > 1e-9) & (top - level > 1e-9)
+        below = level
+        if not cells.any():
+            continue
+        fused = (stack.surface_k(k) - level)[cells] * 1e3
+        fit = (fitted.stack.surface_k(k) - level)[cells] * 1e3
+        print(f"{stack.info(k).pass_id:<16} {int(cells.sum()):>7} {np.mean(fused):>+7.2f} "
+              f"{np.sqrt(np.mean(fused ** 2)):>7.2f} {np.mean(fit):>+7.2f} "
+              f"{np.sqrt(np.mean(fit ** 2)):>7.2f}")
 
 
 def _states_before(store, pile_id: str, times_ns: list[int]) -> list:

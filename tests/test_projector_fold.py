@@ -345,3 +345,47 @@ def test_stockpile_project_json_matches_the_python_api(yard, tmp_path):
     text = subprocess.run([sys.executable, "-m", "services.cli", "project", "--ledger", str(path),
                            "--pile", "NOPE"], capture_output=True, text=True, timeout=300)
     assert text.returncode == 2 and "not declared" in text.stderr
+
+
+def test_each_buried_top_is_fitted_once_at_the_first_cut_after_its_pass():
+    from ledger.projector.grid import GridGeometry
+    from ledger.projector.layers import DepositInfo, LayerStack
+
+    seed = 11
+    print(f"seed={seed}")
+    rng = np.random.default_rng(seed)
+    g = GridGeometry(0.0, 0.0, 0.5, 24, 20)
+    x = np.arange(g.nx)[:, None] * 0.5 + np.zeros(g.ny)
+    stack = LayerStack.empty(g, 0.0)
+
+    def lay(stack, k):
+        stack = stack.open_deposit(DepositInfo(k, f"P{k}", "L", k * S))
+        crest = 1.0 * k - 0.15 * np.abs(x - 6.0)          # a ridge across x
+        top = np.maximum(stack.surface(), crest + rng.normal(0.0, 0.05, g.shape))
+        return stack.raise_to(top, k * S + 1)[0]
+
+    for k in (1, 2, 3):
+        stack = lay(stack, k)
+    state = F.initial_state(PILE)
+    state.stack = stack
+    F._fit_buried_boundaries(state)
+    assert state.boundaries_fitted == 2 and state.counters["boundaries_fitted"] == 2
+    once = stack.fit_boundaries([1, 2], 7)
+    np.testing.assert_array_equal(state.stack.surfaces(), once.surfaces())
+    assert not np.array_equal(once.surfaces(), stack.surfaces())
+    F._fit_buried_boundaries(state)                     # nothing new is buried: no change
+    np.testing.assert_array_equal(state.stack.surfaces(), once.surfaces())
+    assert state.counters["boundaries_fitted"] == 2
+    state.stack = lay(state.stack, 4)                  # a new pass buries deposit 3's top
+    before = state.stack
+    F._fit_buried_boundaries(state)
+    assert state.boundaries_fitted == 3 and state.counters["boundaries_fitted"] == 3
+    np.testing.assert_array_equal(state.stack.surfaces(),
+                                  before.fit_boundaries([3], 7).surfaces())
+    # off: the tops stay as fused
+    off = F.initial_state(F.FoldConfig(pile_id=PILE, boundary_fit_cells=1))
+    off.stack = stack
+    F._fit_buried_boundaries(off)
+    assert off.stack is stack and off.boundaries_fitted == 0
+    with pytest.raises(ValueError, match="boundary_fit_cells"):
+        F.FoldConfig(pile_id=PILE, boundary_fit_cells=4)

@@ -19,7 +19,7 @@ from hypothesis import strategies as st
 from ledger.projector.envelope import Reclaimer, cut_floor, in_slew_arc, wheel_centre
 from ledger.projector.grades import AssayRecord, effective_assays, grade_at, grade_classes
 from ledger.projector.grid import GridGeometry, cell_centre
-from ledger.projector.layers import DepositInfo, LayerStack
+from ledger.projector.layers import DepositInfo, LayerStack, fit_local_quadratic
 from ledger.projector.voxels import ClassWeights, integrate
 
 T0 = 1_700_000_000 * 10**9  # an arbitrary UTC epoch (ns)
@@ -884,3 +884,91 @@ def test_a_removal_split_by_a_mask_is_the_clamp_of_each_part(seed):
             assert math.isclose(got.volume_m3, ref.volume_m3, rel_tol=1e-12)
     assert math.isclose(whole.within(mask).volume_m3 + whole.within(~mask).volume_m3,
                         whole.volume_m3, rel_tol=1e-12)
+
+
+# --------------------------------------------------------------------------------------
+# buried boundaries: a local quadratic fit
+# --------------------------------------------------------------------------------------
+
+def _quadratic_per_cell(z, mask, window):
+    """Per masked cell, numpy's lstsq over the masked cells of its window (a Python loop)."""
+    half, out = window // 2, z.copy()
+    for ix, iy in zip(*np.nonzero(mask)):
+        rows, values = [], []
+        for dx in range(-half, half + 1):
+            for dy in range(-half, half + 1):
+                jx, jy = ix + dx, iy + dy
+                if 0 <= jx < z.shape[0] and 0 <= jy < z.shape[1] and mask[jx, jy]:
+                    rows.append([1.0, dx, dy, dx * dx, dx * dy, dy * dy])
+                    values.append(z[jx, jy])
+        a = np.array(rows).reshape(-1, 6)
+        if np.linalg.matrix_rank(a) == 6:
+            out[ix, iy] = np.linalg.lstsq(a, np.array(values), rcond=None)[0][0]
+    return out
+
+
+@pytest.mark.parametrize("seed, window, p_mask", [(1, 5, 0.8), (2, 7, 0.6), (3, 3, 0.9),
+                                                  (4, 7, 0.2)])
+def test_fit_local_quadratic_against_a_per_cell_least_squares(seed, window, p_mask):
+    print(f"seed={seed}")
+    rng = np.random.default_rng(seed)
+    z = rng.normal(0.0, 1.0, (17, 13))
+    mask = rng.random(z.shape) < p_mask
+    got = fit_local_quadratic(z, mask, window)
+    want = _quadratic_per_cell(z, mask, window)
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-9)
+    assert np.array_equal(got[~mask], z[~mask])           # unmasked cells are not touched
+    assert not np.allclose(got[mask], z[mask])            # and the masked ones are fitted
+
+
+def test_fit_local_quadratic_keeps_a_quadratic_and_cuts_the_noise():
+    seed = 7
+    print(f"seed={seed}")
+    rng = np.random.default_rng(seed)
+    x, y = np.meshgrid(np.arange(80.0), np.arange(60.0), indexing="ij")
+    # a rounded crest along y on a tilted plane, in a disc that cuts windows short
+    z = 3.0 + 0.02 * x - 0.01 * y - 0.004 * (x - 40.0) ** 2 + 0.0005 * (x - 40) * (y - 30)
+    disc = (x - 40.0) ** 2 + (y - 30.0) ** 2 < 25.0 ** 2
+    np.testing.assert_allclose(fit_local_quadratic(z, disc, 7)[disc], z[disc], atol=1e-9)
+    noise = rng.normal(0.0, 0.01, z.shape)
+    fitted = fit_local_quadratic(z + noise, disc, 7)
+    inner = (x - 40.0) ** 2 + (y - 30.0) ** 2 < 20.0 ** 2   # full windows
+    ratio = np.std((fitted - z)[inner]) / np.std(noise[inner])
+    assert 0.22 < ratio < 0.32, ratio   # 0.274 for a full 7 x 7 window
+    with pytest.raises(ValueError, match="odd"):
+        fit_local_quadratic(z, disc, 4)
+    with pytest.raises(ValueError, match="shape"):
+        fit_local_quadratic(z, disc[:-1], 5)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_fit_boundaries_moves_material_between_the_two_deposits_only(seed):
+    print(f"seed={seed}")
+    stack = _random_stack(seed, nx=15, ny=12, n=4)
+    # its random thicknesses make every buried top rough: the fit has work to do
+    fitted = stack.fit_boundaries([2], 5)
+    before, after = stack.surfaces(), fitted.surfaces()
+    assert np.array_equal(after[[0, 1, 3, 4]], before[[0, 1, 3, 4]])  # only S2 moves
+    assert np.all(np.diff(after, axis=0) >= 0)                          # still monotone
+    moved = after[2] != before[2]
+    assert moved.any()
+    # only where both deposit 2 and deposit 3 had material
+    assert np.all((before[2] > before[1])[moved] & (before[3] > before[2])[moved])
+    assert fitted.total_volume_m3() == pytest.approx(stack.total_volume_m3(), rel=1e-12)
+    assert (fitted.volume_m3(2) + fitted.volume_m3(3)
+            == pytest.approx(stack.volume_m3(2) + stack.volume_m3(3), rel=1e-12))
+    for k in (1, 2, 3, 4):   # every cell keeps each deposit's time where it keeps material
+        keep = fitted.thickness(k) > 0
+        np.testing.assert_array_equal(fitted.deposition_time_ns(k)[keep],
+                                      stack.deposition_time_ns(k)[keep])
+    # the fit, where it stays between its neighbours, is fit_local_quadratic's
+    mask = (before[2] > before[1]) & (before[3] > before[2])
+    free = fit_local_quadratic(before[2], mask, 5)
+    inside = mask & (free > before[1]) & (free < before[3])
+    np.testing.assert_allclose(after[2][inside], free[inside], rtol=0, atol=1e-12)
+    with pytest.raises(ValueError, match="top one"):
+        stack.fit_boundaries([4])
+    with pytest.raises(ValueError, match="odd"):
+        stack.fit_boundaries([1], 6)
+    with pytest.raises(ValueError, match="deposit index"):
+        stack.fit_boundaries([0])

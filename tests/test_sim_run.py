@@ -164,10 +164,21 @@ def test_cut_surfaces_are_what_each_cut_acted_on(tmp_path):
         lost_m3 = float(np.sum(before_m.astype(np.float64) - after_m)) * cell_area_m2
         assert cut["true_volume_m3"] > 1.0
         assert abs(lost_m3 - cut["true_volume_m3"]) <= 1e-4 * cut["true_volume_m3"], cut["cut_id"]
+    # the parcels as stacked, at the first cut's start: they sum to that surface, and
+    # their times lie in the passes that laid them
+    thickness = arrays["first_cut_thickness"].astype(np.float64)
+    ground_m = truth["scenario"].get("ground_z_m", 0.0)
+    assert thickness.shape[0] == len(truth["passes"]) >= 2
+    np.testing.assert_allclose(ground_m + thickness.sum(axis=0), surfaces[0], atol=1e-5)
+    times = arrays["first_cut_time_ns"]
+    for slot, p in enumerate(truth["passes"]):
+        laid = thickness[slot] > 1e-6
+        assert laid.any()
+        assert np.all((times[slot][laid] >= p["t0_ns"] - 1e3) & (times[slot][laid] <= p["t1_ns"] + 1e3))
     # without the option there is no such array
     plain = Simulation(scenario, 3, tmp_path / "plain")
     plain.run(duration_h=0.05)
-    assert "cut_surface_z" not in np.load(tmp_path / "plain" / "truth.npz")
+    assert not {"cut_surface_z", "first_cut_thickness"} & set(np.load(tmp_path / "plain" / "truth.npz"))
 
 
 def test_clock_ticks_every_second_while_a_machine_works_and_where_it_stops(tmp_path):

@@ -63,7 +63,7 @@ GEOMETRY_TYPES = ("pile_declared", "machine_declared", "stack_started", "stack_e
 #: The fold's version: bumped whenever a change makes the same events and config fold to
 #: a different state.  Snapshots are keyed by it as well as by the config, so those of an
 #: older fold are never used (:class:`ledger.projector.query.SnapshotStore`).
-FOLD_VERSION = 20
+FOLD_VERSION = 21
 
 DEFAULT_CELL_M = 0.25
 DEFAULT_VOXEL_M = 1.0
@@ -168,6 +168,15 @@ class FoldConfig:
     dig_journal_s : float
         The stack's rises are remembered this long (s), so that a cut up to this long
         undoes those its own digging caused in its footprint (:func:`_undo_digging_rises`).
+    boundary_fit_cells : int
+        At the first cut after a pass (the layers below the top one are complete), each
+        deposit's top that no such cut has fitted yet, other than the top one, is replaced
+        by a local quadratic fit over this many x this many cells
+        (:meth:`ledger.projector.layers.LayerStack.fit_boundaries`; odd; 1: as fused).
+        A buried top keeps the height map's per-cell noise (2.7-3.5 mm rms against the
+        simulator's layer tops at bench scale), and a cut whose floor runs close to it
+        takes the lower deposit wherever the noise lifted it: bench-scale seed 3's
+        B1-C06 took 2.3 cm3 of lot C where the simulator's took 0.7 (-0.45 pp Fe).
     cone_smooth_cells : int
         A never-seen cell's repose cone rises from the seen heights fitted with a plane
         over this many x this many cells (odd; 1: the heights as fused), so that it is
@@ -234,6 +243,7 @@ class FoldConfig:
     relax_slack: float = 0.0
     accept_rises_at_pass_start: bool = True
     catch_up_cells: int = 5
+    boundary_fit_cells: int = 7
     dig_journal_s: float = 3600.0
     cone_smooth_cells: int = 5
     pouring_tail: bool = True
@@ -259,7 +269,7 @@ class FoldConfig:
                                else float(self.ground_deadband_m))}
 
     def __post_init__(self) -> None:
-        for name in ("cone_smooth_cells", "profile_fit_beams"):
+        for name in ("cone_smooth_cells", "profile_fit_beams", "boundary_fit_cells"):
             value = int(getattr(self, name))
             if value < 1 or value % 2 == 0:
                 raise ValueError(f"{name} must be odd and >= 1, got {getattr(self, name)}")
@@ -346,6 +356,8 @@ class ProjectorState:
     margin_m: float = 0.02
     process_sd_m: float = 0.01     # the height map's creep per observation (resolved)
     tan_repose: float = math.nan   # last estimate of tan(angle of repose)
+    #: the tops of deposits 1 .. this one are fitted (:func:`_fit_buried_boundaries`)
+    boundaries_fitted: int = 0
     #: the last scan height offset applied, ``(scan t_ns, offset m)`` (:func:`_reference_ground`)
     ground_offset: tuple[int, float] = (-(2 ** 62), 0.0)
     counters: dict[str, int] = field(default_factory=dict)
@@ -518,9 +530,12 @@ def _on_reclaim_cut(state: ProjectorState, event, msg) -> None:
     floor = None if machine is None else cut_floor(
         state.pile.geometry, machine, msg.travel_m, msg.luff_rad, msg.slew_start_rad,
         msg.slew_end_rad)
-    if _settling_last_pass(state):   # the first cut after a pass: that pass is complete
+    settling = _settling_last_pass(state)
+    if settling:   # the first cut after a pass: that pass is complete
         _catch_up_rises(state, start_ns)
     _complete_unseen(state, start_ns)
+    if settling:
+        _fit_buried_boundaries(state)
     if floor is not None:
         # the map the two above followed has seen this cut dig: what rose in its
         # footprint since it started is undone
@@ -1470,6 +1485,17 @@ def _stacker_speed_m_s(record: PassRecord, typical_s: float | None) -> float:
     if t1 is None or t1 <= record.started_ns or not run_m > 0:
         return math.nan
     return run_m / ((t1 - record.started_ns) / 1e9)
+
+
+def _fit_buried_boundaries(state: ProjectorState) -> None:
+    """Fit the tops of the deposits below the top one that are not fitted yet
+    (``FoldConfig.boundary_fit_cells``): the passes that laid them are complete."""
+    window, n = int(state.config.boundary_fit_cells), state.stack.n_deposits
+    if window < 3 or n - 1 <= state.boundaries_fitted:
+        return
+    state.stack = state.stack.fit_boundaries(range(state.boundaries_fitted + 1, n), window)
+    state.count("boundaries_fitted", n - 1 - state.boundaries_fitted)
+    state.boundaries_fitted = n - 1
 
 
 def _settling_last_pass(state: ProjectorState) -> bool:

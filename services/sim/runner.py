@@ -171,7 +171,9 @@ class Simulation:
     #: (see the module docstring)
     scan_events: str = "off"
     #: keep the true surface at each cut's start (``cut_surface_z`` in truth.npz, float32,
-    #: one (ny, nx) grid per cut in the order of truth.json's cuts): what the cut acted on
+    #: one (ny, nx) grid per cut in the order of truth.json's cuts): what the cut acted on;
+    #: and the parcels as stacked, at the first cut's start (``first_cut_thickness`` m,
+    #: float32, and ``first_cut_time_ns``, both (slots, ny, nx))
     cut_surfaces: bool = False
 
     def __post_init__(self) -> None:
@@ -219,6 +221,7 @@ class Simulation:
         self.stats = RunStats()
         self.truth_joints: list[tuple[int, float, float, float]] = []
         self.truth_cut_surfaces: list[np.ndarray] = []
+        self.truth_first_cut_parcels: dict[str, np.ndarray] = {}
         self.truth_scans: list[tuple] = []
         self.truth_antenna: list[tuple] = []
         self.passes: list[dict] = []
@@ -644,6 +647,12 @@ class Simulation:
 
     def _on_cut_start(self, t: int, c: dict, at) -> None:
         if self.cut_surfaces:
+            if not self.truth_cut_surfaces:
+                # the layers as stacked, before any cut or its slump moved them
+                parcels = self.world.parcels()
+                self.truth_first_cut_parcels = {
+                    "first_cut_thickness": parcels["thickness"].astype(np.float32),
+                    "first_cut_time_ns": parcels["time_ns"]}
             self.truth_cut_surfaces.append(self.world.surface_z().astype(np.float32))
         self.motion = Motion(c["t0"], c["t1"], (c["travel"], c["slew_start"], c["luff"]),
                              (c["travel"], c["slew_end"], c["luff"]))
@@ -735,6 +744,7 @@ class Simulation:
             # a run stopped mid-cut has a surface for a cut it did not finish: not kept
             arrays["cut_surface_z"] = np.asarray(self.truth_cut_surfaces[:len(self.cuts)],
                                                  np.float32).reshape(-1, *arrays["surface_z"].shape)
+            arrays.update(self.truth_first_cut_parcels)
         parcels = world.parcels()
         arrays.update(thickness=parcels["thickness"], time_ns=parcels["time_ns"],
                       grade=parcels["grade"], density_t_m3=parcels["density_t_m3"])
