@@ -215,10 +215,15 @@ def fit_local_quadratic(z_m, mask, window: int = 7) -> np.ndarray:
                    + np.arange(window)[None, :]).ravel()
         flat = (ix * (ny + 2 * half) + iy)[:, None] + offsets[None, :]   # window's top-left
         w = mp.ravel()[flat].astype(np.float64)                           # (p, window^2)
-        a = np.einsum("pn,ni,nj->pij", w, basis, basis)
-        b = np.einsum("pn,ni->pi", w * zp.ravel()[flat], basis)
-        # the basis' scale spans window^4: relative to it, a singular system
-        ok = np.linalg.cond(a) < 1e10
+        products = (basis[:, :, None] * basis[:, None, :]).reshape(len(basis), 36)
+        a = (w @ products).reshape(-1, 6, 6)                      # the normal equations
+        b = (w * zp.ravel()[flat]) @ basis
+        # singular where the cells do not determine a quadratic: the determinant against
+        # the product of the diagonal (1 for orthogonal terms, 0 for dependent ones)
+        sign, logdet = np.linalg.slogdet(a)
+        diagonal = np.einsum("pii->pi", a)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ok = (sign > 0) & (logdet - np.sum(np.log(diagonal), axis=1) > math.log(1e-10))
         if ok.any():
             sol = np.linalg.solve(a[ok], b[ok][..., None])[..., 0]
             out.ravel()[part[ok]] = sol[:, 0]
@@ -617,9 +622,11 @@ class LayerStack:
             bad window.
         """
         _check_window(window)
-        surfaces = list(self._surfaces)
-        for k in sorted({int(k) for k in ks}):
+        ks = sorted(set(ks))
+        for k in ks:
             self._check_k(k)
+        surfaces = list(self._surfaces)
+        for k in map(int, ks):
             if k == self.n_deposits:
                 raise ValueError(f"deposit {k} is the top one: its top is the measured surface")
             lo, z, hi = surfaces[k - 1], surfaces[k], surfaces[k + 1]
