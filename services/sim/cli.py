@@ -148,7 +148,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    "reading; default off (no such events)")
     p.add_argument("--truth-cut-surfaces", action="store_true",
                    help="also keep the true surface at each cut's start in truth.npz "
-                   "(cut_surface_z; for bench/projector_truth.py --explain)")
+                   "(cut_surface_z) and the parcels as stacked at the first cut's start "
+                   "(first_cut_thickness, first_cut_time_ns; for "
+                   "bench/projector_truth.py --explain)")
     p.add_argument("--wait-subscriber", type=float, default=0.0, metavar="SECONDS",
                    help="with --zenoh: start only once a subscriber listens (give up after SECONDS)")
     p.add_argument("--wait-live", action="append", default=[], metavar="KEY",
