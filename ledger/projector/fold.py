@@ -173,10 +173,15 @@ class FoldConfig:
         deposit's top that no such cut has fitted yet, other than the top one, is replaced
         by a local quadratic fit over this many x this many cells
         (:meth:`ledger.projector.layers.LayerStack.fit_boundaries`; odd; 1: as fused).
-        A buried top keeps the height map's per-cell noise (2.7-3.5 mm rms against the
-        simulator's layer tops at bench scale), and a cut whose floor runs close to it
-        takes the lower deposit wherever the noise lifted it: bench-scale seed 3's
-        B1-C06 took 2.3 cm3 of lot C where the simulator's took 0.7 (-0.45 pp Fe).
+        A buried top keeps the height map's per-cell noise (2.8-3.7 mm rms against the
+        simulator's layer tops on the five bench-scale seeds; fitted, 1.4-2.0 mm, and
+        3.0-3.2 mm for the one whose error has structure), and a cut whose floor runs
+        close to it takes the lower deposit wherever the noise lifted it: bench-scale
+        seed 3's B1-C06 took 2.3 cm3 of lot C where the simulator's took 0.7 (-0.45 pp
+        Fe; -0.18 pp fitted).  Exact-lab Fe rms per seed went from 0.051 / 0.122 /
+        0.155 / 0.114 / 0.130 to 0.034 / 0.117 / 0.130 / 0.097 / 0.102 pp; the means
+        over 3 x 3 and 5 x 5 cells did as well or better on some seeds but shift every
+        lot (a mean lowers crests and raises toes).
     cone_smooth_cells : int
         A never-seen cell's repose cone rises from the seen heights fitted with a plane
         over this many x this many cells (odd; 1: the heights as fused), so that it is
