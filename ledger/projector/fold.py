@@ -1350,15 +1350,17 @@ def _rise_to_crossing_passes(state: ProjectorState, surface: np.ndarray,
     count = sum(c[2].astype(int) for c in cands)
     top = state.stack.surface().ravel()[cells]
     rise = surface.ravel()[cells] - top
-    position, updates = np.zeros(cells.size), []
+    position, updates, crests = np.zeros(cells.size), [], None
     for record, crossing, hit in cands:
         position += hit
         if hit.any():
             share = (rise / np.maximum(count, 1))[hit]
+            if crests is None:     # the stack is raised after the loop: one crest per row
+                crests = _row_crests_m(geometry, state.stack.surface())
             updates.append((record.deposit_index, cells[hit],
                             (top + rise * (position / np.maximum(count, 1)))[hit],
                             _crossing_dates(state, record, cells[hit], share, crossing[hit],
-                                            typical)))
+                                            typical, crests)))
     state.stack, raised = state.stack.raise_deposits(updates)
     done = sum(int(r.sum()) for r in raised)
     if done:
@@ -1370,9 +1372,11 @@ def _rise_to_crossing_passes(state: ProjectorState, surface: np.ndarray,
 
 def _crossing_dates(state: ProjectorState, record: PassRecord, cells: np.ndarray,
                     thickness_m: np.ndarray, crossing_ns: np.ndarray,
-                    typical_s: float | None) -> np.ndarray:
+                    typical_s: float | None,
+                    crests: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
     """When a pass laid its material in ``cells`` (flat indices, ``thickness_m`` of it
-    each), given when its stacker crossed them (UTC ns, float64, shape of ``cells``).
+    each), given when its stacker crossed them (UTC ns, float64, shape of ``cells``);
+    ``crests``: :func:`_row_crests_m` of the stack's top, when the caller has it.
 
     Along the run the crossing stands: the cone's front lays a cell's layer before the
     boom comes (:func:`slump.pour_front_lead_m`), but a varying flow lays part of it
@@ -1393,7 +1397,7 @@ def _crossing_dates(state: ProjectorState, record: PassRecord, cells: np.ndarray
         return crossing_ns
     geometry = state.pile.geometry
     ix, iy = np.divmod(cells, geometry.ny)
-    x, crest = _row_crests_m(geometry, state.stack.surface())   # the boom on each crest
+    x, crest = crests or _row_crests_m(geometry, state.stack.surface())   # the boom's line
     offset = (x[ix] - crest[iy])[None, :]
     thickness = np.asarray(thickness_m, np.float64)[None, :]
     ahead = (record.end_y_m - _row_y_m(geometry)[iy]) * np.sign(record.end_y_m
