@@ -164,6 +164,10 @@ def test_cut_surfaces_are_what_each_cut_acted_on(tmp_path):
         lost_m3 = float(np.sum(before_m.astype(np.float64) - after_m)) * cell_area_m2
         assert cut["true_volume_m3"] > 1.0
         assert abs(lost_m3 - cut["true_volume_m3"]) <= 1e-4 * cut["true_volume_m3"], cut["cut_id"]
+        # the walls a cut leaves standing slide once it has passed: the volume that moved
+        # is kept, and it is part of the pile the cut left
+        pile_m3 = float(np.sum(after_m - truth["scenario"].get("ground_z_m", 0.0))) * cell_area_m2
+        assert 0.0 < cut["slump_m3"] < pile_m3, cut["cut_id"]
     # the parcels as stacked, at the first cut's start: they sum to that surface, and
     # their times lie in the passes that laid them
     thickness = arrays["first_cut_thickness"].astype(np.float64)

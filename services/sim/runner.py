@@ -699,6 +699,7 @@ class Simulation:
                           "luff_rad": c["luff"], "slew_start_rad": c["slew_start"],
                           "slew_end_rad": c["slew_end"], "true_tonnes": tonnes,
                           "true_volume_m3": sum(p.volume_m3 for p in c["parts"]), "belt_tonnes": belt,
+                          "slump_m3": sum(p.slump_m3 for p in c["parts"]),
                           "grade": grade, "tonnes_by_lot": by_lot,
                           "tonnes_by_deposit": by_deposit})
         self.stats.cuts += 1
