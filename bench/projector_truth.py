@@ -28,7 +28,7 @@ before), not a measurement.  ``slid`` is the volume our model's face slid after 
 cut, ``slump_m3`` in truth.json; NaN for a run simulated before it was kept): both the
 volume that left the cells it fell from.  Bench-scale, every seed: bench 2's slides
 match the simulator's within 4 %, the later cuts of bench 1 slide 1.1-2 times as much,
-and the first cut's slide moves 12-25 times as much (220-254 cm3 against 9-21): the
+and the first cut's slide moves 12-24 times as much (215-254 cm3 against 9-21): the
 first relaxation of the noisy stacked surface levels its bumps, a cell's noise being a
 few times the repose drop across a cell.
 
@@ -427,7 +427,7 @@ def deposition_times(result: dict) -> None:
     if rows:
         print("deposition time, ours - simulator's, per pass (s, weighted by our thickness), "
               "and its mean by where along the stacker's run the cells lie:")
-        print(f"  {'pass':<12} {'pass':>7} {'cells':>8} {'mean':>6} {'rms':>6}  "
+        print(f"  {'pass':<12} {'length':>7} {'cells':>8} {'mean':>6} {'rms':>6}  "
               + " ".join(f"{label:>6}" for label in _RUN_LABELS))
         for pid, dur, n, mean, rms, parts in rows:
             print(f"  {pid:<12} {dur:5.0f} s {n:>8,} {mean:+6.1f} {rms:6.1f}  "
