@@ -159,6 +159,7 @@ def test_cut_surfaces_are_what_each_cut_acted_on(tmp_path):
     assert surfaces.shape == (2, *arrays["surface_z"].shape)
     assert truth["world"]["mass_balance"]["lost_tonnes"] == 0.0
     cell_area_m2 = sim.world.grid.cell_area_m2
+    ground_m = truth["scenario"].get("ground_z_m", 0.0)
     after = [*surfaces[1:], arrays["surface_z"]]
     for cut, before_m, after_m in zip(truth["cuts"], surfaces, after):
         lost_m3 = float(np.sum(before_m.astype(np.float64) - after_m)) * cell_area_m2
@@ -166,12 +167,11 @@ def test_cut_surfaces_are_what_each_cut_acted_on(tmp_path):
         assert abs(lost_m3 - cut["true_volume_m3"]) <= 1e-4 * cut["true_volume_m3"], cut["cut_id"]
         # the walls a cut leaves standing slide once it has passed: the volume that moved
         # is kept, and it is part of the pile the cut left
-        pile_m3 = float(np.sum(after_m - truth["scenario"].get("ground_z_m", 0.0))) * cell_area_m2
+        pile_m3 = float(np.sum(after_m - ground_m)) * cell_area_m2
         assert 0.0 < cut["slump_m3"] < pile_m3, cut["cut_id"]
     # the parcels as stacked, at the first cut's start: they sum to that surface, and
     # their times lie in the passes that laid them
     thickness = arrays["first_cut_thickness"].astype(np.float64)
-    ground_m = truth["scenario"].get("ground_z_m", 0.0)
     assert thickness.shape[0] == len(truth["passes"]) >= 2
     np.testing.assert_allclose(ground_m + thickness.sum(axis=0), surfaces[0], atol=1e-5)
     times = arrays["first_cut_time_ns"]
