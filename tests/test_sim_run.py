@@ -18,7 +18,7 @@ from schemas.validate import check_event
 from services.protocols import lms200
 from services.protocols.nmea import NmeaReader, parse_gga
 from services.sim.pty import PtyDevice
-from services.sim.runner import Simulation
+from services.sim.runner import LAB_WINDOW_FE, Simulation
 from services.sim.scenario import demo
 
 STOCKPILE = str(Path(sys.executable).with_name("stockpile"))
@@ -183,6 +183,41 @@ def test_cut_surfaces_are_what_each_cut_acted_on(tmp_path):
     plain = Simulation(scenario, 3, tmp_path / "plain")
     plain.run(duration_h=0.05)
     assert not {"cut_surface_z", "first_cut_thickness"} & set(np.load(tmp_path / "plain" / "truth.npz"))
+
+
+def test_cuts_carry_the_fe_the_lab_gave_their_material(tmp_path):
+    """``lab_window_fe_pct``: a cut's Fe as the laboratory's final results, one per window,
+    give it.  Checked by a different path than the grade channel the world carries: the
+    pile's stacked mean of the channel against every release's tonnes times the final Fe of
+    the window (from truth.json's assays) its time falls in."""
+    base = demo()
+    scenario = replace(base, lots=base.lots[:2], passes_per_lot=1, pass_duration_s=200.0,
+                       assay_window_s=40.0, scan_hz=1.0, encoder_hz=1.0, gnss_hz=0.2,
+                       idle_hz=0.01, cuts_per_bench=(2,))
+    sim = Simulation(scenario, 5, tmp_path)
+    sim.run()
+    truth = json.loads((tmp_path / "truth.json").read_text())
+    final = [a for a in truth["assays"] if a["status"] == "FINAL"]
+    assert len(final) == 10   # 2 passes of 200 s in 40-s windows
+
+    def lab_fe(lot: str, time_ns: int) -> float:
+        mine = [a for a in final if a["lot_id"] == lot]
+        hits = [a for a in mine if a["window_start_ns"] <= time_ns < a["window_end_ns"]]
+        hits = hits or [a for a in mine if a["window_end_ns"] == time_ns]   # the last window
+        assert len(hits) == 1, (lot, time_ns)
+        return hits[0]["analytes_pct"]["Fe"]
+
+    releases = sim.world.releases()
+    stacked_t = sum(r["tonnes"] for r in releases)
+    expected = sum(r["tonnes"] * lab_fe(r["lot"], r["time_ns"]) for r in releases) / stacked_t
+    assert abs(truth["world"]["stacked_grade"][LAB_WINDOW_FE] - expected) < 1e-9
+    assert len(truth["cuts"]) == 2
+    for cut in truth["cuts"]:
+        values = [a["analytes_pct"]["Fe"] for a in final if a["lot_id"] in cut["tonnes_by_lot"]]
+        assert min(values) <= cut["lab_window_fe_pct"] <= max(values), cut["cut_id"]
+        # the lab measures with error and one grade per window: never the true Fe
+        assert cut["lab_window_fe_pct"] != cut["grade"]["Fe"], cut["cut_id"]
+        assert set(cut["grade"]) == {"Fe", "SiO2", "Al2O3", "P", "LOI"}, cut["cut_id"]
 
 
 def test_clock_ticks_every_second_while_a_machine_works_and_where_it_stops(tmp_path):

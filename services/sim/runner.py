@@ -88,6 +88,10 @@ SCANNER_IN_WHEEL = np.array([[0.0, 1.0, 0.0],
                              [0.0, 0.0, -1.0],
                              [-1.0, 0.0, 0.0]])
 
+#: The world's extra grade channel: the laboratory's Fe (mass %) of the assay window each
+#: piece of belt flow falls in (see Simulation.__init__); cut records give its mean as
+#: ``lab_window_fe_pct``.
+LAB_WINDOW_FE = "Fe@lab-window"
 CHUNK_S = 30.0           # stacking is released in chunks of this much site time
 CUT_SUBSWEEPS = 8        # a cut removes material in this many steps of its slew
 MOVE_SPEED_M_S = 0.5     # travel speed between cuts and while patrolling (full-scale machine)
@@ -198,7 +202,11 @@ class Simulation:
         self.grid = Grid.covering(sc.pile_origin_x_m - margin, sc.pile_origin_x_m + sc.pile_width_m + margin,
                                   sc.pile_origin_y_m - margin, sc.pile_origin_y_m + sc.pile_length_m + margin,
                                   sc.deposition_cell_m, ground_z_m=sc.ground_z_m)
-        self.world = World(self.grid, sc.repose_deg)
+        # a sixth grade channel carries the laboratory's Fe of the window each step of
+        # belt flow falls in (LAB_WINDOW_FE): a cut's tonnage-weighted mean of it is the Fe
+        # a projector with the true composition and true deposition times would report
+        # from the assays, one grade per window
+        self.world = World(self.grid, sc.repose_deg, analytes=ANALYTES + (LAB_WINDOW_FE,))
         self.machine = sc.machine
         self.encoders = sensors.EncoderModel(rng=_rng(self.seed, "encoders"))
         self.gnss = sensors.GnssModel(sc.datum_lat_deg, sc.datum_lon_deg, sc.datum_alt_m,
@@ -372,6 +380,7 @@ class Simulation:
         self.stacking_until = survey_end
         self.reclaiming = False
         self.belts = belts
+        self.lab_windows = _lab_windows(self.lab_results, "Fe")
 
         next_report = time.monotonic() + 10.0
         t_prev, wall_due, schedule0, busy = t0, 0.0, wall0, None
@@ -558,8 +567,14 @@ class Simulation:
         y_b = p["y0"] + (p["y1"] - p["y0"]) * (k + 1) / n
         x_c = sc.pile_origin_x_m + sc.pile_width_m / 2
         belt = self.belts[p["lot"].lot_id]
+        windows = self.lab_windows.get(p["lot"].lot_id)
+        planned_fe = p["lot"].mean_pct[ANALYTES.index("Fe")]   # a lot the lab never sampled
+
+        def grade(tt: int) -> np.ndarray:
+            return np.append(belt.at(tt), _window_value(windows, tt) if windows else planned_fe)
+
         self.world.stack_pass(sc.pattern.lower(), y_a, y_b, x_c, sc.tonnes_per_pass / n, int(t_a), int(t),
-                              p["deposit"], p["lot"].lot_id, lambda tt: belt.at(tt),
+                              p["deposit"], p["lot"].lot_id, grade,
                               sc.bulk_density_t_m3, rng=self.rng_stack,
                               jitter_m=0.02 * sc.pile_width_m, rate_cv=0.05)
 
@@ -678,6 +693,8 @@ class Simulation:
         for a in ANALYTES:
             mass = sum(p.tonnes * p.grade[a] for p in c["parts"] if p.tonnes > 0)
             grade[a] = mass / tonnes if tonnes > 0 else float("nan")
+        lab_fe = (sum(p.tonnes * p.grade[LAB_WINDOW_FE] for p in c["parts"] if p.tonnes > 0)
+                  / tonnes if tonnes > 0 else float("nan"))
         by_lot: dict[str, float] = {}
         for p in c["parts"]:
             for lot, tn in p.tonnes_by_lot.items():
@@ -700,7 +717,7 @@ class Simulation:
                           "slew_end_rad": c["slew_end"], "true_tonnes": tonnes,
                           "true_volume_m3": sum(p.volume_m3 for p in c["parts"]), "belt_tonnes": belt,
                           "slump_m3": sum(p.slump_m3 for p in c["parts"]),
-                          "grade": grade, "tonnes_by_lot": by_lot,
+                          "grade": grade, "lab_window_fe_pct": lab_fe, "tonnes_by_lot": by_lot,
                           "tonnes_by_deposit": by_deposit})
         self.stats.cuts += 1
         at(t + int(30 * NS_PER_S), "reclaim", (c["bench"], c["cut"] + 1, c["travel"]))
@@ -750,6 +767,28 @@ class Simulation:
         arrays.update(thickness=parcels["thickness"], time_ns=parcels["time_ns"],
                       grade=parcels["grade"], density_t_m3=parcels["density_t_m3"])
         np.savez_compressed(self.out_dir / "truth.npz", **arrays)
+
+
+def _lab_windows(results: list[LabResult], analyte: str) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Per lot, the laboratory's final value of ``analyte`` (mass %) per sampling window:
+    (window starts in UTC ns, values), in time order (a FINAL replaces the PROVISIONAL
+    result of its window)."""
+    final: dict[tuple[str, int], float] = {}
+    for r in results:
+        if r.status == "FINAL":
+            final[(r.lot_id, r.window_start_ns)] = r.analytes_pct[analyte]
+    out: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+    for lot in {lot for lot, _ in final}:
+        starts = sorted(t for l, t in final if l == lot)
+        out[lot] = (np.array(starts, np.int64), np.array([final[(lot, t)] for t in starts]))
+    return out
+
+
+def _window_value(windows: tuple[np.ndarray, np.ndarray], time_ns: int) -> float:
+    """The value of the window that holds ``time_ns`` (the first or last beyond the ends)."""
+    starts, values = windows
+    i = int(np.searchsorted(starts, time_ns, side="right")) - 1
+    return float(values[min(max(i, 0), len(values) - 1)])
 
 
 def _stamp(message, field_name: str, t_ns: int):
