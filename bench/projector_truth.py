@@ -32,7 +32,7 @@ and the first cut's slide moves 12-24 times as much (215-254 cm3 against 9-21): 
 first relaxation of the noisy stacked surface levels its bumps, a cell's noise being a
 few times the repose drop across a cell.  A second table gives what slid into each
 cut's hole: our slide run on our stack and on the true surface at the cut's start,
-beside the simulator's (:func:`_hole_fills`).
+beside the simulator's (:func:`_hole_fill`).
 
 The column ``exact lab`` is each cut's Fe error again with every assay's analytes
 replaced by the simulator's true grade of its window: the simulator's lab measures with
@@ -137,10 +137,9 @@ def _exact_lab(state, lots, assays, truth: dict):
 def explain(result: dict) -> None:
     """Per cut: the envelope's error and the surface's error (see the module docstring)."""
     import numpy as np
-    from scipy.interpolate import RegularGridInterpolator
 
     from ledger.projector.envelope import cut_floor
-    from ledger.projector.grid import GridGeometry, cell_centres
+    from ledger.projector.grid import GridGeometry
 
     arrays = np.load(result["sim_dir"] / "truth.npz")
     if "cut_surface_z" not in arrays:
@@ -164,11 +163,13 @@ def explain(result: dict) -> None:
         befores = _states_before(store, pile_id, [c["t0_ns"] for c in truth["cuts"]])
     previous_end_ns = None
     slid_m3 = {c.cut_id: c.slumped_in_m3 for c in result["state"].cuts}
-    for c, true_z, before in zip(truth["cuts"], arrays["cut_surface_z"], befores):
-        g = before.pile.geometry
-        x, y = cell_centres(g)
-        surface = RegularGridInterpolator((yc, xc), true_z.astype(np.float64), bounds_error=False)(
-            np.column_stack([y.ravel(), x.ravel()])).reshape(x.shape)
+    # the true surface at each cut's start and, last, after the last cut, on our grid
+    true_surfaces = [] if not befores else [
+        _on_our_grid(arrays, befores[0].pile.geometry, z)
+        for z in (*arrays["cut_surface_z"][:len(befores)], arrays["surface_z"])]
+    fills = []
+    for i, (c, true_z, before) in enumerate(zip(truth["cuts"], arrays["cut_surface_z"], befores)):
+        g, surface = before.pile.geometry, true_surfaces[i]
         machine = before.machines[truth["scenario"]["machine_id"]]
         joints = (c["travel_m"], c["luff_rad"], c["slew_start_rad"], c["slew_end_rad"])
         # material is above the floor and the ground: a floor below the ground takes
@@ -198,69 +199,57 @@ def explain(result: dict) -> None:
               f"{_pct(map_m3, true_m3):>+7.2f} {bias_mm:>+13.2f} {seen_pct:>6.0f} "
               f"{slid_m3.get(c['cut_id'], math.nan) * scale:>8.4g} "
               f"{c.get('slump_m3', math.nan) * scale:>8.4g}", flush=True)
-    _hole_fills(befores, arrays, truth, ground_m, unit, scale)
+        if i + 1 < len(true_surfaces):
+            fills.append((c["cut_id"], _hole_fill(before, base, surface, true_surfaces[i + 1],
+                                                  c["t0_ns"], ground_m)))
+    print(f"\nwhat slid into each cut's hole ({unit}): our slide on our stack and on the true "
+          "surface at the cut's start, and the simulator's")
+    print(f"{'cut':<8} {'on ours':>9} {'on true':>9} {'sim':>9}")
+    for cut_id, row in fills:
+        print(f"{cut_id:<8} " + " ".join(f"{m3 * scale:>9.4g}" for m3 in row))
     if "first_cut_thickness" in arrays and befores:
         _buried_tops(befores[0], arrays, truth, ground_m)
 
 
-def _hole_fills(befores, arrays, truth: dict, ground_m: float, unit: str, scale: float) -> None:
-    """Per cut, what slid into its hole: our slide (``fold._slump_face`` after clamping to
-    the envelope floor) run on our stack at the cut's start and on the simulator's true
-    surface then, beside the simulator's own slide (its surface at the next cut's start
-    less what the cut left).  The hole's fill is the volume above what the cut left in
-    its footprint.  Where our slide on the true surface matches the simulator's, the
-    slide model is right and a difference in the first column is our surface's: the
-    relaxation is nonlinear, and noise in the surface shortens the slide.  Bench-scale,
-    seeds 1-5, the first cut: on the true surface our slide fills 2-4 % more than the
-    simulator's (our repose estimate, 36.7 deg, is shallower than its 37; at 37 deg seed 3
-    gives its 7.37 cm3 exactly), on our stack 9-33 % less (seed 3: 4.93 cm3; the true
-    surface with 2.5 mm of white noise added gives 4.59).  The later cuts' faces, slid
-    before, come within a few % on our stack."""
+def _hole_fill(before, floor_m, true_before_m, true_after_m, t0_ns: int,
+               ground_m: float) -> tuple[float, float, float]:
+    """What slid into one cut's hole (m3): our slide (``fold._slump_face`` after clamping to
+    the envelope floor ``floor_m``, +inf outside the footprint) run on our stack at the
+    cut's start (``before``) and on the simulator's true surface then, and the simulator's
+    own slide (its surface at the next cut's start less what the cut left).  The hole's
+    fill is the volume above what the cut left in its footprint; the true surfaces are on
+    our grid (NaN off the simulator's: its ground).
+
+    Where our slide on the true surface matches the simulator's, the slide model is right
+    and a difference in the first figure is our surface's: the relaxation is nonlinear,
+    and noise in the surface shortens the slide.  Bench-scale, seeds 1-5, the first cut:
+    on the true surface our slide fills 2-4 % more than the simulator's (our repose
+    estimate, 36.7 deg, is shallower than its 37; at 37 deg seed 3 gives its 7.37 cm3
+    exactly), on our stack 9-33 % less (seed 3: 4.93 cm3; the true surface with 2.5 mm of
+    white noise added gives 4.59).  The later cuts' faces, slid before, come within a few
+    % on our stack.
+    """
     import numpy as np
-    from scipy.interpolate import RegularGridInterpolator
 
     from ledger.projector import fold as F
-    from ledger.projector.envelope import cut_floor
-    from ledger.projector.grid import cell_centres
 
-    print(f"\nwhat slid into each cut's hole ({unit}): our slide on our stack and on the true "
-          "surface at the cut's start, and the simulator's")
-    print(f"{'cut':<8} {'on ours':>9} {'on true':>9} {'sim':>9}")
-    afters = [*arrays["cut_surface_z"][1:], arrays["surface_z"]]
-    for c, true_z, after_z, before in zip(truth["cuts"], arrays["cut_surface_z"], afters, befores):
-        if before.stack is None or before.stack.n_deposits == 0:
-            continue
-        g = before.pile.geometry
-        x, y = cell_centres(g)
-        points = np.column_stack([y.ravel(), x.ravel()])
-
-        def on_ours(z_m):
-            z = RegularGridInterpolator((arrays["y_centres"], arrays["x_centres"]),
-                                        z_m.astype(np.float64), bounds_error=False)(points)
-            return np.nan_to_num(z, nan=ground_m).reshape(x.shape)
-
-        machine = before.machines[truth["scenario"]["machine_id"]]
-        floor = cut_floor(g, machine, c["travel_m"], c["luff_rad"], c["slew_start_rad"],
-                          c["slew_end_rad"])
-        footprint = np.isfinite(floor)
-        true_before, true_after = on_ours(true_z), on_ours(after_z)
-        fills = []
-        for surface in (None, true_before):
-            state = before.copy()
-            if surface is not None:
-                top = state.stack.surface()
-                state.stack, _ = state.stack.clamp(np.where(surface < top, surface, np.inf))
-                up = surface > state.stack.surface()
-                state.stack, _ = state.stack.raise_to(np.where(up, surface, np.nan),
-                                                      np.where(up, float(c["t0_ns"]), np.nan))
-            start = state.stack.surface()
-            state.stack, _ = state.stack.clamp(floor)
-            F._slump_face(state, floor)
-            fills.append(float(np.sum((state.stack.surface() - np.minimum(start, floor))[footprint]))
-                         * g.cell_area_m2)
-        sim = float(np.sum((true_after - np.minimum(true_before, floor))[footprint])) * g.cell_area_m2
-        print(f"{c['cut_id']:<8} {fills[0] * scale:>9.4g} {fills[1] * scale:>9.4g} "
-              f"{sim * scale:>9.4g}", flush=True)
+    footprint = np.isfinite(floor_m)
+    true_before = np.nan_to_num(true_before_m, nan=ground_m)
+    true_after = np.nan_to_num(true_after_m, nan=ground_m)
+    area_m2 = before.pile.geometry.cell_area_m2
+    fills = []
+    for surface in (None, true_before):
+        state = before.copy()
+        if surface is not None:
+            state.stack, _ = state.stack.clamp(surface)
+            state.stack, _ = state.stack.raise_to(surface, int(t0_ns))
+        start = state.stack.surface()
+        state.stack, _ = state.stack.clamp(floor_m)
+        F._slump_face(state, floor_m)
+        fills.append(float(np.sum((state.stack.surface() - np.minimum(start, floor_m))[footprint]))
+                     * area_m2)
+    sim = float(np.sum((true_after - np.minimum(true_before, floor_m))[footprint])) * area_m2
+    return fills[0], fills[1], sim
 
 
 def _buried_tops(before, arrays, truth: dict, ground_m: float) -> None:
@@ -269,10 +258,8 @@ def _buried_tops(before, arrays, truth: dict, ground_m: float) -> None:
     cells where the simulator has both that deposit and one above it, as fused and as
     that cut fits them (``FoldConfig.boundary_fit_cells``)."""
     import numpy as np
-    from scipy.interpolate import RegularGridInterpolator
 
     from ledger.projector import fold as F
-    from ledger.projector.grid import cell_centres
 
     thickness = arrays["first_cut_thickness"].astype(np.float64)
     tops = ground_m + np.cumsum(thickness, axis=0)
@@ -284,16 +271,14 @@ def _buried_tops(before, arrays, truth: dict, ground_m: float) -> None:
         return
     fitted = before.copy()
     F._fit_buried_boundaries(fitted)
-    x, y = cell_centres(stack.geometry)
-    points = np.column_stack([y.ravel(), x.ravel()])
 
     def on_ours(z_m):
-        return RegularGridInterpolator((arrays["y_centres"], arrays["x_centres"]), z_m,
-                                       bounds_error=False)(points).reshape(x.shape)
+        return _on_our_grid(arrays, stack.geometry, z_m)
 
     print("\nburied tops at the first cut, ours - the simulator's (mm): as fused / as fitted")
     print(f"{'deposit':<16} {'cells':>7} {'mean':>7} {'rms':>7} {'mean':>7} {'rms':>7}")
-    below, top = np.full(x.shape, ground_m), on_ours(tops[-1])
+    top = on_ours(tops[-1])
+    below = np.full(top.shape, ground_m)
     for slot, k in enumerate(ours[:-1]):
         level = on_ours(tops[slot])
         cells = (level - below > 1e-9) & (top - level > 1e-9)
@@ -305,6 +290,20 @@ def _buried_tops(before, arrays, truth: dict, ground_m: float) -> None:
         print(f"{stack.info(k).pass_id:<16} {int(cells.sum()):>7} {np.mean(fused):>+7.2f} "
               f"{np.sqrt(np.mean(fused ** 2)):>7.2f} {np.mean(fit):>+7.2f} "
               f"{np.sqrt(np.mean(fit ** 2)):>7.2f}")
+
+
+def _on_our_grid(arrays, geometry, z_m):
+    """A simulator array (``(ny, nx)`` on its cell centres ``arrays["x_centres"]``,
+    ``["y_centres"]``) interpolated to our cell centres: ``(nx, ny)``, NaN off its grid."""
+    import numpy as np
+    from scipy.interpolate import RegularGridInterpolator
+
+    from ledger.projector.grid import cell_centres
+
+    x, y = cell_centres(geometry)
+    return RegularGridInterpolator((arrays["y_centres"], arrays["x_centres"]),
+                                   np.asarray(z_m, np.float64), bounds_error=False)(
+        np.column_stack([y.ravel(), x.ravel()])).reshape(x.shape)
 
 
 def _states_before(store, pile_id: str, times_ns: list[int]) -> list:

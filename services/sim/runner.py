@@ -690,11 +690,10 @@ class Simulation:
         sc = self.scenario
         tonnes = sum(p.tonnes for p in c["parts"])
         grade = {}
-        for a in ANALYTES:
+        for a in self.world.analytes:   # the analytes and the lab's channel
             mass = sum(p.tonnes * p.grade[a] for p in c["parts"] if p.tonnes > 0)
             grade[a] = mass / tonnes if tonnes > 0 else float("nan")
-        lab_fe = (sum(p.tonnes * p.grade[LAB_WINDOW_FE] for p in c["parts"] if p.tonnes > 0)
-                  / tonnes if tonnes > 0 else float("nan"))
+        lab_fe = grade.pop(LAB_WINDOW_FE)
         by_lot: dict[str, float] = {}
         for p in c["parts"]:
             for lot, tn in p.tonnes_by_lot.items():
@@ -773,15 +772,13 @@ def _lab_windows(results: list[LabResult], analyte: str) -> dict[str, tuple[np.n
     """Per lot, the laboratory's final value of ``analyte`` (mass %) per sampling window:
     (window starts in UTC ns, values), in time order (a FINAL replaces the PROVISIONAL
     result of its window)."""
-    final: dict[tuple[str, int], float] = {}
-    for r in results:
-        if r.status == "FINAL":
-            final[(r.lot_id, r.window_start_ns)] = r.analytes_pct[analyte]
-    out: dict[str, tuple[np.ndarray, np.ndarray]] = {}
-    for lot in {lot for lot, _ in final}:
-        starts = sorted(t for l, t in final if l == lot)
-        out[lot] = (np.array(starts, np.int64), np.array([final[(lot, t)] for t in starts]))
-    return out
+    final = {(r.lot_id, r.window_start_ns): r.analytes_pct[analyte]
+             for r in results if r.status == "FINAL"}
+    by_lot: dict[str, list[tuple[int, float]]] = {}
+    for (lot, start_ns), value in sorted(final.items()):
+        by_lot.setdefault(lot, []).append((start_ns, value))
+    return {lot: (np.array([t for t, _ in rows], np.int64), np.array([v for _, v in rows]))
+            for lot, rows in by_lot.items()}
 
 
 def _window_value(windows: tuple[np.ndarray, np.ndarray], time_ns: int) -> float:
