@@ -25,9 +25,9 @@ STOCKPILE = str(Path(sys.executable).with_name("stockpile"))
 SHORT_H = 0.12  # site hours: declarations, lots and the start of the first pass
 
 
-def _sim(out: Path, seed: int) -> subprocess.CompletedProcess:
+def _sim(out: Path, seed: int, *extra: str) -> subprocess.CompletedProcess:
     return subprocess.run([STOCKPILE, "sim", "--scenario", "demo", "--seed", str(seed),
-                           "--duration", str(SHORT_H), "--out", str(out)],
+                           "--duration", str(SHORT_H), "--out", str(out), *extra],
                           capture_output=True, text=True, timeout=600)
 
 
@@ -39,6 +39,37 @@ def test_same_seed_gives_byte_identical_streams(tmp_path):
         assert a and a == b, name
     other = _sim(tmp_path / "other", 2)
     assert (tmp_path / "other" / "gnss.nmea").read_bytes() != (tmp_path / "run0" / "gnss.nmea").read_bytes()
+
+
+def test_a_noise_seed_measures_the_same_world_again(tmp_path):
+    """``--noise-seed``: the sensors' noise from another seed, the world from ``--seed``."""
+    runs = {name: _sim(tmp_path / name, 1, *extra) for name, extra in (
+        ("default", ()), ("other", ("--noise-seed", "7")), ("own", ("--noise-seed", "1")))}
+    assert all(r.returncode == 0 for r in runs.values()), runs["other"].stderr
+    assert "sensor noise seed 7" in runs["other"].stdout
+    default, other, own = (tmp_path / name for name in ("default", "other", "own"))
+    # its own seed as the noise seed is the default run, byte for byte
+    for name in ("events.jsonl", "lms200.bin", "gnss.nmea"):
+        assert (own / name).read_bytes() == (default / name).read_bytes(), name
+    # another: every sensor's stream differs ...
+    for name in ("lms200.bin", "gnss.nmea"):
+        assert (other / name).read_bytes() != (default / name).read_bytes(), name
+    readings = [[e.payload for e in map(decode_line, (d / "events.jsonl").read_text().splitlines())
+                 if e.type == "joint_reading"] for d in (default, other)]
+    assert len(readings[0]) == len(readings[1]) > 0 and readings[0] != readings[1]
+    # ... and the world is the same: what was stacked, where, and the truth about it
+    truth = [json.loads((d / "truth.json").read_text()) for d in (default, other)]
+    assert (truth[0]["seed"], truth[0]["noise_seed"], truth[1]["noise_seed"]) == (1, 1, 7)
+    assert truth[0]["world"]["tonnes"] > 0
+    for key in ("world", "passes", "cuts", "assays"):
+        assert truth[0][key] == truth[1][key], key
+    surfaces = [np.load(d / "truth.npz")["surface_z"] for d in (default, other)]
+    assert np.array_equal(surfaces[0], surfaces[1])
+    plan = [[(e.type, e.valid_time_ns, e.payload)
+             for e in map(decode_line, (d / "events.jsonl").read_text().splitlines())
+             if e.type in ("lot_declared", "stack_started", "stack_ended", "assay")]
+            for d in (default, other)]
+    assert plan[0] and plan[0] == plan[1]
 
 
 def test_events_are_valid_and_in_arrival_order(tmp_path):

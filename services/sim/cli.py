@@ -62,11 +62,12 @@ def run_sim(args: argparse.Namespace) -> int:
             print(f"waiting up to {args.wait_live_timeout:g} s for {key} ...", flush=True)
             if not _wait_liveliness(session, key, args.wait_live_timeout):
                 raise OSError(f"no liveliness token {key} appeared in time")
-    print(f"simulating scenario {scenario.name!r}, seed {args.seed} -> {out}", flush=True)
+    noise = "" if args.noise_seed is None else f", sensor noise seed {args.noise_seed}"
+    print(f"simulating scenario {scenario.name!r}, seed {args.seed}{noise} -> {out}", flush=True)
     try:
         sim = Simulation(scenario, args.seed, out, sinks=sinks, scanner_pty=ptys.get("scanner"),
                          gnss_pty=ptys.get("gnss"), scan_events=args.scan_events,
-                         cut_surfaces=args.truth_cut_surfaces,
+                         cut_surfaces=args.truth_cut_surfaces, noise_seed=args.noise_seed,
                          progress=lambda line: print(f"  {line}", file=sys.stderr, flush=True))
         stats = sim.run(duration_h=args.duration, speed=args.speed, idle_speed=args.idle_speed)
         for pty in ptys.values():  # the devices go quiet: their readers see the end
@@ -125,6 +126,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                               "with their errors. Writes events, raw device streams and truth.")
     p.add_argument("--scenario", choices=sorted(SCENARIOS), default="demo", help="default demo")
     p.add_argument("--seed", type=int, default=1, help="random seed (default 1)")
+    p.add_argument("--noise-seed", type=int, metavar="N",
+                   help="draw the sensors' noise (scanner, encoders, GNSS) from this seed: the "
+                   "same world (belt, stacking, cuts, lab: --seed) measured again "
+                   "(default: --seed)")
     p.add_argument("--assay-window", type=float, metavar="SECONDS",
                    help="the lab's sampling window (default: the scenario's: demo 60 s, bench-scale "
                    "30 s, full-scale 1200 s)")
