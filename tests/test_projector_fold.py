@@ -389,3 +389,5 @@ def test_each_buried_top_is_fitted_once_at_the_first_cut_after_its_pass():
     assert off.stack is stack and off.boundaries_fitted == 0
     with pytest.raises(ValueError, match="boundary_fit_cells"):
         F.FoldConfig(pile_id=PILE, boundary_fit_cells=4)
+    with pytest.raises(ValueError, match="cut_fit_cells"):
+        F.FoldConfig(pile_id=PILE, cut_fit_cells=6)

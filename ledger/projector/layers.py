@@ -596,6 +596,52 @@ class LayerStack:
         times[k - 1] = _frozen(new_time)
         return LayerStack(self._geometry, tuple(surfaces), tuple(times), self._infos, epoch)
 
+    def fit_top_above(self, floor_m, window: int = 7) -> "LayerStack":
+        """The stack with its top, where it or its fit stands above ``floor_m``, replaced
+        by a local quadratic fit: the surface a cut down to that floor is measured on.
+
+        The volume above a floor of a surface with per-cell noise is biased high where
+        the surface runs close to the floor: ``E[max(z + e - f, 0)] > max(z - f, 0)``.
+        A cut's first slice of a freshly stacked pile is a few cell-noises thick, so the
+        bias is a few percent of it.  :func:`fit_local_quadratic` over the top deposit's
+        cells takes most of the noise out; the fit replaces the top where it or the top
+        stands above the floor, never below the floor or the deposit under the top one
+        (the top deposit's material and deposition times stay, its thickness moves).
+
+        Parameters
+        ----------
+        floor_m : array_like, shape (nx, ny)
+            The floor (m), NaN outside the cut.
+        window : int
+            The fit's square, in cells (odd, >= 3).
+
+        Raises
+        ------
+        ValueError
+            On a floor of another shape or a bad window.
+        """
+        _check_window(window)
+        floor = np.asarray(floor_m, dtype=np.float64)
+        if floor.shape != self._geometry.shape:
+            raise ValueError(f"floor_m must have shape {self._geometry.shape}, got {floor.shape}")
+        n = self.n_deposits
+        if n == 0:
+            return self
+        lo, z = self._surfaces[n - 1], self._surfaces[n]
+        mask = z > lo
+        if not mask.any():
+            return self
+        fitted = fit_local_quadratic(z, mask, window)
+        with np.errstate(invalid="ignore"):
+            near = mask & np.isfinite(floor) & ((z > floor) | (fitted > floor))
+        if not near.any():
+            return self
+        target = np.maximum(np.fmax(fitted, floor), lo)
+        surfaces = list(self._surfaces)
+        surfaces[n] = _frozen(np.where(near, target, z))
+        return LayerStack(self._geometry, tuple(surfaces), self._times, self._infos,
+                          self._epoch_ns)
+
     def fit_boundaries(self, ks, window: int = 7) -> "LayerStack":
         """The stack with the tops of deposits ``ks`` replaced by a local quadratic fit.
 
