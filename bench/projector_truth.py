@@ -58,9 +58,11 @@ same), and a last table gives each cut's tonnes and Fe error in every draw, the 
 own first, with their mean and sd and how many draws meet both targets
 (:func:`noise_spread`).  A cut some draws miss and others meet is missed by the luck of
 the noise; one every draw misses, by the world or the model.  Bench-scale seeds 1-5,
-four draws each: a first cut's tonnes move by an sd of 0.9-3.5 % between draws (a slice
-a few mm thick under 15 mm of point noise) and sit 1.4-2.8 % high on average, and the only
-cuts every draw misses are the three of seed 5 at the lab floor.
+four draws each: a first cut's tonnes move by an sd of 0.6-3.6 % between draws (a slice
+a few mm thick under 15 mm of point noise), around a mean of -0.5 to +0.7 % per seed
+(+1.4 to +2.8 % before the fold measured a first cut on a fitted top,
+``FoldConfig.cut_fit_cells``), and the only cuts every draw misses are the three of seed 5
+at the lab floor.
 
 After the cuts, the tonnes of each lot the pile holds, ours against the simulator's
 (material given to the wrong pass makes one lot heavy and the next light), and each

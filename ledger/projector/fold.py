@@ -164,7 +164,8 @@ class FoldConfig:
         laboratory pile whose fused cells carry about 2 mm of noise: on bench-scale seeds
         1-5 with four draws of the sensors' noise each, the first cut came 2.1 % heavy on
         average (sd 2.0 % between runs; the true surface with 2.3 mm of white noise gives
-        +1.4 to +2.2 %), fitted +0.1 %.
+        +1.4 to +2.2 %), fitted +0.04 % (sd 1.9 %); over all 300 cuts the tonnes' rms
+        went from 1.32 to 1.20 % and the cuts beyond 3 % from 9 to 6.
     relax_slack : float
         Faces steeper than ``(1 + relax_slack) * tan(repose)`` slide (a little slack keeps
         the estimated angle's error from creeping standing flanks).
