@@ -182,9 +182,10 @@ class Simulation:
     #: float32, and ``first_cut_time_ns``, both (slots, ny, nx))
     cut_surfaces: bool = False
     #: the seed the sensors' noise is drawn from (scanner ranges and mixed pixels,
-    #: encoders, GNSS); None: ``seed``.  Another value measures the same world again
-    #: (belt, stacking, reclaiming and the lab follow ``seed`` alone), so the spread of
-    #: a projector's errors over noise seeds is what the measurement noise alone causes
+    #: encoders, GNSS); None: ``seed`` (set so on construction).  Another value
+    #: measures the same world again (belt, stacking, reclaiming and the lab follow
+    #: ``seed`` alone), so the spread of a projector's errors over noise seeds is what
+    #: the measurement noise alone causes
     noise_seed: int | None = None
 
     def __post_init__(self) -> None:
@@ -215,14 +216,15 @@ class Simulation:
         # from the assays, one grade per window
         self.world = World(self.grid, sc.repose_deg, analytes=ANALYTES + (LAB_WINDOW_FE,))
         self.machine = sc.machine
-        noise_seed = self.seed if self.noise_seed is None else int(self.noise_seed)
-        self.encoders = sensors.EncoderModel(rng=_rng(noise_seed, "encoders"))
+        self.noise_seed = self.seed if self.noise_seed is None else int(self.noise_seed)
+        self.encoders = sensors.EncoderModel(rng=_rng(self.noise_seed, "encoders"))
         self.gnss = sensors.GnssModel(sc.datum_lat_deg, sc.datum_lon_deg, sc.datum_alt_m,
-                                      rng=_rng(noise_seed, "gnss"))
+                                      rng=_rng(self.noise_seed, "gnss"))
         self.unit_mm = sc.pile_width_m < 5.0  # mm mode reaches 8 m: the laboratory pile
         self.scanner = sensors.ScannerModel(fov_deg=sc.scan_fov_deg, step_deg=sc.scan_step_deg,
                                             max_range_m=8.0 if self.unit_mm else 80.0,
-                                            unit_mm=self.unit_mm, rng=_rng(noise_seed, "scanner"))
+                                            unit_mm=self.unit_mm,
+                                            rng=_rng(self.noise_seed, "scanner"))
         if self.scan_events != "off":
             # the scanner service's defaults: frame from the source, field from the value
             # count (the scanner model only takes LMS200 fields, so they are the cast ones)
@@ -752,7 +754,7 @@ class Simulation:
                          for k, v in asdict(self.scenario).items() if k not in ("lots", "machine")},
             "machine": asdict(self.machine),
             "seed": self.seed,
-            "noise_seed": self.seed if self.noise_seed is None else int(self.noise_seed),
+            "noise_seed": self.noise_seed,
             "stats": asdict(self.stats),
             "passes": self.passes,
             "cuts": self.cuts,
