@@ -570,8 +570,7 @@ def _on_reclaim_cut(state: ProjectorState, event, msg) -> None:
         if restore is not None:
             # where the fit rose above the floor from a top under it, the cut took the
             # fit's part above the floor; what the rise put under the floor goes again
-            state.stack, rest = state.stack.clamp(restore)
-            state.count("cut_top_fit_mm3", -int(round(rest.volume_m3 * 1e9)))
+            state.stack, _rest = state.stack.clamp(restore)
         record.removals.append(removal)
         record.predicted_m3 = removal.volume_m3
         if state.config.slump_after_cut and removal.volume_m3 > 0:
@@ -1530,8 +1529,8 @@ def _fit_buried_boundaries(state: ProjectorState) -> None:
 def _fit_top_for_cut(state: ProjectorState, floor_m: np.ndarray) -> np.ndarray | None:
     """Put the top a cut is about to take on a local quadratic fit where it stands above
     the cut's floor (``FoldConfig.cut_fit_cells``); counter ``cut_top_fit_mm3``: the
-    volume the fit added to the stack less what it removed (with what the caller
-    restores after the cut).
+    volume the fit added to the stack less what it removed (before the caller restores
+    the part under the floor after the cut).
 
     Returns the heights to clamp the stack to after the cut (shape (nx, ny), +inf
     elsewhere; None: nothing to restore): where the top stood under the floor and its fit
