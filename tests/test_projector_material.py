@@ -1002,6 +1002,10 @@ def test_fit_top_above_takes_the_noise_out_of_a_thin_cut(seed):
         np.testing.assert_array_equal(after.deposition_time_ns(1), stack.deposition_time_ns(1))
         far = cut & (true_top < floor - 0.02)                   # 10 noise sds under the floor
         assert not changed[far].any()
+        # on the cut's cells, the fit over the whole top (the method computes a block)
+        whole = fit_local_quadratic(stack.surface(), np.ones(geometry.shape, bool), 7)
+        np.testing.assert_allclose(after.surface()[changed],
+                                   np.maximum(whole, floor)[changed], rtol=0, atol=1e-12)
     print(f"raw bias {np.mean(raw):+.4f}, fitted {np.mean(fitted):+.4f}")
     # the bias goes with the noise left: a 7 x 7 fit keeps 0.27 of it (raw 7 %, fitted 1.4 %)
     assert np.mean(raw) > 0.03

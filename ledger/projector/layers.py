@@ -627,18 +627,27 @@ class LayerStack:
         n = self.n_deposits
         if n == 0:
             return self
-        lo, z = self._surfaces[n - 1], self._surfaces[n]
+        ix, iy = np.nonzero(np.isfinite(floor))
+        if ix.size == 0:
+            return self
+        # the fit at a cell sees the window around it: the floor's block, padded by half
+        # a window, gives the same values there as the whole grid would
+        pad = window // 2
+        block = (slice(max(0, ix.min() - pad), ix.max() + pad + 1),
+                 slice(max(0, iy.min() - pad), iy.max() + pad + 1))
+        lo, z, f = self._surfaces[n - 1][block], self._surfaces[n][block], floor[block]
         mask = z > lo
         if not mask.any():
             return self
         fitted = fit_local_quadratic(z, mask, window)
         with np.errstate(invalid="ignore"):
-            near = mask & np.isfinite(floor) & ((z > floor) | (fitted > floor))
+            near = mask & np.isfinite(f) & ((z > f) | (fitted > f))
         if not near.any():
             return self
-        target = np.maximum(np.fmax(fitted, floor), lo)
+        top = np.array(self._surfaces[n])
+        top[block] = np.where(near, np.maximum(np.fmax(fitted, f), lo), z)
         surfaces = list(self._surfaces)
-        surfaces[n] = _frozen(np.where(near, target, z))
+        surfaces[n] = _frozen(top)
         return LayerStack(self._geometry, tuple(surfaces), self._times, self._infos,
                           self._epoch_ns)
 
