@@ -54,8 +54,9 @@ def test_a_noise_seed_measures_the_same_world_again(tmp_path):
     # another: every sensor's stream differs ...
     for name in ("lms200.bin", "gnss.nmea"):
         assert (other / name).read_bytes() != (default / name).read_bytes(), name
-    readings = [[e.payload for e in map(decode_line, (d / "events.jsonl").read_text().splitlines())
-                 if e.type == "joint_reading"] for d in (default, other)]
+    events = [[decode_line(line) for line in (d / "events.jsonl").read_text().splitlines()]
+              for d in (default, other)]
+    readings = [[e.payload for e in run if e.type == "joint_reading"] for run in events]
     assert len(readings[0]) == len(readings[1]) > 0 and readings[0] != readings[1]
     # ... and the world is the same: what was stacked, where, and the truth about it
     truth = [json.loads((d / "truth.json").read_text()) for d in (default, other)]
@@ -65,10 +66,9 @@ def test_a_noise_seed_measures_the_same_world_again(tmp_path):
         assert truth[0][key] == truth[1][key], key
     surfaces = [np.load(d / "truth.npz")["surface_z"] for d in (default, other)]
     assert np.array_equal(surfaces[0], surfaces[1])
-    plan = [[(e.type, e.valid_time_ns, e.payload)
-             for e in map(decode_line, (d / "events.jsonl").read_text().splitlines())
+    plan = [[(e.type, e.valid_time_ns, e.payload) for e in run
              if e.type in ("lot_declared", "stack_started", "stack_ended", "assay")]
-            for d in (default, other)]
+            for run in events]
     assert plan[0] and plan[0] == plan[1]
 
 
