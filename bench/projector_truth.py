@@ -510,9 +510,9 @@ def noise_spread(figures: list[dict]) -> list[str]:
 def cut_lots(result: dict, min_share: float = 0.005) -> None:
     """Per cut that took more than one lot (ours or the simulator's, each beyond
     ``min_share`` of its tonnes): each lot's share, ours against the simulator's, and the
-    Fe those shares alone move (pp): the sum over lots of our share (of the graded
-    tonnes: material of no lot has no grade) less the true one, times our Fe of that
-    lot's material in the cut.  Not a target; a diagnosis.
+    Fe those shares alone move (pp): our cut's Fe less the Fe of our lots' material in
+    the cut mixed in the simulator's shares (over graded tonnes: material of no lot has
+    no grade).  Not a target; a diagnosis.
 
     A cut whose floor grazes the boundary between two lots takes the lower one in a
     slice a few mm thick, so the mean error of that buried top over the cut's cells
@@ -524,8 +524,6 @@ def cut_lots(result: dict, min_share: float = 0.005) -> None:
     +0.49, +0.16, -0.21 and +0.41 mm, lot C's share 19.9, 17.7, 16.7 and 18.7 %, the
     cut's Fe error -0.47, -0.18, -0.03 and -0.30 pp.
     """
-    import numpy as np
-
     state, truth = result["state"], result["truth"]
     join = state._join
     if join is None or "Fe" not in join.analytes:
@@ -557,9 +555,14 @@ def cut_lots(result: dict, min_share: float = 0.005) -> None:
         lots = sorted(set(ours) | set(true))
         if sum(max(ours.get(lot, 0.0), true.get(lot, 0.0)) > min_share for lot in lots) < 2:
             continue
-        # the cut's Fe is the mean over its graded tonnes (material of no lot has none)
-        moved = sum((graded[lot][0] / total_graded - true.get(lot, 0.0)) * graded[lot][1]
-                    / graded[lot][0] for lot in graded if graded[lot][0] > 0)
+        # our Fe less the Fe of our lots' grades mixed in the simulator's shares (both over
+        # graded tonnes: material of no lot has no grade; lots only one side took drop out)
+        fe_of = {lot: f / g for lot, (g, f) in graded.items() if g > 0}
+        weight = sum(true[lot] for lot in fe_of if lot in true)
+        if weight <= 0:
+            continue
+        moved = (sum(f for _, f in graded.values()) / total_graded
+                 - sum(true[lot] * fe_of[lot] for lot in fe_of if lot in true) / weight)
         shares = ", ".join(f"{lot or 'flagged'} {100 * ours.get(lot, 0.0):.1f}/"
                            f"{100 * true.get(lot, 0.0):.1f}" for lot in lots
                            if max(ours.get(lot, 0.0), true.get(lot, 0.0)) >= 0.0005)
