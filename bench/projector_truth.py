@@ -536,32 +536,31 @@ def cut_lots(result: dict, min_share: float = 0.005) -> None:
         true_t = c.get("tonnes_by_lot", {})
         if record is None or not true_t or c["true_tonnes"] <= 0:
             continue
-        tonnes: dict[str, float] = {}
-        graded: dict[str, list[float]] = {}   # lot -> [graded tonnes, Fe tonnes]
+        per_lot: dict[str, list[float]] = {}   # lot -> [tonnes, graded tonnes, Fe tonnes]
         for removal in record.removals:
             for d in removal.deposits:
                 t, sums, _assayed, g_t = join.material(d.info.lot_id, d.deposition_time_ns,
                                                        d.cell_volume_m3)
-                tonnes[d.info.lot_id] = tonnes.get(d.info.lot_id, 0.0) + t
-                entry = graded.setdefault(d.info.lot_id, [0.0, 0.0])
-                entry[0] += g_t
-                entry[1] += float(sums[fe])
-        total = sum(tonnes.values())
-        total_graded = sum(g for g, _ in graded.values())
+                entry = per_lot.setdefault(d.info.lot_id, [0.0, 0.0, 0.0])
+                entry[0] += t
+                entry[1] += g_t
+                entry[2] += float(sums[fe])
+        total = sum(t for t, _, _ in per_lot.values())
+        total_graded = sum(g for _, g, _ in per_lot.values())
         if total <= 0 or total_graded <= 0:
             continue
-        ours = {lot: t / total for lot, t in tonnes.items()}
+        ours = {lot: t / total for lot, (t, _, _) in per_lot.items()}
         true = {lot: t / c["true_tonnes"] for lot, t in true_t.items()}
         lots = sorted(set(ours) | set(true))
         if sum(max(ours.get(lot, 0.0), true.get(lot, 0.0)) > min_share for lot in lots) < 2:
             continue
         # our Fe less the Fe of our lots' grades mixed in the simulator's shares (both over
         # graded tonnes: material of no lot has no grade; lots only one side took drop out)
-        fe_of = {lot: f / g for lot, (g, f) in graded.items() if g > 0}
+        fe_of = {lot: f / g for lot, (_, g, f) in per_lot.items() if g > 0}
         weight = sum(true[lot] for lot in fe_of if lot in true)
         if weight <= 0:
             continue
-        moved = (sum(f for _, f in graded.values()) / total_graded
+        moved = (sum(f for _, _, f in per_lot.values()) / total_graded
                  - sum(true[lot] * fe_of[lot] for lot in fe_of if lot in true) / weight)
         shares = ", ".join(f"{lot or 'flagged'} {100 * ours.get(lot, 0.0):.1f}/"
                            f"{100 * true.get(lot, 0.0):.1f}" for lot in lots
