@@ -18,6 +18,7 @@ demo: $(STAMP)
 	$(VENV)/bin/stockpile demo
 
 test: $(STAMP)
+	$(VENV)/bin/lint-imports --no-cache
 	$(PY) -m pytest -q
 
 bench: $(STAMP)

@@ -42,7 +42,7 @@ What it does
 4. The pipeline under test, one batch per band of 10 cell rows the scanner crosses
    (25 scans; a batch boundary on a cell edge, so a cell is observed once per pass and
    never in two parts -- see :func:`batches`): poses from a 10 Hz pose stream
-   (:func:`ledger.projector.georef.interpolate_poses`; the stream alternates q / -q,
+   (:func:`projector.georef.interpolate_poses`; the stream alternates q / -q,
    which the slerp must not mind) -> :func:`clean_profile` -> :func:`georeference` ->
    :func:`rasterize` -> :func:`fuse` -> :meth:`HeightMap.centred_elevation` (each cell's
    height moved from the mean position of its points to the cell centre) ->
@@ -71,11 +71,11 @@ if str(ROOT) not in sys.path:
 import numpy as np  # noqa: E402
 from scipy import integrate  # noqa: E402
 
-from ledger.projector.georef import georeference, interpolate_poses  # noqa: E402
-from ledger.projector.grid import GridGeometry  # noqa: E402
-from ledger.projector.heightmap import HeightMap, fuse, rasterize, volume_above  # noqa: E402
-from ledger.projector.fold import FoldConfig  # noqa: E402
-from ledger.projector.profile import clean_profile  # noqa: E402
+from projector.georef import georeference, interpolate_poses  # noqa: E402
+from projector.grid import GridGeometry  # noqa: E402
+from projector.heightmap import HeightMap, fuse, rasterize, volume_above  # noqa: E402
+from projector.fold import FoldConfig  # noqa: E402
+from projector.profile import clean_profile  # noqa: E402
 
 FIT_BEAMS = FoldConfig.profile_fit_beams    # the fold's line fit of each profile
 

@@ -34,7 +34,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from services.ledger_client import LedgerClient  # noqa: E402
-from services.orchestrate import Supervisor  # noqa: E402
+from stockpile.orchestrate import Supervisor  # noqa: E402
 
 SITE = "load"
 

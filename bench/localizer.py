@@ -9,16 +9,16 @@ What it does (thesis §3.2-§3.3):
 
 1. The 1-hour bench-reclaim trajectory of the full-scale BWR at 1 s sampling
    (:func:`bench.sim_errors.bench_reclaim_trajectory`); truth is the simulator's forward
-   kinematics (:func:`services.sim.kinematics.wheel_centre`) of the true joints.
+   kinematics (:func:`sim.kinematics.wheel_centre`) of the true joints.
 2. Per run and encoder set (1 and 2 of §3.3): the simulator's encoders
-   (:class:`services.sim.sensors.EncoderModel`) and its GNSS receiver
-   (:class:`services.sim.sensors.GnssModel`, default configuration: DGPS 31 km baseline
+   (:class:`sim.sensors.EncoderModel`) and its GNSS receiver
+   (:class:`sim.sensors.GnssModel`, default configuration: DGPS 31 km baseline
    with correction outages and the heavy-tailed yard noise, antenna at the wheel centre).
 3. Three wheel-centre estimates, scored by the RMSE of the 3-D distance error:
    encoders alone (forward kinematics of the readings), GNSS alone (the fix, as
-   ``bench/sim_errors.py``), and the UKF (:class:`services.fusion.LocalizerFilter`)
+   ``bench/sim_errors.py``), and the UKF (:class:`services.ukf.LocalizerFilter`)
    fusing both.  The filter sees only the readings and the fixes (with a covariance
-   from their fix quality and HDOP, :func:`services.fusion.gnss_covariance_m2`) and the
+   from their fix quality and HDOP, :func:`services.ukf.gnss_covariance_m2`) and the
    encoder set's datasheet drift figures; never the truth.
 4. Target (the issue's acceptance figure): UKF RMSE <= 1/3 of GNSS alone and <= 1/3 of
    encoders alone, on the mean over runs.
@@ -55,11 +55,11 @@ import numpy as np  # noqa: E402
 from scipy.linalg import solve_discrete_are  # noqa: E402
 
 from sim_errors import NS_PER_S, bench_reclaim_trajectory, rmse_m  # noqa: E402
-from services.fusion import (  # noqa: E402
+from services.ukf import (  # noqa: E402
     FilterTuning, MachineGeometry, filter_sequence, gnss_covariance_m2)
-from services.sim.kinematics import FULL_SCALE, Machine, wheel_centre  # noqa: E402
-from services.sim.scenario import DEFAULT_START_NS, Scenario  # noqa: E402
-from services.sim.sensors import (  # noqa: E402
+from sim.kinematics import FULL_SCALE, Machine, wheel_centre  # noqa: E402
+from sim.scenario import DEFAULT_START_NS, Scenario  # noqa: E402
+from sim.sensors import (  # noqa: E402
     ENCODER_SET_1, ENCODER_SET_2, EncoderModel, EncoderSpec, GnssConfig, GnssModel)
 
 #: thesis Table 3.3, dataset 1 (encoder set 1, GPS configuration 1) and dataset 4 (set 2)

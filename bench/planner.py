@@ -4,14 +4,14 @@
     .venv/bin/python bench/planner.py --keep /tmp/pb   # keep (and reuse) the stacked piles
 
 The piles are the simulator's own: each scenario's stacking is run (sensors at a trickle,
-:func:`services.sim.drive.stacked_world`) and its true layers are put on the product's
-surface grid (:func:`services.sim.drive.truth_stack`; the full-scale world's 0.5 m cells
+:func:`sim.drive.stacked_world`) and its true layers are put on the product's
+surface grid (:func:`sim.drive.truth_stack`; the full-scale world's 0.5 m cells
 split into the declared 0.25 m cells), so the planner sees a layer stack of the size the
 projector makes: 36 deposits on about 0.75 M cells at full scale.
 
-Timed, per scenario (median of ``--repeat`` runs): :func:`ledger.planner.plan.plan_reclaim`
+Timed, per scenario (median of ``--repeat`` runs): :func:`planner.plan.plan_reclaim`
 (candidates, first cuts, whole benches in order of cutting depth, the chosen bench on the
-layer stack with its slides) and :func:`ledger.planner.grades.predict_cuts` (the grade join
+layer stack with its slides) and :func:`planner.grades.predict_cuts` (the grade join
 as known at K).  Also with ``--bench-height`` lower benches at full scale.  Memory: the
 peak of Python allocations while planning (tracemalloc, a separate untimed run) and the
 process's peak RSS.
@@ -41,11 +41,11 @@ from pathlib import Path  # noqa: E402
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from ledger.planner.grades import predict_cuts  # noqa: E402
-from ledger.planner.kinematics import PlannerMachine  # noqa: E402
-from ledger.planner.plan import plan_reclaim  # noqa: E402
-from services.sim.drive import lab_assays, stacked_world, truth_stack  # noqa: E402
-from services.sim.scenario import scenario_by_name  # noqa: E402
+from planner.grades import predict_cuts  # noqa: E402
+from planner.kinematics import PlannerMachine  # noqa: E402
+from planner.plan import plan_reclaim  # noqa: E402
+from sim.drive import lab_assays, stacked_world, truth_stack  # noqa: E402
+from sim.scenario import scenario_by_name  # noqa: E402
 
 TARGET_S = 2.0
 

@@ -4,14 +4,14 @@
     .venv/bin/python bench/planner_truth.py --section truth --seeds 1 2 3 4 5
     .venv/bin/python bench/planner_truth.py --section ledger --keep /tmp/ptr
 
-Truth is the simulator's world model and geometry (:mod:`services.sim.drive`): the planned
+Truth is the simulator's world model and geometry (:mod:`sim.drive`): the planned
 joints are driven into the simulated pile as the simulator's runner cuts (the arc in
 sub-sweeps, the walls slumping after each cut), each cut is checked for collisions in the
 simulator's geometry first, and its real tonnes and grade (belt grade of the parcels
 removed) are compared with the prediction.
 
 Section ``truth`` (planner error alone): the planner works on the simulator's true
-layers (:func:`services.sim.drive.truth_stack`) with the lab's assays, all known.  Per
+layers (:func:`sim.drive.truth_stack`) with the lab's assays, all known.  Per
 scenario and seed, ``--benches`` benches of 10 cuts one after the other (each planned on
 what the previous left); besides each chosen landing, ``--sample`` other valid landings
 per bench are driven into copies of the pile for the collision tally.  Fe is also shown
@@ -20,7 +20,7 @@ window's resolution from the planner's.
 
 Section ``ledger`` (the product's path): ``stockpile sim --scan-events truth`` with no
 reclaim, the events imported into a DuckDB ledger, ``stockpile plan reclaim`` (the same
-code, :func:`services.plan_cli.make_plan`) on the projection with every assay known, the
+code, :func:`planner.cli.make_plan`) on the projection with every assay known, the
 plan driven into the true pile; plus the collision tally over sampled valid landings of
 the projected pile.  The projector's own error (issue 5, in progress) is part of this.
 
@@ -44,12 +44,12 @@ from types import SimpleNamespace
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from ledger.planner.grades import predict_cuts  # noqa: E402
-from ledger.planner.kinematics import PlannerMachine  # noqa: E402
-from ledger.planner.plan import evaluate_landings, plan_bench_from, plan_reclaim  # noqa: E402
-from ledger.projector.grades import AssayRecord  # noqa: E402
-from services.sim.drive import drive_bench, lab_assays, stacked_world, truth_stack  # noqa: E402
-from services.sim.scenario import scenario_by_name  # noqa: E402
+from planner.grades import predict_cuts  # noqa: E402
+from planner.kinematics import PlannerMachine  # noqa: E402
+from planner.plan import evaluate_landings, plan_bench_from, plan_reclaim  # noqa: E402
+from projector.grades import AssayRecord  # noqa: E402
+from sim.drive import drive_bench, lab_assays, stacked_world, truth_stack  # noqa: E402
+from sim.scenario import scenario_by_name  # noqa: E402
 
 TARGET_T_PCT = 5.0
 TARGET_FE_PP = 0.5
@@ -169,7 +169,7 @@ def _ledger_run(name: str, seed: int, keep: Path):
     """A full run with scans and no reclaim: (ledger path, world, simulation)."""
     from ledger import EventClock, open_ledger
     from ledger.cli import import_lines
-    from services.sim.runner import Simulation
+    from sim.runner import Simulation
 
     out = keep / f"ledger-{name}-{seed}"
     ledger = out / "ledger.duckdb"
@@ -193,8 +193,8 @@ def _ledger_run(name: str, seed: int, keep: Path):
 
 def section_ledger(args, keep: Path) -> bool:
     from ledger import open_ledger
-    from ledger.projector.query import project
-    from services.plan_cli import make_plan
+    from projector.query import project
+    from planner.cli import make_plan
 
     print("\n== the product's path: simulator -> ledger -> projector -> stockpile plan "
           "reclaim, every assay known ==")

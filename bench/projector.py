@@ -65,11 +65,11 @@ for _p in (ROOT, ROOT / "bench"):
 import numpy as np  # noqa: E402
 
 from accuracy import NS_PER_S, Case, Rig, grid_for, simulate, thesis_piles  # noqa: E402
-from ledger.projector.georef import georeference, interpolate_poses  # noqa: E402
-from ledger.projector.ground import height_corrections  # noqa: E402
-from ledger.projector.heightmap import HeightMap, fuse, rasterize  # noqa: E402
-from ledger.projector.fold import FoldConfig  # noqa: E402
-from ledger.projector.profile import clean_profile  # noqa: E402
+from projector.georef import georeference, interpolate_poses  # noqa: E402
+from projector.ground import height_corrections  # noqa: E402
+from projector.heightmap import HeightMap, fuse, rasterize  # noqa: E402
+from projector.fold import FoldConfig  # noqa: E402
+from projector.profile import clean_profile  # noqa: E402
 
 
 @dataclass
@@ -242,8 +242,8 @@ def section_georef_fuse(args) -> Section:
 def _chevron_stack(n_deposits: int, nx: int, ny: int, cell_m: float, height_m: float,
                    seed: int):
     """A full-scale chevron pile: ``n_deposits`` triangular layers, each a pass in time."""
-    from ledger.projector.grid import GridGeometry, cell_centres
-    from ledger.projector.layers import DepositInfo, LayerStack
+    from projector.grid import GridGeometry, cell_centres
+    from projector.layers import DepositInfo, LayerStack
 
     g = GridGeometry(0.0, 0.0, cell_m, nx, ny)
     x, y = cell_centres(g)
@@ -266,10 +266,10 @@ def _voxel_weights(g, n_dep: int, analytes: int, seed: int):
 
     A pass stacks along the pile (y), so its deposition time grows with y, and the assays'
     sampling windows cut it into one to three stretches of distinct grade and density (the
-    classes :func:`ledger.projector.grades.grade_classes` gives the query).
+    classes :func:`projector.grades.grade_classes` gives the query).
     """
-    from ledger.projector.grid import cell_centres
-    from ledger.projector.voxels import ClassWeights
+    from projector.grid import cell_centres
+    from projector.voxels import ClassWeights
 
     _x, y = cell_centres(g)
     rng = np.random.default_rng(seed)
@@ -289,7 +289,7 @@ def _voxel_weights(g, n_dep: int, analytes: int, seed: int):
 def section_voxels(args) -> Section:
     """Voxel tonnes and grades of a full-scale pile from its layer stack (one core)."""
 
-    from ledger.projector.voxels import integrate
+    from projector.voxels import integrate
 
     nx, ny, cell = (240, 880, 0.25) if not args.quick else (120, 440, 0.5)
     n_dep, analytes = 60, 5
@@ -360,12 +360,12 @@ def _ledger_for_as_of(args) -> tuple[Path, str]:
         if not (out / "events.jsonl").exists() or not (out / "truth.json").exists():
             print(f"  simulating {hours:g} h of {scenario!r} with scan events into {out} "
                   "(once; progress on stderr)", flush=True)
-            subprocess.run([sys.executable, "-m", "services.cli", "sim", "--scenario", scenario,
+            subprocess.run([sys.executable, "-m", "stockpile.cli", "sim", "--scenario", scenario,
                             "--seed", "1", "--speed", "0", "--scan-events", "truth",
                             "--duration", str(hours), "--out", str(out)],
                            check=True, stdout=subprocess.DEVNULL)
         print(f"  importing into {ledger}", flush=True)
-        subprocess.run([sys.executable, "-m", "services.cli", "ledger", "import",
+        subprocess.run([sys.executable, "-m", "stockpile.cli", "ledger", "import",
                         str(out / "events.jsonl"), "--ledger", str(ledger), "--clock", "events"],
                        check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     return ledger, scenario
@@ -374,8 +374,8 @@ def _ledger_for_as_of(args) -> tuple[Path, str]:
 def section_as_of(args) -> Section:
     """``project(V, K)`` on a 24-hour full-scale ledger, from a snapshot vs from scratch."""
     from ledger import open_ledger
-    from ledger.projector.fold import FoldConfig
-    from ledger.projector.query import SnapshotStore, build_snapshots, project
+    from projector.fold import FoldConfig
+    from projector.query import SnapshotStore, build_snapshots, project
 
     ledger, scenario = _ledger_for_as_of(args)
     every_s = 60.0 * args.snapshot_every_min

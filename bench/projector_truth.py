@@ -7,7 +7,7 @@
 
 For each scenario: ``stockpile sim --scan-events truth`` (scans and scanner poses as
 events, the poses the simulator cast with), ``stockpile ledger import --clock events``
-into a DuckDB ledger, then :func:`ledger.projector.query.project` with everything known.
+into a DuckDB ledger, then :func:`projector.query.project` with everything known.
 Truth is the simulator's own world model (its deposition grid and parcels), a different
 method from the projector's scans -> height map -> layer stack.
 
@@ -96,7 +96,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from ledger import open_ledger  # noqa: E402
-from ledger.projector.query import grade_inputs, project, summarise  # noqa: E402
+from projector.query import grade_inputs, project, summarise  # noqa: E402
 
 TARGET_PILE_PCT = 1.0
 TARGET_CUT_PCT = 3.0
@@ -104,7 +104,7 @@ TARGET_FE_PP = 0.3
 
 
 def _stockpile(*args: str) -> None:
-    subprocess.run([sys.executable, "-m", "services.cli", *args], check=True,
+    subprocess.run([sys.executable, "-m", "stockpile.cli", *args], check=True,
                    stdout=subprocess.DEVNULL)
 
 
@@ -166,8 +166,8 @@ def explain(result: dict) -> None:
     """Per cut: the envelope's error and the surface's error (see the module docstring)."""
     import numpy as np
 
-    from ledger.projector.envelope import cut_floor
-    from ledger.projector.grid import GridGeometry
+    from projector.envelope import cut_floor
+    from projector.grid import GridGeometry
 
     arrays = np.load(result["sim_dir"] / "truth.npz")
     if "cut_surface_z" not in arrays:
@@ -259,7 +259,7 @@ def _hole_fill(before, floor_m, true_before_m, true_after_m, t0_ns: int,
     """
     import numpy as np
 
-    from ledger.projector import fold as F
+    from projector import fold as F
 
     footprint = np.isfinite(floor_m)
     true_before = np.nan_to_num(true_before_m, nan=ground_m)
@@ -287,7 +287,7 @@ def _buried_tops(before, arrays, truth: dict, ground_m: float) -> None:
     that cut fits them (``FoldConfig.boundary_fit_cells``)."""
     import numpy as np
 
-    from ledger.projector import fold as F
+    from projector import fold as F
 
     thickness = arrays["first_cut_thickness"].astype(np.float64)
     tops = ground_m + np.cumsum(thickness, axis=0)
@@ -326,7 +326,7 @@ def _on_our_grid(arrays, geometry, z_m):
     import numpy as np
     from scipy.interpolate import RegularGridInterpolator
 
-    from ledger.projector.grid import cell_centres
+    from projector.grid import cell_centres
 
     x, y = cell_centres(geometry)
     return RegularGridInterpolator((arrays["y_centres"], arrays["x_centres"]),
@@ -337,8 +337,8 @@ def _on_our_grid(arrays, geometry, z_m):
 def _states_before(store, pile_id: str, times_ns: list[int]) -> list:
     """The fold state (flushed, as :func:`project` leaves it) just before each time, with
     everything known: what ``project(store, pile_id, t - 1).state`` gives, from one fold."""
-    from ledger.projector import fold as F
-    from ledger.projector.query import FAR_FUTURE_NS
+    from projector import fold as F
+    from projector.query import FAR_FUTURE_NS
 
     if times_ns != sorted(times_ns):
         raise ValueError("the times must be in order")
@@ -615,7 +615,7 @@ def deposition_times(result: dict) -> None:
     """
     import numpy as np
 
-    from ledger.projector.grid import GridGeometry, cell_centres, cell_index, inside
+    from projector.grid import GridGeometry, cell_centres, cell_index, inside
 
     arrays = np.load(result["sim_dir"] / "truth.npz")
     truth, state = result["truth"], result["state"].state

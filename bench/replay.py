@@ -53,7 +53,7 @@ def demo_ledger(work: Path) -> Path:
     sim = work / "sim"
     print("building the demo session (simulator, demo scenario, seed 1; takes a few minutes) ...",
           flush=True)
-    subprocess.run([sys.executable, "-m", "services.cli", "sim", "--scenario", "demo", "--seed",
+    subprocess.run([sys.executable, "-m", "stockpile.cli", "sim", "--scenario", "demo", "--seed",
                     "1", "--speed", "0", "--scan-events", "truth", "--out", str(sim)], check=True,
                    stdout=subprocess.DEVNULL)
     partial = work / "demo.partial.duckdb"
@@ -146,7 +146,7 @@ def bench_replay_ledger(session: Path, work: Path) -> dict:
 def bench_replay_zenoh(session: Path, expected: int) -> dict:
     import zenoh
 
-    from services.orchestrate import free_loopback_port
+    from stockpile.orchestrate import free_loopback_port
 
     endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
     router = zenoh.open(ZenohOptions(mode="router", listen=(endpoint,)).to_config())
@@ -160,7 +160,7 @@ def bench_replay_zenoh(session: Path, expected: int) -> dict:
 
     subscriber = router.declare_subscriber(f"stockpile/{SITE}/@v1/**", on_sample)
     try:
-        run = subprocess.run([sys.executable, "-m", "services.cli", "replay", str(session),
+        run = subprocess.run([sys.executable, "-m", "stockpile.cli", "replay", str(session),
                               "--publish", "--max", "--no-progress", "--linger", "2",
                               *ZenohOptions(mode="client", connect=(endpoint,)).to_argv()],
                              capture_output=True, text=True, timeout=600)

@@ -20,7 +20,7 @@ from ledger import open_ledger
 from ledger.clock import CLOCKS, clock_by_name
 from ledger.records import STATUSES, LedgerStats
 from ledger.store import LedgerStore
-from ledger.times import format_time_ns, parse_time_ns
+from schemas.times import format_time_ns, parse_time_ns
 
 DEFAULT_BATCH = 1_000
 EXIT_OK, EXIT_VERIFY_FAILED, EXIT_USAGE = 0, 1, 2

@@ -18,6 +18,7 @@ gives identical lines.
 from __future__ import annotations
 
 import json
+import math
 from typing import Any
 
 from google.protobuf import json_format
@@ -111,3 +112,14 @@ def decode_line(line: str | bytes, *, where: str = "") -> Event | Malformed:
         payload=message.SerializeToString(deterministic=True),
         recorded_time_ns=recorded,
     )
+
+
+def json_safe(value):
+    """NaN and inf -> None, tuples -> lists, keys -> str, recursively (strict JSON)."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {str(k): json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [json_safe(v) for v in value]
+    return value

@@ -344,8 +344,8 @@ def inventory(pile_state) -> list[tuple[str, np.ndarray, np.ndarray]]:
 def join_inventory(inv, lots: dict, assays: list, known_ns: int, analytes: tuple,
                    density_default: float) -> tuple[float, dict[str, float], float]:
     """``(tonnes, grade %, assayed fraction)`` of an inventory as known at K (the join of
-    :func:`ledger.projector.query.summarise`, per deposition-time bin)."""
-    from ledger.projector.query import GradeJoin
+    :func:`projector.query.summarise`, per deposition-time bin)."""
+    from projector.query import GradeJoin
 
     join = GradeJoin(lots, assays, int(known_ns), density_default, tuple(analytes))
     tonnes, assayed_t, graded_t = 0.0, 0.0, 0.0
@@ -560,7 +560,7 @@ class Dashboard:
                 r[0], r[1] = min(r[0], v), max(r[1], v)
 
     def _on_assay(self, record, msg) -> None:
-        from ledger.projector.grades import timestamp_ns
+        from projector.grades import timestamp_ns
 
         self.assay_version += 1
         self.reasons.add("assay")
@@ -586,7 +586,7 @@ class Dashboard:
         self.assays_by_id[msg.assay_id] = msg
 
     def _on_machine(self, msg) -> None:
-        from ledger.projector.envelope import Reclaimer
+        from projector.envelope import Reclaimer
 
         if int(msg.kind) != 1:   # BUCKET_WHEEL_RECLAIMER
             return
@@ -599,7 +599,7 @@ class Dashboard:
                                                  float(msg.wheel_radius_m) or 0.0, mount)
 
     def _on_pose(self, record, msg) -> None:
-        from ledger.projector.grades import timestamp_ns
+        from projector.grades import timestamp_ns
 
         if msg.parent_frame_id != "site" or "/" not in msg.child_frame_id:
             return
@@ -888,7 +888,7 @@ class Dashboard:
                                                            radii=0.15))
 
     def log_plan(self, plan: dict) -> int:
-        """Show a reclaim plan (:func:`services.plan_cli.make_plan`): each planned cut's
+        """Show a reclaim plan (:func:`planner.cli.make_plan`): each planned cut's
         footprint at its floor coloured by its predicted grade, and a table; returns the
         number of cuts shown."""
         rr = _rr()
@@ -1060,8 +1060,8 @@ class Dashboard:
             m.logged_pose_ns = t
 
     def _log_scan(self) -> None:
-        from ledger.projector import georef
-        from ledger.projector.grades import timestamp_ns
+        from projector import georef
+        from projector.grades import timestamp_ns
 
         if self.latest_scan is None:
             return
@@ -1133,7 +1133,7 @@ def _same(a, b, tol: float = 1e-9) -> bool:
 
 
 def _iso(ns: int) -> str:
-    from ledger.times import format_time_ns
+    from schemas.times import format_time_ns
 
     return format_time_ns(int(ns) // S * S)
 
@@ -1452,7 +1452,7 @@ def _render(store, head, pile_id: str, rec, config: Config, progress, url,
     dash.flush_known_now()
     planned = 0
     if config.plan_machine:
-        from services.plan_cli import make_plan, plan_args
+        from planner.cli import make_plan, plan_args
 
         plan = make_plan(plan_args(ledger_path, pile_id, config.plan_machine,
                                    cuts=config.plan_cuts), store)
@@ -1467,7 +1467,7 @@ def _render(store, head, pile_id: str, rec, config: Config, progress, url,
 
 
 def _analytes(store) -> tuple[str, ...]:
-    from ledger.projector.query import CANONICAL_ANALYTES
+    from projector.query import CANONICAL_ANALYTES
     from schemas.events import decode_payload
 
     names: set[str] = set()
@@ -1515,7 +1515,7 @@ def cmd_dashboard(args: argparse.Namespace) -> int:
 
 
 def _duration_s(text: str) -> float:
-    from services.audit_cli import parse_duration_ns
+    from audit.cli import parse_duration_ns
 
     return parse_duration_ns(text) / S
 

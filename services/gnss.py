@@ -2,8 +2,8 @@
 
 The service opens the receiver's serial port with pyserial (a real port, or the simulator's
 pseudo-terminal), splits the byte stream into checksum-valid sentences with
-:class:`services.protocols.nmea.NmeaReader`, parses GGA sentences with
-:func:`~services.protocols.nmea.parse_gga` and publishes every fix as one ``location_fix``
+:class:`devices.nmea.NmeaReader`, parses GGA sentences with
+:func:`~devices.nmea.parse_gga` and publishes every fix as one ``location_fix``
 event (``foxglove.LocationFix``) on ``stockpile/<site>/@v1/location_fix/<source>`` through the
 shared :class:`~services.service.EventPublisher`.
 
@@ -60,7 +60,7 @@ import serial
 from foxglove_schemas_protobuf.LocationFix_pb2 import LocationFix
 
 from schemas.events import is_valid_source, set_timestamp_ns
-from services.protocols import nmea
+from devices import nmea
 from services.serial_device import DevicePipeline, run_serial_service
 from services.service import (
     DEFAULT_SITE,

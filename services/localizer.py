@@ -4,7 +4,7 @@ One process per reclaimer (``--machine-id``, default ``bwr1``).  It subscribes o
 ``stockpile/<site>/@v1/`` to ``site_declared``, ``machine_declared``, ``joint_reading``
 and ``location_fix`` with Zenoh advanced subscribers (history with late-publisher
 detection, so declarations published before it started come from the publishers'
-caches), runs :class:`services.fusion.LocalizerFilter` (a UKF over the joints, the
+caches), runs :class:`services.ukf.LocalizerFilter` (a UKF over the joints, the
 encoder biases and the correlated GNSS error) and publishes, as source
 ``<machine>.localizer``:
 
@@ -13,7 +13,7 @@ encoder biases and the correlated GNSS error) and publishes, as source
   centre's 3x3 covariance, at the reading's valid time;
 - two ``frame_transform`` events at the same time, parent frame ``site``:
   ``<machine>/wheel`` (the wheel centre; rotation: the level wheel frame, x along the
-  boom, z up, :func:`services.fusion.wheel_rotation`) and ``<machine>/scanner`` (the
+  boom, z up, :func:`services.ukf.wheel_rotation`) and ``<machine>/scanner`` (the
   wheel pose composed with ``MachineDeclared.scanner``; the simulator's scanner pose).
 
 Input handling
@@ -74,7 +74,7 @@ from schemas.events import (
     set_timestamp_ns,
 )
 from schemas.validate import InvalidEvent, check_event
-from services.fusion import (
+from services.ukf import (
     FilterTuning,
     LocalizerFilter,
     MachineGeometry,

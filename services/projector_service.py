@@ -28,12 +28,12 @@ import threading
 import time
 from dataclasses import dataclass, field
 
-from ledger.projector import fold as F
-from ledger.projector.grades import AssayRecord
-from ledger.projector.query import PileState, summarise
+from projector import fold as F
+from projector.grades import AssayRecord
+from projector.query import PileState, summarise
 from schemas.events import decode_payload
-from services.service import (DEFAULT_SITE, Inbox, ServiceRuntime, Stopper, ZenohOptions,
-                              json_safe)
+from schemas.jsonl import json_safe
+from services.service import DEFAULT_SITE, Inbox, ServiceRuntime, Stopper, ZenohOptions
 
 SERVICE = "projector"
 DEFAULT_REORDER_S = 5.0

@@ -2,7 +2,7 @@
 
 The service opens the scanner's serial port with pyserial (a real RS-232/RS-422 line, or the
 simulator's pseudo-terminal), feeds every byte into the resynchronising
-:class:`services.protocols.lms200.TelegramReader` and publishes each intact 0xB0 (measured
+:class:`devices.lms200.TelegramReader` and publishes each intact 0xB0 (measured
 values) telegram as one ``scan`` event (``foxglove.LaserScan``) on
 ``stockpile/<site>/@v1/scan/<source>``, through the shared :class:`~services.service.EventPublisher`
 (one epoch, dense sequence, cached ``AdvancedPublisher``, congestion control BLOCK).
@@ -32,7 +32,7 @@ counter                meaning                                                  
 .. [1] ``garbage_bytes`` is reported but not summed into the status line's ``errors``,
    which counts events: one corrupted telegram is one CRC error but hundreds of bytes.
 
-Scan geometry (matches :mod:`services.sim.sensors`, the Foxglove ``LaserScan`` / ROS
+Scan geometry (matches :mod:`sim.sensors`, the Foxglove ``LaserScan`` / ROS
 convention): beam ``k`` has bearing ``-fov/2 + k * step`` about the scanner's +z axis from
 +x, so ``start_angle = -fov/2`` and ``end_angle = -fov/2 + (n - 1) * step`` (= ``+fov/2``
 for every LMS200 field), radians.  The field of view and step come from the value count of
@@ -87,7 +87,7 @@ import serial
 from foxglove_schemas_protobuf.LaserScan_pb2 import LaserScan
 
 from schemas.events import is_valid_source, set_timestamp_ns
-from services.protocols import lms200
+from devices import lms200
 from services.serial_device import DevicePipeline, run_serial_service
 from services.service import (
     DEFAULT_SITE,
@@ -231,7 +231,7 @@ def scan_field(count: int, fov_deg: float | None = None,
     """The angles of a scan of ``count`` values.
 
     Beam ``k`` has bearing ``-fov/2 + k * step`` (the simulator's
-    :func:`services.sim.sensors.beam_angles_rad`, computed the same way so the angles
+    :func:`sim.sensors.beam_angles_rad`, computed the same way so the angles
     agree to the last bit).
 
     Parameters
@@ -240,7 +240,7 @@ def scan_field(count: int, fov_deg: float | None = None,
         Values in the telegram.
     fov_deg, resolution_deg : float, optional
         Field of view and step, degrees.  Both None: the LMS200 field for the count
-        (:func:`services.protocols.lms200.field_for_count`).  One given: the other follows
+        (:func:`devices.lms200.field_for_count`).  One given: the other follows
         from ``fov = (count - 1) * step``.  Both given: they must agree with the count.
 
     Returns

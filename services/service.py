@@ -52,16 +52,6 @@ from schemas.events import (
 )
 
 #: Every service ``stockpile service NAME`` can start (module ``services.<module>``).
-SERVICE_MODULES: dict[str, str] = {
-    "scanner": "services.scanner",
-    "gnss": "services.gnss",
-    "localizer": "services.localizer",
-    "ledger": "services.ledger_service",
-    "projector": "services.projector_service",
-    "dashboard": "services.dashboard",
-    "recorder": "replay.record",
-}
-
 DEFAULT_SITE = "demo"
 DEFAULT_STATUS_PERIOD_S = 5.0
 #: samples each AdvancedPublisher keeps for late joiners and recovery (per key)
@@ -411,17 +401,6 @@ def declare_ledger_publisher(session, key: str, *, cache_samples: int = DEFAULT_
             heartbeat=HEARTBEAT_PERIOD_S, sporadic_heartbeat=None),
         publisher_detection=True,
     )
-
-
-def json_safe(value):
-    """NaN and inf -> None, tuples -> lists, keys -> str, recursively (strict JSON)."""
-    if isinstance(value, float):
-        return value if math.isfinite(value) else None
-    if isinstance(value, dict):
-        return {str(k): json_safe(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [json_safe(v) for v in value]
-    return value
 
 
 class EventPublisher:

@@ -21,7 +21,7 @@ def small_yard_sim(tmp_path_factory):
     directory (``events.jsonl``, truth).
     """
     out = tmp_path_factory.mktemp("small-yard") / "sim"
-    subprocess.run([sys.executable, "-m", "services.cli", "sim", "--scenario", "demo",
+    subprocess.run([sys.executable, "-m", "stockpile.cli", "sim", "--scenario", "demo",
                     "--seed", "2", "--duration", "0.19", "--speed", "0", "--scan-events",
                     "truth", "--assay-window", "1200", "--out", str(out)],
                    check=True, capture_output=True, timeout=300)
@@ -37,7 +37,7 @@ def process_demo(tmp_path_factory):
     """
     out = tmp_path_factory.mktemp("process-demo") / "demo"
     run = subprocess.run(
-        [sys.executable, "-m", "services.cli", "demo", "--out", str(out), "--seed", "3",
+        [sys.executable, "-m", "stockpile.cli", "demo", "--out", str(out), "--seed", "3",
          "--duration", "0.2", "--speed", "30", "--record", str(out / "live.mcap")],
         capture_output=True, text=True, timeout=600)
     return out, run

@@ -1,4 +1,4 @@
-"""Audit and reconciliation reports (``ledger.audit``, ``stockpile audit``) on a real ledger.
+"""Audit and reconciliation reports (``audit.report``, ``stockpile audit``) on a real ledger.
 
 The ledger is the short simulated yard of ``small_yard_sim`` (seed 2, one stacking pass
 and the start of a second) imported as the ledger service would store it, followed by
@@ -21,10 +21,10 @@ from pathlib import Path
 import pytest
 
 from ledger import open_ledger
-from ledger.audit import audit_assays, audit_cuts, audit_history
-from ledger.projector.query import project
-from ledger.times import format_time_ns
-from services import cli
+from audit.report import audit_assays, audit_cuts, audit_history
+from projector.query import project
+from schemas.times import format_time_ns
+from stockpile import cli
 
 SEED = 2          # the seed of the small_yard_sim fixture (tests/conftest.py)
 PILE = "P1"
@@ -271,7 +271,7 @@ def test_cli_tables_and_json(ledger_and_info, cuts_report, small_yard_sim, capsy
 def test_bad_input_is_one_line_and_exit_2(ledger_and_info, tmp_path, capsys):
     path, _info = ledger_and_info
     missing = tmp_path / "nope.duckdb"
-    proc = subprocess.run([sys.executable, "-m", "services.cli", "audit", "cuts", "--ledger",
+    proc = subprocess.run([sys.executable, "-m", "stockpile.cli", "audit", "cuts", "--ledger",
                            str(missing), "--pile", PILE], capture_output=True, text=True,
                           timeout=120)
     assert proc.returncode == 2

@@ -10,7 +10,7 @@ from pathlib import Path
 import duckdb
 import pytest
 
-from ledger.sample import generate_sample
+from stockpile.sample import generate_sample
 
 STOCKPILE = str(Path(sys.executable).with_name("stockpile"))
 

@@ -22,10 +22,10 @@ import zenoh
 import rerun.chunk as rrc
 
 from ledger import open_ledger
-from ledger.projector.query import project
+from projector.query import project
 from schemas import pb
 from schemas.events import set_timestamp_ns
-from services import cli
+from stockpile import cli
 from services.dashboard import Config, render_ledger
 from services.ledger_client import LedgerClient
 from services.service import EventPublisher
@@ -169,7 +169,7 @@ def test_logged_tonnes_match_the_projector(offline, ledger):
 
 
 def test_offline_render_shows_the_planned_bench_coloured_by_predicted_grade(ledger, tmp_path):
-    from services.plan_cli import make_plan, plan_args
+    from planner.cli import make_plan, plan_args
 
     out = tmp_path / "plan.rrd"
     config = Config(rrd=str(out), every_s=3600.0, plan_machine="bwr1", plan_cuts=3)
@@ -239,9 +239,9 @@ def test_machine_joints_from_the_localizers_scanner_pose_round_trip():
     """The reclaimer is drawn from its scanner pose: invert the localizer's own forward chain."""
     import numpy as np
 
-    from ledger.projector.envelope import Reclaimer
+    from projector.envelope import Reclaimer
     from services.dashboard import _quat_matrix, joints_from_wheel_pose, wheel_from_scanner
-    from services.fusion import MachineGeometry, scanner_pose
+    from services.ukf import MachineGeometry, scanner_pose
 
     mount_q = (0.5, 0.5, 0.5, -0.5)   # the simulator's scanner-in-wheel rotation
     geometry = MachineGeometry(rail_x_m=-25.0, rail_z_m=0.5, l2_m=6.0, l3_m=5.0, l4_m=5.0,

@@ -1,8 +1,8 @@
 """The UKF localizer: the filter against the simulator's truth, and the service as a process.
 
-Truth always comes from the simulator (:mod:`services.sim.kinematics`, the encoder and
-GNSS models of :mod:`services.sim.sensors`, the scanner pose of
-:mod:`services.sim.runner`), never from the filter's own kinematics.
+Truth always comes from the simulator (:mod:`sim.kinematics`, the encoder and
+GNSS models of :mod:`sim.sensors`, the scanner pose of
+:mod:`sim.runner`), never from the filter's own kinematics.
 """
 
 from __future__ import annotations
@@ -25,13 +25,13 @@ from scipy.spatial.transform import Rotation
 from schemas import pb
 from schemas.events import Event, make_event, set_timestamp_ns
 from schemas.validate import check_event
-from services import fusion
-from services.fusion import FilterTuning, LocalizerFilter, MachineGeometry
+from services import ukf as fusion
+from services.ukf import FilterTuning, LocalizerFilter, MachineGeometry
 from services.localizer import Config, Localizer
-from services.sim.kinematics import FULL_SCALE, wheel_centre
-from services.sim.runner import SCANNER_IN_WHEEL, wheel_rotation
-from services.sim.scenario import DEFAULT_START_NS, Scenario
-from services.sim.sensors import ENCODER_SET_1, EncoderModel, GnssModel
+from sim.kinematics import FULL_SCALE, wheel_centre
+from sim.runner import SCANNER_IN_WHEEL, wheel_rotation
+from sim.scenario import DEFAULT_START_NS, Scenario
+from sim.sensors import ENCODER_SET_1, EncoderModel, GnssModel
 
 NS = 1_000_000_000
 SEED = 20261122
@@ -435,7 +435,7 @@ def test_localizer_process_over_zenoh():
         for msg in _declarations():
             config_pub.publish(msg)
         proc = subprocess.Popen(
-            [sys.executable, "-m", "services.cli", "service", "localizer", "--site", site,
+            [sys.executable, "-m", "stockpile.cli", "service", "localizer", "--site", site,
              "--connect", endpoint, "--status-period", "1"],
             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
             env={**os.environ, "PYTHONUNBUFFERED": "1"})

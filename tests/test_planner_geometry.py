@@ -1,7 +1,7 @@
 """The reclaim planner's pure parts against independent references.
 
 Every reference here is a different implementation: the simulator's kinematics and
-envelope (:mod:`services.sim.kinematics`), closed-form planes and volumes, or brute force.
+envelope (:mod:`sim.kinematics`), closed-form planes and volumes, or brute force.
 Random inputs print their seed.
 """
 
@@ -13,16 +13,16 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from ledger.planner.bench import PlanParams, cell_set, cut_step, simulate_bench
-from ledger.planner.grades import check_bounds, predict_cuts
-from ledger.planner.kinematics import PlannerMachine, inverse_kinematics, pivot_position
-from ledger.planner.landing import landing_candidates, surface_normals
-from ledger.planner.settle import level_down, level_up, relax_region, settle_stack
-from ledger.projector.envelope import cut_floor
-from ledger.projector.grades import AssayRecord
-from ledger.projector.grid import GridGeometry, cell_centres
-from ledger.projector.layers import DepositInfo, LayerStack
-from services.sim import kinematics as simk
+from planner.bench import PlanParams, cell_set, cut_step, simulate_bench
+from planner.grades import check_bounds, predict_cuts
+from planner.kinematics import PlannerMachine, inverse_kinematics, pivot_position
+from planner.landing import landing_candidates, surface_normals
+from planner.settle import level_down, level_up, relax_region, settle_stack
+from projector.envelope import cut_floor
+from projector.grades import AssayRecord
+from projector.grid import GridGeometry, cell_centres
+from projector.layers import DepositInfo, LayerStack
+from sim import kinematics as simk
 
 SIM_MACHINE = replace(simk.FULL_SCALE, rail_x_m=-25.0)
 MACHINE = PlannerMachine.from_message(SIM_MACHINE)

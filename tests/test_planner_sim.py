@@ -1,8 +1,8 @@
 """The reclaim planner against the simulator: collisions and predicted cuts, from truth and
 from a real ledger.
 
-Ground truth is the simulator's own world model and geometry (:mod:`services.sim.world`,
-:mod:`services.sim.kinematics`, through :mod:`services.sim.drive`), never the planner's.
+Ground truth is the simulator's own world model and geometry (:mod:`sim.world`,
+:mod:`sim.kinematics`, through :mod:`sim.drive`), never the planner's.
 
 - ``truth_runs``: the simulator stacks a pile (``demo`` twice, ``bench-scale`` once, seeds
   printed); the planner works on the true layers (so projector error stays out); landings
@@ -28,13 +28,13 @@ import pytest
 
 from ledger import EventClock, open_ledger
 from ledger.cli import import_lines
-from ledger.planner.grades import predict_cuts
-from ledger.planner.kinematics import PlannerMachine
-from ledger.planner.plan import evaluate_landings, plan_bench_from, plan_reclaim
-from services.sim import kinematics as simk
-from services.sim.drive import drive_bench, lab_assays, stacked_world, truth_stack
-from services.sim.runner import Simulation
-from services.sim.scenario import bench_scale, demo
+from planner.grades import predict_cuts
+from planner.kinematics import PlannerMachine
+from planner.plan import evaluate_landings, plan_bench_from, plan_reclaim
+from sim import kinematics as simk
+from sim.drive import drive_bench, lab_assays, stacked_world, truth_stack
+from sim.runner import Simulation
+from sim.scenario import bench_scale, demo
 
 #: (scenario, seed, valid landings besides the chosen one driven per bench)
 CASES = (("demo", 31, (2, 0)), ("demo", 32, (0,)), ("bench-scale", 31, (3, 2)))
@@ -106,7 +106,7 @@ def test_invalid_landings_are_refused_for_a_reason(truth_runs):
     bad = [i for i in range(len(table.candidates))
            if not table.landing_ok[i] and table.first_cuts[i].wheel_cells > 0]
     assert bad, "no candidate bumped the wheel body: the test sees nothing"
-    from services.sim.drive import collisions
+    from sim.drive import collisions
 
     deep = 0
     for i in bad:
@@ -174,7 +174,7 @@ def yard(tmp_path_factory) -> dict:
 
 
 def _cli(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "services.cli", *args], capture_output=True,
+    return subprocess.run([sys.executable, "-m", "stockpile.cli", *args], capture_output=True,
                           text=True, timeout=300)
 
 
@@ -219,7 +219,7 @@ def test_plan_reclaim_command_from_a_simulated_ledger(yard):
 
 def test_plan_reclaim_as_of_a_valid_time(yard, capsys):
     """Before anything was stacked there is no pile to land on: exit 1, one line."""
-    from services.cli import main
+    from stockpile.cli import main
 
     start = yard["scenario"].start_ns + 60 * 10 ** 9
     code = main(["plan", "reclaim", "--ledger", yard["ledger"], "--pile", "P1", "--machine",
@@ -240,7 +240,7 @@ def test_plan_reclaim_as_of_a_valid_time(yard, capsys):
     (["--pile", "P1", "--machine", "bwr1", "--spacing", "-1"], "--spacing must be > 0"),
 ])
 def test_bad_input_is_one_line_and_exit_2(yard, capsys, args, message):
-    from services.cli import main
+    from stockpile.cli import main
 
     code = main(["plan", "reclaim", "--ledger", yard["ledger"], *args])
     err = capsys.readouterr().err
@@ -250,7 +250,7 @@ def test_bad_input_is_one_line_and_exit_2(yard, capsys, args, message):
 
 
 def test_missing_ledger_is_an_error(tmp_path, capsys):
-    from services.cli import main
+    from stockpile.cli import main
 
     code = main(["plan", "reclaim", "--ledger", str(tmp_path / "none.duckdb"), "--pile", "P1",
                  "--machine", "bwr1"])

@@ -21,8 +21,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from ledger import open_ledger
-from ledger.projector import fold as F
-from ledger.projector.query import (FAR_FUTURE_NS, SnapshotStore, build_snapshots,
+from projector import fold as F
+from projector.query import (FAR_FUTURE_NS, SnapshotStore, build_snapshots,
                                     grade_inputs, project, summarise)
 from ledger.records import RecordedEvent
 from schemas import pb
@@ -97,7 +97,7 @@ def _brute_force(rows: list[RecordedEvent], v: int, k: int):
                     key=lambda r: (r.valid_time_ns, r.global_seq))
     state = F.initial_state(PILE)
     lots, assays = {}, []
-    from ledger.projector.grades import AssayRecord
+    from projector.grades import AssayRecord
 
     for r in chosen:
         if r.type == "lot_declared":
@@ -216,8 +216,8 @@ def test_a_packed_state_unpacks_to_the_same_arrays_and_a_foreign_file_is_refused
                                                                                 monkeypatch):
     # the frames of a packed state decompress on every core (a thread each): the state
     # that comes back is the one that went in, array for array
-    from ledger.projector import query as Q
-    from ledger.projector.query import _pack, _unpack
+    from projector import query as Q
+    from projector.query import _pack, _unpack
 
     store = _ledger(yard["events"], [0] * len(yard["events"]))
     state = F.initial_state(F.FoldConfig(pile_id=PILE))
@@ -331,7 +331,7 @@ def test_stockpile_project_json_matches_the_python_api(yard, tmp_path):
                        e.valid_time_ns) for e in sorted(yard["events"], key=lambda e: e.valid_time_ns)]
         assert store.append(batch).appended == len(batch)
         expected = project(store, PILE)
-    done = subprocess.run([sys.executable, "-m", "services.cli", "project", "--ledger", str(path),
+    done = subprocess.run([sys.executable, "-m", "stockpile.cli", "project", "--ledger", str(path),
                            "--pile", PILE, "--json"], capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr
     out = json.loads(done.stdout)
@@ -342,14 +342,14 @@ def test_stockpile_project_json_matches_the_python_api(yard, tmp_path):
     for key in ("cut_id", "tonnes", "tonnes_scale", "grade", "assayed_fraction", "deposits"):
         assert key in cut
     assert cut["tonnes_scale"] == 100.0 and cut["tonnes"] > 0
-    text = subprocess.run([sys.executable, "-m", "services.cli", "project", "--ledger", str(path),
+    text = subprocess.run([sys.executable, "-m", "stockpile.cli", "project", "--ledger", str(path),
                            "--pile", "NOPE"], capture_output=True, text=True, timeout=300)
     assert text.returncode == 2 and "not declared" in text.stderr
 
 
 def test_each_buried_top_is_fitted_once_at_the_first_cut_after_its_pass():
-    from ledger.projector.grid import GridGeometry
-    from ledger.projector.layers import DepositInfo, LayerStack
+    from projector.grid import GridGeometry
+    from projector.layers import DepositInfo, LayerStack
 
     seed = 11
     print(f"seed={seed}")

@@ -1,5 +1,5 @@
 """Projector geometry: pose interpolation, georeferencing, profile cleaning, rasterising,
-Kalman height fusion and volumes (ledger.projector.georef / profile / heightmap).
+Kalman height fusion and volumes (projector.georef / profile / heightmap).
 
 Every random test prints its seed (shown by pytest on failure, or with ``-s``); set
 ``PROJECTOR_GEOMETRY_SEED`` to rerun with another base seed.  Ground truths are computed
@@ -18,13 +18,13 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation, Slerp
 
-from ledger.projector.georef import (
+from projector.georef import (
     georeference, interpolate_poses, quaternion_to_matrix, sensor_points)
-from ledger.projector.grid import GridGeometry, cell_centres
-from ledger.projector.heightmap import (
+from projector.grid import GridGeometry, cell_centres
+from projector.heightmap import (
     CellObservations, FuseStats, HeightMap, centre_elevation, fill_holes, fuse,
     plane_fit_of_seen, rasterize, volume_above)
-from ledger.projector.profile import above_ground, clean_profile
+from projector.profile import above_ground, clean_profile
 
 BASE_SEED = int(os.environ.get("PROJECTOR_GEOMETRY_SEED", "20261107"))
 T0_NS = 1_793_491_200_000_000_000
@@ -141,8 +141,8 @@ def test_sensor_points_laserscan_convention():
 
 
 def test_georeference_matches_the_simulator_scan_geometry():
-    """Same points as services.sim.sensors: position + R @ (range * direction)."""
-    from services.sim.sensors import beam_angles_rad, beam_directions_scanner_frame, rotation_matrix
+    """Same points as sim.sensors: position + R @ (range * direction)."""
+    from sim.sensors import beam_angles_rad, beam_directions_scanner_frame, rotation_matrix
 
     rng = make_rng(2)
     fov, step = 100.0, 0.5
@@ -571,7 +571,7 @@ def test_fuse_dates_an_accepted_change_from_its_first_sighting():
 
 
 def test_accept_rises_takes_held_rises_and_keeps_held_drops():
-    from ledger.projector.heightmap import accept_rises
+    from projector.heightmap import accept_rises
 
     g = GridGeometry(0.0, 0.0, 0.25, 4, 2)
     sd = 0.05

@@ -1,4 +1,4 @@
-"""Scanner heights referenced to the declared ground (``ledger.projector.ground`` and the
+"""Scanner heights referenced to the declared ground (``projector.ground`` and the
 fold's ``ground_reference``).
 
 The kernels are checked on synthetic scans whose ground offset is known by construction;
@@ -14,8 +14,8 @@ import math
 import numpy as np
 import pytest
 
-from ledger.projector import fold as F
-from ledger.projector.ground import scan_ground_offsets, smooth_offsets
+from projector import fold as F
+from projector.ground import scan_ground_offsets, smooth_offsets
 from ledger.records import RecordedEvent
 from schemas.events import Event, decode_payload
 from schemas.jsonl import decode_line

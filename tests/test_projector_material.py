@@ -2,7 +2,7 @@
 
 Every check compares against a value computed a different way: per-cell Python loops over
 the DOMAIN.md §3 formulas, a parcel-list model of the pile, brute-force voxel overlaps,
-Monte Carlo points, and the simulator (``services.sim``) as the ground truth for cuts.
+Monte Carlo points, and the simulator (``sim``) as the ground truth for cuts.
 Random inputs come from seeded generators; the seeds are printed (shown by pytest on
 failure or with -s).
 """
@@ -16,11 +16,11 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from ledger.projector.envelope import Reclaimer, cut_floor, in_slew_arc, wheel_centre
-from ledger.projector.grades import AssayRecord, effective_assays, grade_at, grade_classes
-from ledger.projector.grid import GridGeometry, cell_centre
-from ledger.projector.layers import DepositInfo, LayerStack, fit_local_quadratic
-from ledger.projector.voxels import ClassWeights, integrate
+from projector.envelope import Reclaimer, cut_floor, in_slew_arc, wheel_centre
+from projector.grades import AssayRecord, effective_assays, grade_at, grade_classes
+from projector.grid import GridGeometry, cell_centre
+from projector.layers import DepositInfo, LayerStack, fit_local_quadratic
+from projector.voxels import ClassWeights, integrate
 
 T0 = 1_700_000_000 * 10**9  # an arbitrary UTC epoch (ns)
 H = 3_600 * 10**9           # one hour (ns)
@@ -155,7 +155,7 @@ def test_cut_floor_arcs_across_pi():
 
 def test_cut_floor_matches_the_simulator_envelope():
     """The simulator is the ground truth: same footprint and floor on random cuts."""
-    from services.sim.kinematics import FULL_SCALE, envelope_floor_z
+    from sim.kinematics import FULL_SCALE, envelope_floor_z
 
     m = Reclaimer(FULL_SCALE.rail_x_m, FULL_SCALE.rail_z_m, FULL_SCALE.l2_m, FULL_SCALE.l3_m,
                   FULL_SCALE.l4_m, FULL_SCALE.l5_m, FULL_SCALE.cutting_radius_m,
@@ -179,8 +179,8 @@ def test_cut_floor_matches_the_simulator_envelope():
 
 def test_cut_removes_what_the_simulator_removes_in_sub_slews():
     """One clamp over the whole arc == the simulator's cut in 8 sub-slews (runner.py)."""
-    from services.sim.kinematics import FULL_SCALE
-    from services.sim.world import Grid, World
+    from sim.kinematics import FULL_SCALE
+    from sim.world import Grid, World
 
     grid = Grid.covering(35.0, 75.0, -10.0, 30.0, 0.5)
     world = World(grid, 37.0, analytes=("Fe",))

@@ -15,11 +15,11 @@ import math
 import numpy as np
 import pytest
 
-import ledger.projector.fold as F
-from ledger.projector import slump
-from ledger.projector.grid import GridGeometry
-from ledger.projector.heightmap import CellObservations, HeightMap, fuse
-from ledger.projector.layers import DepositInfo, LayerStack
+import projector.fold as F
+from projector import slump
+from projector.grid import GridGeometry
+from projector.heightmap import CellObservations, HeightMap, fuse
+from projector.layers import DepositInfo, LayerStack
 
 NS = 10**9
 SD = 0.05          # point sd (m)

@@ -21,7 +21,7 @@ import pytest
 import zenoh
 
 from ledger import open_ledger
-from ledger.projector.query import project
+from projector.query import project
 from schemas import pb
 from schemas.events import decode_payload, set_timestamp_ns
 from services.ledger_client import LedgerClient
@@ -45,7 +45,7 @@ S = 1_000_000_000
 @pytest.fixture(scope="module")
 def small_ledger(small_yard_sim, tmp_path_factory) -> Path:
     path = tmp_path_factory.mktemp("projsvc") / "ledger.duckdb"
-    subprocess.run([sys.executable, "-m", "services.cli", "ledger", "import",
+    subprocess.run([sys.executable, "-m", "stockpile.cli", "ledger", "import",
                     str(small_yard_sim / "events.jsonl"), "--ledger", str(path), "--clock",
                     "events"], check=True, capture_output=True, timeout=300)
     return path

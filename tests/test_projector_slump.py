@@ -8,9 +8,9 @@ import math
 import numpy as np
 import pytest
 
-from ledger.projector.grid import GridGeometry
-from ledger.projector.layers import DepositInfo, LayerStack
-from ledger.projector.slump import (estimate_repose_deg, pour_end_lead_m, pour_front_lead_m,
+from projector.grid import GridGeometry
+from projector.layers import DepositInfo, LayerStack
+from projector.slump import (estimate_repose_deg, pour_end_lead_m, pour_front_lead_m,
                                     pour_reach_m,
                                     relax_surface, repose_floor, slump)
 
@@ -167,7 +167,7 @@ def test_the_fold_measures_slopes_over_a_run_long_enough_for_its_noise():
     # noisy: over 4 cells a side the slopes read steep, |g + n|^2 = |g|^2 + |n|^2, by
     # about 0.2 deg; over the fold's baseline (run >= 8 point sds of 15 mm) by ~0.03 deg
     # (plus the estimator's own binning, a few hundredths)
-    import ledger.projector.fold as F
+    import projector.fold as F
 
     seed = 11
     print("seed", seed)
@@ -200,8 +200,8 @@ def test_a_young_pile_s_slopes_are_measured_over_a_run_its_flanks_hold():
     # fused heights 2 mm noisy.  Runs of 2 x 12 cells mostly straddle the crest or a toe
     # and read the angle shallow; the fold keeps the half run within a quarter of a
     # flank's run (at tan 35 deg, 0.1 / 0.700 / 0.005 / 4: 6 or 7 cells)
-    import ledger.projector.fold as F
-    from ledger.projector.heightmap import HeightMap
+    import projector.fold as F
+    from projector.heightmap import HeightMap
 
     seed = 5
     print("seed", seed)
@@ -369,7 +369,7 @@ def test_a_pass_s_material_is_dated_earlier_only_toward_and_past_the_end_of_its_
     """Along the run a crossing-attributed rise keeps the crossing; within the cone's
     reach of the run's end the front's lead counts in proportion, in full at the end, and
     past the end the travel the boom still had to go (slump.pour_end_lead_m)."""
-    import ledger.projector.fold as F
+    import projector.fold as F
 
     g = GridGeometry(0.0, 0.0, 0.01, 60, 200)              # 0.6 m x 2 m, 1 cm cells
     state = F.initial_state(F.FoldConfig(pile_id="P1", repose_deg=37.0))

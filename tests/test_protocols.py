@@ -17,9 +17,9 @@ import numpy as np
 import pytest
 import serial
 
-from services.protocols import lms200 as L
-from services.protocols import nmea as N
-from services.sim.pty import PtyDevice
+from devices import lms200 as L
+from devices import nmea as N
+from sim.pty import PtyDevice
 
 SEED = int(os.environ.get("PROTOCOLS_TEST_SEED", "20240611"))
 IO_DEADLINE_S = 20.0  # generous: a run normally takes well under a second

@@ -1,12 +1,12 @@
 """MCAP sessions end to end on the live process demo: record, export, replay, bad input.
 
-One short run of the process demo (``services.yard_demo``: simulator, scanner, GNSS,
+One short run of the process demo (``stockpile.yard_demo``: simulator, scanner, GNSS,
 localizer and ledger as separate processes on a loopback Zenoh router) runs with the
 recorder service beside the ledger.  Its recording is compared with the ledger
 written live; then the demo ledger, with two late assays added (a provisional one
 recorded an hour after the run, the final one superseding it two hours later, so
 as-of-known reads differ with K), goes through ``export-mcap`` and ``replay --ledger``.
-The commands run through ``services.cli.main`` (the real command line, in this
+The commands run through ``stockpile.cli.main`` (the real command line, in this
 process: an exception would fail the test rather than hide in a child's stderr); the
 files are read back with the ``mcap`` library itself.
 """
@@ -33,8 +33,8 @@ from replay.mcap_format import McapScan, schema_of
 from replay.replay import iter_events
 from schemas import pb
 from schemas.events import EVENT_TYPES, Event, decode_payload, make_event, set_timestamp_ns
-from services.cli import main as stockpile
-from services.yard_demo import SITE_OF_SCENARIO as SITE
+from stockpile.cli import main as stockpile
+from stockpile.yard_demo import SITE_OF_SCENARIO as SITE
 
 S = 1_000_000_000
 H = 3600 * S

@@ -24,7 +24,7 @@ from replay.mcap_format import EventWriter, McapScan, RawMessage
 from replay.replay import iter_events
 from schemas import pb
 from schemas.events import key_expr, make_event, set_timestamp_ns
-from services.cli import main as stockpile_main
+from stockpile.cli import main as stockpile_main
 from services.ledger_client import LedgerClient
 from zenoh_helpers import (
     client_args,
@@ -196,6 +196,6 @@ def _messages_in(folder: Path) -> int:
 
 
 def _replay_process(session: Path, endpoint: str, *args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "services.cli", "replay", str(session),
+    return subprocess.run([sys.executable, "-m", "stockpile.cli", "replay", str(session),
                            "--publish", *args, "--no-progress", *client_args(endpoint)],
                           capture_output=True, text=True, timeout=120)

@@ -16,7 +16,7 @@ from pathlib import Path
 import zenoh
 
 from ledger import open_ledger
-from services.run_config import ConfigError, load_config
+from stockpile.run_config import ConfigError, load_config
 from services.service import ZenohOptions
 from tests.zenoh_helpers import free_port, log_lines, stockpile, stop, wait_liveliness, wait_until
 
@@ -25,7 +25,7 @@ EXAMPLE = ROOT / "docs" / "yard.example.toml"
 
 
 def _run(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "services.cli", *args], capture_output=True,
+    return subprocess.run([sys.executable, "-m", "stockpile.cli", *args], capture_output=True,
                           text=True, timeout=120, cwd=ROOT)
 
 

@@ -22,16 +22,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ledger.times import parse_time_ns as parse_time
+from schemas.times import parse_time_ns as parse_time
 from schemas.events import (
     make_event,
     timestamp_ns,
 )
 from schemas.validate import check_event
 from services import gnss as G
-from services.protocols import nmea as N
+from devices import nmea as N
 from services.service import parse_logfmt
-from services.sim.pty import PtyDevice
+from sim.pty import PtyDevice
 from tests.zenoh_helpers import (
     EventSink,
     SiteClock,
@@ -225,7 +225,7 @@ def test_site_clock_dates_fixes_across_midnight(router, tmp_path):
 
 def test_a_device_that_cannot_be_opened_is_one_error_line_and_exit_2(tmp_path):
     missing = tmp_path / "no-such-tty"
-    run = subprocess.run([sys.executable, "-m", "services.cli", "service", "gnss",
+    run = subprocess.run([sys.executable, "-m", "stockpile.cli", "service", "gnss",
                           "--device", str(missing), "--mode", "client", "--connect",
                           "tcp/127.0.0.1:9"], capture_output=True, text=True, timeout=60)
     assert run.returncode == 2

@@ -21,17 +21,17 @@ import time
 import numpy as np
 import pytest
 
-from ledger.times import parse_time_ns
+from schemas.times import parse_time_ns
 from schemas.events import (
     make_event,
     timestamp_ns,
 )
 from schemas.validate import check_event
 from services import scanner as S
-from services.protocols import lms200 as L
+from devices import lms200 as L
 from services.service import SiteTime, parse_logfmt
-from services.sim.pty import PtyDevice
-from services.sim.sensors import beam_angles_rad
+from sim.pty import PtyDevice
+from sim.sensors import beam_angles_rad
 from tests.zenoh_helpers import (
     EventSink,
     SiteClock,
@@ -373,7 +373,7 @@ def test_site_time_between_ticks_follows_a_pace_the_line_has_not_seen(seed):
 
 def test_a_device_that_cannot_be_opened_is_one_error_line_and_exit_2(tmp_path):
     missing = tmp_path / "no-such-tty"
-    run = subprocess.run([sys.executable, "-m", "services.cli", "service", "scanner",
+    run = subprocess.run([sys.executable, "-m", "stockpile.cli", "service", "scanner",
                           "--device", str(missing), "--mode", "client", "--connect",
                           "tcp/127.0.0.1:9"], capture_output=True, text=True, timeout=60)
     assert run.returncode == 2

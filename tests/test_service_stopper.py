@@ -1,5 +1,5 @@
 """SIGINT/SIGTERM handling every service shares (:class:`services.service.Stopper`), and
-the stack dump a running service writes on SIGUSR1 (:mod:`services.service_cli`)."""
+the stack dump a running service writes on SIGUSR1 (:mod:`stockpile.service_cli`)."""
 
 from __future__ import annotations
 

@@ -6,7 +6,7 @@ import random
 
 import numpy as np
 
-from services.sim.grades import ANALYTES, NS_PER_H, NS_PER_S, BeltGrade, LabModel, table_5_4_lots
+from sim.grades import ANALYTES, NS_PER_H, NS_PER_S, BeltGrade, LabModel, table_5_4_lots
 
 
 def _seed() -> int:

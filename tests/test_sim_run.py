@@ -15,11 +15,11 @@ import serial
 
 from schemas.jsonl import decode_line
 from schemas.validate import check_event
-from services.protocols import lms200
-from services.protocols.nmea import NmeaReader, parse_gga
-from services.sim.pty import PtyDevice
-from services.sim.runner import LAB_WINDOW_FE, Simulation
-from services.sim.scenario import demo
+from devices import lms200
+from devices.nmea import NmeaReader, parse_gga
+from sim.pty import PtyDevice
+from sim.runner import LAB_WINDOW_FE, Simulation
+from sim.scenario import demo
 
 STOCKPILE = str(Path(sys.executable).with_name("stockpile"))
 SHORT_H = 0.12  # site hours: declarations, lots and the start of the first pass

@@ -23,13 +23,13 @@ from foxglove_schemas_protobuf.LaserScan_pb2 import LaserScan
 from ledger import open_ledger
 from schemas.events import decode_payload
 from schemas.jsonl import decode_line, encode_line
-from services.fusion import MachineGeometry, quaternion_to_matrix, scanner_pose
-from services.protocols import lms200
+from services.ukf import MachineGeometry, quaternion_to_matrix, scanner_pose
+from devices import lms200
 from services.scanner import scan_field, scan_message
-from services.sim import sensors
-from services.sim.publish import MemorySink
-from services.sim.runner import Simulation
-from services.sim.scenario import demo
+from sim import sensors
+from sim.publish import MemorySink
+from sim.runner import Simulation
+from sim.scenario import demo
 
 STOCKPILE = str(Path(sys.executable).with_name("stockpile"))
 DURATION_H = 0.05      # 3 site minutes: ~900 scans at 5 Hz, the stacker not yet started

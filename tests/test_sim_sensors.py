@@ -16,8 +16,8 @@ import pymap3d
 import pytest
 from scipy import stats
 
-from services.sim.kinematics import FULL_SCALE, wheel_centre
-from services.sim.sensors import (
+from sim.kinematics import FULL_SCALE, wheel_centre
+from sim.sensors import (
     BEAM_DROPOUT, BEAM_ERROR_CODE, BEAM_MIXED, BEAM_NO_HIT, BEAM_OK, ENCODER_SET_1,
     ENCODER_SET_2, EncoderModel, GnssConfig, GnssModel, ScannerModel, antenna_position,
     beam_angles_rad, beam_directions_scanner_frame, quantise_down, raycast_heightmap,

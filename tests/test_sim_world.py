@@ -1,4 +1,4 @@
-"""Tests of the simulated pile (services.sim.world): mass, geometry, layers, cut truth.
+"""Tests of the simulated pile (sim.world): mass, geometry, layers, cut truth.
 
 Small piles (about 40 m x 20 m at 0.5 m cells) keep the file fast. Random inputs come from
 seeded generators; the seeds are printed (shown by pytest on failure or with -s).
@@ -13,8 +13,8 @@ import math
 import numpy as np
 import pytest
 
-from services.sim.kinematics import FULL_SCALE, envelope_floor_z
-from services.sim.world import ANALYTES, Grid, Pattern, World
+from sim.kinematics import FULL_SCALE, envelope_floor_z
+from sim.world import ANALYTES, Grid, Pattern, World
 
 H = 3_600 * 10**9  # one hour in ns
 T0 = 1_700_000_000 * 10**9  # an arbitrary UTC epoch (ns)
@@ -446,7 +446,7 @@ def test_losses_at_the_border_are_accounted(mode):
 
 def test_envelope_floor_handles_a_slew_range_across_pi():
     """A range written as [3.0, 3.4] and as [3.0 - 2 pi, 3.4 - 2 pi] is the same footprint."""
-    from services.sim.kinematics import FULL_SCALE, envelope_floor_z, wheel_centre
+    from sim.kinematics import FULL_SCALE, envelope_floor_z, wheel_centre
 
     x, y = np.meshgrid(np.linspace(-70, 70, 141), np.linspace(-70, 70, 141))
     a = envelope_floor_z(FULL_SCALE, x, y, 0.0, -0.1, 3.0, 3.4)

@@ -6,7 +6,7 @@ import duckdb
 
 from ledger import EventClock, open_ledger
 from ledger.cli import import_lines
-from ledger.sample import LOT_GRADES, generate_sample
+from stockpile.sample import LOT_GRADES, generate_sample
 
 
 def test_views_unpack_domain_events(tmp_path):

@@ -52,7 +52,7 @@ def stockpile(*args: str, stderr_path: Path | None = None, stdout_path: Path | N
     """Start ``stockpile ARGS`` as a child process (its stderr to a file, for its log lines)."""
     stderr = open(stderr_path, "w") if stderr_path else subprocess.DEVNULL
     stdout = open(stdout_path, "w") if stdout_path else subprocess.DEVNULL
-    process = subprocess.Popen([PYTHON, "-m", "services.cli", *args], stderr=stderr,
+    process = subprocess.Popen([PYTHON, "-m", "stockpile.cli", *args], stderr=stderr,
                                stdout=stdout, env={**os.environ, "PYTHONUNBUFFERED": "1"})
     process.stderr_path = stderr_path     # for stop()'s report on a process that hangs
     return process
@@ -90,7 +90,7 @@ def stop_all(*processes: subprocess.Popen | None, timeout_s: float = 30.0) -> li
 
 
 def _stacks_of(process: subprocess.Popen) -> str:
-    """Ask a hung service for its threads' stacks (SIGUSR1, see services.service_cli) and
+    """Ask a hung service for its threads' stacks (SIGUSR1, see stockpile.service_cli) and
     return the tail of its log, where they are written; "" without a log file."""
     path = getattr(process, "stderr_path", None)
     if path is None or not hasattr(signal, "SIGUSR1"):

@@ -1,0 +1,408 @@
+"""``stockpile audit cuts|history|assays``: audit and reconciliation reports for people.
+
+The computations are :mod:`audit.report`; this module parses options, shows progress
+on stderr during long folds and prints readable tables (or one JSON object with
+``--json``).  The ledger is opened read-only.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import re
+import sys
+import time
+from pathlib import Path
+from typing import Any, Sequence
+
+from schemas.times import format_time_ns, parse_time_ns
+from schemas.jsonl import json_safe
+
+NS = 1_000_000_000
+_UNITS = {"s": NS, "sec": NS, "m": 60 * NS, "min": 60 * NS, "h": 3600 * NS, "d": 86400 * NS}
+
+
+def parse_duration_ns(text: str) -> int:
+    """``"1h"``, ``"30min"``, ``"15m"``, ``"90s"``, ``"1h30m"``, ``"2d"`` or integer ns -> ns."""
+    value = str(text).strip().lower()
+    if re.fullmatch(r"\d+", value):
+        return int(value)
+    parts = re.findall(r"(\d+(?:\.\d+)?)\s*(min|sec|s|m|h|d)", value)
+    if not parts or "".join(n + u for n, u in parts) != value.replace(" ", ""):
+        raise ValueError(f"not a duration: {text!r} (use e.g. 1h, 30min, 90s)")
+    total = sum(float(n) * _UNITS[u] for n, u in parts)
+    if total <= 0:
+        raise ValueError(f"the duration must be positive: {text!r}")
+    return int(round(total))
+
+
+# -- output helpers -------------------------------------------------------------------------
+
+
+
+
+def _dump(obj: dict[str, Any]) -> None:
+    json.dump(json_safe(obj), sys.stdout, indent=1, allow_nan=False)
+    print()
+
+
+def _num(value: float | None, fmt: str = ",.1f") -> str:
+    if value is None or not isinstance(value, (int, float)) or not math.isfinite(value):
+        return "-"
+    return format(value, fmt)
+
+
+def _when(ns: int | None) -> str:
+    """UTC time for tables: ``2026-11-01 01:13:17`` (seconds, no zone)."""
+    if ns is None:
+        return "-"
+    return format_time_ns(ns // NS * NS).replace("T", " ").rstrip("Z")
+
+
+def table(headers: Sequence[str], rows: Sequence[Sequence[str]], *, right: Sequence[bool] | None = None,
+          indent: int = 2) -> str:
+    """A plain text table: a header, a rule and aligned columns."""
+    widths = [len(h) for h in headers]
+    for row in rows:
+        widths = [max(w, len(c)) for w, c in zip(widths, row)]
+    right = right or [False] * len(headers)
+    pad = " " * indent
+
+    def line(cells):
+        return pad + "  ".join(c.rjust(w) if r else c.ljust(w)
+                               for c, w, r in zip(cells, widths, right)).rstrip()
+
+    out = [line(headers), pad + "  ".join("-" * w for w in widths)]
+    out.extend(line(row) for row in rows)
+    return "\n".join(out)
+
+
+class ProgressLine:
+    """Progress of a long fold on stderr: a rewritten line on a terminal, else quiet.
+
+    ``force`` prints a line per update (at most every ``period_s``) even when stderr is not
+    a terminal.
+    """
+
+    def __init__(self, label: str, *, enabled: bool | None = None, force: bool = False,
+                 period_s: float = 1.0) -> None:
+        tty = sys.stderr.isatty()
+        self.label, self.force, self.period_s = label, force, period_s
+        self.enabled = force or (tty if enabled is None else enabled)
+        self.tty = tty and not force
+        self._last = 0.0
+        self._shown = False
+        self._t0 = time.monotonic()
+
+    def __call__(self, fraction: float, events: int) -> None:
+        if not self.enabled:
+            return
+        now = time.monotonic()
+        if now - self._last < self.period_s and fraction < 1.0:
+            return
+        self._last = now
+        text = (f"{self.label}: folded {events:,} geometry events ({100 * fraction:3.0f} % of "
+                f"valid time, {now - self._t0:.0f} s)")
+        if self.tty:
+            sys.stderr.write("\r" + text + " " * 4)
+        else:
+            sys.stderr.write(text + "\n")
+        sys.stderr.flush()
+        self._shown = True
+
+    def done(self) -> None:
+        if self.enabled and self.tty and self._shown:
+            sys.stderr.write("\r" + " " * 100 + "\r")
+            sys.stderr.flush()
+
+
+def _open(path: str):
+    from ledger import open_ledger
+
+    if not Path(path).exists():
+        raise ValueError(f"no ledger at {path}")
+    return open_ledger(path, read_only=True)
+
+
+def _known(args) -> int | None:
+    return parse_time_ns(args.known_time) if getattr(args, "known_time", None) else None
+
+
+# -- truth (simulator) ----------------------------------------------------------------------
+
+
+def load_truth_cuts(path: str) -> dict[str, dict[str, Any]]:
+    """``cut_id -> {"grade": {...}, "tonnes": t}`` from a simulator ``truth.json``."""
+    try:
+        data = json.loads(Path(path).read_text())
+    except FileNotFoundError:
+        raise ValueError(f"no truth file at {path}") from None
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{path} is not JSON ({exc.msg})") from None
+    cuts = data.get("cuts") if isinstance(data, dict) else None
+    if not isinstance(cuts, list):
+        raise ValueError(f"{path} has no 'cuts' list (a simulator truth.json is expected)")
+    out = {}
+    for c in cuts:
+        if isinstance(c, dict) and "cut_id" in c:
+            out[str(c["cut_id"])] = {
+                "grade": {k: float(v) for k, v in (c.get("grade") or {}).items()},
+                "tonnes": float(c.get("true_tonnes", math.nan)),
+                "lots": {k: float(v) for k, v in sorted((c.get("tonnes_by_lot") or {}).items(),
+                                                         key=lambda kv: -kv[1])}}
+    return out
+
+
+# -- commands -------------------------------------------------------------------------------
+
+
+def cmd_cuts(args: argparse.Namespace) -> int:
+    from audit.report import audit_cuts
+
+    truth = load_truth_cuts(args.truth) if args.truth else None
+    progress = ProgressLine("audit cuts", enabled=False if args.no_progress else None,
+                            force=args.progress)
+    with _open(args.ledger) as store:
+        report = audit_cuts(store, args.pile, _known(args), progress=progress)
+    progress.done()
+    analyte = args.analyte
+    if report.analytes and analyte not in report.analytes:
+        raise ValueError(f"analyte {analyte!r} is not in this ledger (it has "
+                         f"{', '.join(report.analytes)})")
+    rows = []
+    for c in report.cuts:
+        row = {
+            "cut_id": c.cut_id, "bench_id": c.bench_id,
+            "start_time": format_time_ns(c.start_time_ns), "end_time": format_time_ns(c.end_time_ns),
+            "start_time_ns": c.start_time_ns, "end_time_ns": c.end_time_ns,
+            "estimated_known_time": format_time_ns(c.estimated_known_ns),
+            "estimated_known_time_ns": c.estimated_known_ns,
+            "tonnes_at_end_t": c.tonnes_at_end_t, "tonnes_t": c.tonnes_t,
+            "tonnes_scale_t": c.tonnes_scale_t,
+            "grade_at_end_pct": c.grade_at_end_pct, "grade_pct": c.grade_pct,
+            "delta_pp": c.delta_pp, "assayed_fraction_at_end": c.assayed_fraction_at_end,
+            "assayed_fraction": c.assayed_fraction, "lots_t": c.lots_t,
+            "residual_m3": c.residual_m3, "changed": c.changed(args.threshold_pp),
+            "reprojected": c.reprojected,
+        }
+        if truth is not None:
+            t = truth.get(c.cut_id)
+            row["truth_grade_pct"] = t["grade"] if t else None
+            row["truth_tonnes_t"] = t["tonnes"] if t else None
+            row["truth_lots_t"] = t["lots"] if t else None
+            if t and analyte in t["grade"]:
+                err_then = abs(c.grade_at_end_pct.get(analyte, math.nan) - t["grade"][analyte])
+                err_now = abs(c.grade_pct.get(analyte, math.nan) - t["grade"][analyte])
+                row["closer_to_truth"] = (bool(err_now < err_then)
+                                          if math.isfinite(err_now) and math.isfinite(err_then)
+                                          else None)
+        rows.append(row)
+    if args.json:
+        _dump({"pile_id": report.pile_id, "known_time": format_time_ns(report.known_time_ns),
+               "known_time_ns": report.known_time_ns, "analytes": list(report.analytes),
+               "pile_tonnes_t": report.pile_tonnes_t, "threshold_pp": args.threshold_pp,
+               "cuts": rows})
+        return 0
+    a = analyte
+    print(f"pile {report.pile_id}: {len(rows)} reclaim cuts; grade as estimated when each cut "
+          f"ended vs as known at {format_time_ns(report.known_time_ns)} ({a}; --analyte to "
+          f"change)")
+    if not rows:
+        print("  no reclaim cuts in the ledger for this pile")
+        return 0
+    headers = ["cut", "ended (UTC)", "geom t", "belt t", f"{a} then %", f"{a} at K %", "d pp",
+               "assayed then/K"]
+    right = [False, False, True, True, True, True, True, False]
+    if truth is not None:
+        headers += [f"{a} truth %", "closer"]
+        right += [True, False]
+    headers.append("lots (t)")
+    right.append(False)
+    if truth is not None:
+        headers.append("truth lots (t)")
+        right.append(False)
+    body = []
+    for c, row in zip(report.cuts, rows):
+        cells = [c.cut_id, _when(c.end_time_ns), _num(c.tonnes_t), _num(c.tonnes_scale_t),
+                 _num(c.grade_at_end_pct.get(a), ".2f"), _num(c.grade_pct.get(a), ".2f"),
+                 _num(c.delta_pp.get(a), "+.2f"),
+                 f"{c.assayed_fraction_at_end:.2f} / {c.assayed_fraction:.2f}"]
+        if truth is not None:
+            tg = (row.get("truth_grade_pct") or {}).get(a)
+            closer = row.get("closer_to_truth")
+            cells += [_num(tg, ".2f"), "-" if closer is None else ("yes" if closer else "no")]
+        cells.append(", ".join(f"{lot} {t:,.0f}" for lot, t in c.lots_t.items()) or "-")
+        if truth is not None:
+            cells.append(", ".join(f"{lot} {t:,.0f}" for lot, t in
+                                   (row.get("truth_lots_t") or {}).items()) or "-")
+        body.append(cells)
+    print(table(headers, body, right=right))
+    changed = [r["cut_id"] for r in rows if r["changed"]]
+    print(f"\n  {len(changed)} of {len(rows)} cuts changed grade after the cut ended by more than "
+          f"{args.threshold_pp:g} pp (late or superseding assays)"
+          + (f": {', '.join(changed)}" if changed else ""))
+    if truth is not None:
+        closer = [r for r in rows if r.get("closer_to_truth")]
+        print(f"  {len(closer)} of {len(rows)} cuts are closer to the simulator's truth as known "
+              f"at K than as estimated at the time ({a}); the lots columns show how much of "
+              f"the rest is the cuts' modelled lot mix")
+    reproj = [r["cut_id"] for r in rows if r["reprojected"]]
+    if reproj:
+        print(f"  re-projected on their own (a geometry event arrived late): {', '.join(reproj)}")
+    return 0
+
+
+def cmd_history(args: argparse.Namespace) -> int:
+    from audit.report import audit_history
+
+    every = parse_duration_ns(args.every)
+    start = parse_time_ns(args.start) if args.start else None
+    end = parse_time_ns(args.end) if args.end else None
+    progress = ProgressLine("audit history", enabled=False if args.no_progress else None,
+                            force=args.progress)
+    with _open(args.ledger) as store:
+        report = audit_history(store, args.pile, every, _known(args), start_ns=start, end_ns=end,
+                               progress=progress)
+    progress.done()
+    analyte = args.analyte
+    if report.analytes and analyte not in report.analytes:
+        raise ValueError(f"analyte {analyte!r} is not in this ledger (it has "
+                         f"{', '.join(report.analytes)})")
+    if args.json:
+        _dump({"pile_id": report.pile_id, "known_time": format_time_ns(report.known_time_ns),
+               "known_time_ns": report.known_time_ns, "every_ns": report.every_ns,
+               "analytes": list(report.analytes),
+               "points": [{"valid_time": format_time_ns(p.valid_time_ns),
+                           "valid_time_ns": p.valid_time_ns,
+                           "volume_m3": p.volume_m3, "tonnes_t": p.tonnes_t,
+                           "grade_pct": p.grade_pct, "assayed_fraction": p.assayed_fraction,
+                           "volume_then_m3": p.volume_then_m3, "tonnes_then_t": p.tonnes_then_t,
+                           "grade_then_pct": p.grade_then_pct,
+                           "assayed_fraction_then": p.assayed_fraction_then,
+                           "delta_pp": p.delta_pp, "reprojected": p.reprojected}
+                          for p in report.points]})
+        return 0
+    a = analyte
+    print(f"pile {report.pile_id}: tonnes and grade every {args.every} of valid time, as known at "
+          f"{format_time_ns(report.known_time_ns)} (K) and as known at the time ({a})")
+    headers = ["valid time (UTC)", "t at K", "t then", f"{a} at K %", f"{a} then %", "d pp",
+               "assayed K/then"]
+    body = [[_when(p.valid_time_ns), _num(p.tonnes_t), _num(p.tonnes_then_t),
+             _num(p.grade_pct.get(a), ".2f"), _num(p.grade_then_pct.get(a), ".2f"),
+             _num(p.delta_pp.get(a), "+.2f"),
+             f"{p.assayed_fraction:.2f} / {p.assayed_fraction_then:.2f}"]
+            for p in report.points]
+    print(table(headers, body, right=[False, True, True, True, True, True, False]))
+    return 0
+
+
+def cmd_assays(args: argparse.Namespace) -> int:
+    from audit.report import audit_assays
+
+    with _open(args.ledger) as store:
+        report = audit_assays(store, _known(args))
+    if args.json:
+        _dump({"known_time": format_time_ns(report.known_time_ns),
+               "known_time_ns": report.known_time_ns, "assays": report.assays,
+               "labs": [lab.__dict__ for lab in report.labs],
+               "superseded": report.superseded, "provisional": report.provisional,
+               "unknown_lots": report.unknown_lots,
+               "lots_without_assays": report.lots_without_assays})
+        return 0
+    print(f"{report.assays} assays as known at {format_time_ns(report.known_time_ns)}")
+    print("\n  lateness per lab (recorded time - end of the sampling window, hours)")
+    if report.labs:
+        bins = list(report.labs[0].histogram)
+        headers = ["lab", "assays", "min h", "median h", "mean h", "p90 h", "max h", *bins]
+        body = [[lab.lab_id, str(lab.assays), _num(lab.min_h, ".2f"), _num(lab.median_h, ".2f"),
+                 _num(lab.mean_h, ".2f"), _num(lab.p90_h, ".2f"), _num(lab.max_h, ".2f"),
+                 *[str(lab.histogram[b]) for b in bins]] for lab in report.labs]
+        print(table(headers, body, right=[False] + [True] * (len(headers) - 1), indent=4))
+    else:
+        print("    none")
+    print(f"\n  superseded assays ({len(report.superseded)})")
+    if report.superseded:
+        body = [[s["assay_id"], s["lot_id"], s["status"] or "?", s["superseded_by"], s["by_status"],
+                 _when(s["superseded_at_ns"]),
+                 ", ".join(f"{a} {s['delta_pp'][a]:+.2f}" for a in ("Fe", "SiO2")
+                           if a in s["delta_pp"]) + " pp" if s["delta_pp"] else "-"]
+                for s in report.superseded]
+        print(table(["assay", "lot", "status", "superseded by", "its status", "at (UTC)",
+                     "change"], body, indent=4))
+    else:
+        print("    none")
+    print(f"\n  provisional assays ({len(report.provisional)})")
+    if report.provisional:
+        body = [[p["assay_id"], p["lot_id"], p["lab_id"], _when(p["recorded_ns"]),
+                 p["replaced_by"] or ("still provisional" if p["open"] else "-")]
+                for p in report.provisional]
+        print(table(["assay", "lot", "lab", "recorded (UTC)", "replaced by"], body, indent=4))
+    else:
+        print("    none")
+    print(f"\n  assays for lots not declared when recorded ({len(report.unknown_lots)})")
+    if report.unknown_lots:
+        body = [[u["assay_id"], u["lot_id"], u["lab_id"], _when(u["recorded_ns"]),
+                 "yes" if u["declared_by_k"] else "no"] for u in report.unknown_lots]
+        print(table(["assay", "lot", "lab", "recorded (UTC)", "declared by K"], body, indent=4))
+    else:
+        print("    none")
+    print(f"\n  lots without assays ({len(report.lots_without_assays)})")
+    if report.lots_without_assays:
+        body = [[lot["lot_id"], _when(lot["declared_ns"]), _num(lot["planned_tonnes_t"])]
+                for lot in report.lots_without_assays]
+        print(table(["lot", "declared (UTC)", "planned t"], body, indent=4))
+    else:
+        print("    none")
+    return 0
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser(
+        "audit", help="audit and reconciliation reports (cuts, history, assays)",
+        description="Audit and reconciliation reports from the ledger alone: what each cut "
+        "graded as estimated at the time vs as known now, the pile over time, and how late "
+        "the labs report.")
+    sub = p.add_subparsers(dest="audit", metavar="REPORT", required=True, parser_class=type(p))
+
+    def common(sp, *, pile: bool, fold: bool) -> None:
+        sp.add_argument("--ledger", required=True, help="ledger file (opened read-only)")
+        if pile:
+            sp.add_argument("--pile", required=True, help="pile id")
+        sp.add_argument("--known-time", metavar="K",
+                        help="known time K (ISO-8601 or ns; default: everything in the ledger)")
+        sp.add_argument("--json", action="store_true", help="one JSON object instead of tables")
+        if fold:
+            sp.add_argument("--analyte", default="Fe",
+                            help="analyte shown in the table (default %(default)s; --json has all)")
+            sp.add_argument("--progress", action="store_true",
+                            help="print progress lines on stderr even when it is not a terminal")
+            sp.add_argument("--no-progress", action="store_true", help="no progress on stderr")
+
+    c = sub.add_parser("cuts", help="each cut: grade as estimated when it ended vs as known at K",
+                       description="One row per reclaim cut: tonnes (geometry and belt scale), "
+                       "grade as estimated when the cut ended (as of its end, as known when the "
+                       "ledger first knew the cut), grade as known at K, the difference, the "
+                       "assayed fractions and the contributing lots.")
+    common(c, pile=True, fold=True)
+    c.add_argument("--truth", metavar="TRUTH_JSON",
+                   help="a simulator truth.json: adds the true grade per cut beside the figures")
+    c.add_argument("--threshold-pp", type=float, default=0.01,
+                   help="a cut 'changed' when a grade moved more than this (default %(default)s pp)")
+    c.set_defaults(func=cmd_cuts)
+
+    h = sub.add_parser("history", help="pile tonnes and grade over valid time, as known at K "
+                       "and as known then")
+    common(h, pile=True, fold=True)
+    h.add_argument("--every", required=True, metavar="DURATION",
+                   help="interval between rows: 1h, 30min, 90s ...")
+    h.add_argument("--from", dest="start", metavar="T",
+                   help="first valid time (default: the pile's declaration)")
+    h.add_argument("--to", dest="end", metavar="T",
+                   help="last valid time (default: the last in the ledger)")
+    h.set_defaults(func=cmd_history)
+
+    a = sub.add_parser("assays", help="lateness per lab, superseded and provisional assays, "
+                       "unknown lots, lots without assays")
+    common(a, pile=False, fold=False)
+    a.set_defaults(func=cmd_assays)

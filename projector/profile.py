@@ -1,0 +1,314 @@
+"""Cleaning of 2-D laser profiles before they are georeferenced, and pile/ground separation.
+
+A profile is one scan: B ranges along the beam index (the LaserScan convention of
+:mod:`projector.georef`), NaN = no return.  Every test here works along the beam
+index of each scan independently, vectorised over all scans at once.
+
+What is rejected (set to NaN), and why
+--------------------------------------
+1. **Range discontinuities: mixed pixels and spikes.**  The LMS200's beam footprint can
+   straddle the edge of a near and a far surface and return a range in between
+   ("phantom" points, thesis §3.4, DOMAIN.md §5).  Such a return sits on neither surface.
+   A step between beams ``k`` and ``k + 1`` is a *jump* when
+
+       |r[k+1] - r[k]| > max(jump_m, jump_ratio * s_k)
+
+   where ``s_k`` is the running median of ``|r[j+1] - r[j]|`` over ``window`` steps
+   around ``k`` (the local range change per beam).  The relative test keeps a smooth
+   surface seen at grazing incidence, where the range changes a lot from beam to beam
+   but steadily (every step is large, so none is a jump).  A *run* of one or two returns
+   bounded by jumps on both sides is then
+
+   - a **mixed pixel** when both jumps go the same way (near -> run -> far, or back): the
+     run lies between the two surfaces;
+   - a **spike** when they go opposite ways (the run stands in front of or behind both
+     neighbours): dust, a bird, a multipath return.
+
+   Both are removed.  A mixed pixel lying within ``jump_m`` of one of the surfaces
+   cannot be told from that surface by its range and is kept (its error is < ``jump_m``
+   and it lies at the edge).  Returns next to a NaN are not tested against it (no
+   jump is defined across a missing return).
+
+2. **Isolated outliers.**  The residual from a running median of ``window`` beams,
+   ``res = r - median_w(r)``, is compared with a robust noise scale per scan,
+   ``sigma = max(1.4826 * median(|r[b+1] - 2 r[b] + r[b-1]|) / sqrt(6), min_sd_m)`` (the
+   MAD of second differences, whose noise sd is sqrt(6) sigma; ``min_sd_m`` keeps a
+   noise-free scan from having a zero scale).  On a straight or smooth profile the
+   running median of a monotone run is its centre value, so the residual is just noise;
+   but at a *sharp* apex (the crest of a triangular pile: a V in range) the median of a
+   window is about ``ceil(h/2)`` beams' range change away from the apex (h = window // 2),
+   which is not noise.  So a return is an outlier only when it is also off both *linear
+   continuations* of the profile, from the left ``2 r[b-1] - r[b-2]`` and from the right
+   ``2 r[b+1] - r[b+2]``:
+
+       |res| > mad_k * sigma   and   min(|r - L|, |r - R|) > mad_k * sqrt(6) * sigma
+
+   (sqrt(6) sigma is the noise sd of ``r - L``).  An apex, a toe or any kink lies on the
+   continuation of at least one side; a spike lies on neither.  A continuation that
+   needs a missing return is not available; with neither available only the median
+   test applies.  Limitation: on a surface seen almost edge-on the range changes by
+   more than a metre per beam; an error smaller than that step keeps the profile
+   monotone and cannot be told from the surface in range (its height error is only the
+   range error times the sine of the grazing angle).
+
+3. **Optional light smoothing** (``smooth=True``): a 3-beam median along the beam index,
+   applied after the rejections (NaN neighbours are ignored).  A 3-median leaves every
+   monotone run and every step exactly as it is (it does not blur edges or flatten a
+   slope) and removes one-beam wiggles.  It does lower a one-beam *sharp* apex by at
+   most one beam's range change, so it is off by default: the height fusion averages
+   noise anyway.
+
+4. **Optional line fit** (``fit_beams`` > 1; the fold uses 3): each kept return is
+   replaced by the value at its beam of the least-squares line through the kept
+   returns within ``fit_beams // 2`` beams on either side, never across a jump of
+   test 1 nor any step over ``jump_m`` between two kept returns (with missing returns
+   beside a step the relative test can miss it; a steady grazing run with larger
+   steps then goes unfitted, which costs nothing).
+
+   - A straight run of the profile (a planar flank) is left exactly as it is.
+   - The range noise of each return drops, to sd/sqrt(3) for 3 beams.
+   - No return is averaged with the far side of an edge (that would make a mixed
+     pixel).
+   - A sharp apex (a crest seen as a V in range) moves by two thirds of one beam's
+     range change for 3 beams.
+
+   Why: at bench scale the LMS200's 14.5 mm range noise spreads each point along its
+   beam over up to three 5 mm cells.  The fusion averages the height noise but not
+   that spread, and the layers and cuts there are a few mm thick.
+
+The running medians treat NaN returns by carrying the nearest earlier valid return
+into them (then the nearest later one at the start of a scan) before filtering; that
+only changes the medians next to dropouts, never a return's own value.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy import ndimage
+
+__all__ = ["clean_profile", "above_ground"]
+
+_MAD_TO_SD = 1.482602218505602   # 1 / Phi^-1(3/4): MAD -> sd for Gaussian noise
+
+
+def _fill_nan_along_beams(a: np.ndarray) -> np.ndarray:
+    """Carry the last valid value forward along axis 1 (then backward at the start).
+
+    All-NaN rows stay NaN.  Vectorised (index accumulation), no loop over beams.
+    """
+    valid = ~np.isnan(a)
+    if valid.all():
+        return a
+    n = a.shape[1]
+    idx = np.where(valid, np.arange(n), 0)
+    np.maximum.accumulate(idx, axis=1, out=idx)
+    filled = np.take_along_axis(a, idx, axis=1)
+    # leading NaNs (before the first valid value): take the first valid value
+    first = np.argmax(valid, axis=1)
+    lead = np.isnan(filled)
+    if lead.any():
+        filled = np.where(lead, np.take_along_axis(a, first[:, None], axis=1), filled)
+    return filled
+
+
+def _running_median(a: np.ndarray, window: int) -> np.ndarray:
+    """Running median along axis 1 (centred, edge-replicated), NaNs filled first."""
+    f = _fill_nan_along_beams(a)
+    nan_rows = np.isnan(f)
+    if nan_rows.any():                         # all-NaN rows: keep them NaN
+        f = np.where(nan_rows, 0.0, f)
+    out = ndimage.median_filter(f, size=(1, window), mode="nearest")
+    if nan_rows.any():
+        out[nan_rows] = np.nan
+    return out
+
+
+def _median_rows(a: np.ndarray) -> np.ndarray:
+    """NaN-ignoring median of each row of a 2-D array (NaN for all-NaN rows)."""
+    s = np.sort(a, axis=1)                     # NaNs sort last
+    k = np.count_nonzero(~np.isnan(a), axis=1)
+    lo = np.maximum((k - 1) // 2, 0)
+    hi = np.maximum(k // 2, 0)
+    hi = np.minimum(hi, a.shape[1] - 1)
+    rows = np.arange(a.shape[0])
+    med = 0.5 * (s[rows, lo] + s[rows, hi])
+    med[k == 0] = np.nan
+    return med
+
+
+def clean_profile(ranges_m, *, jump_m: float = 0.3, jump_ratio: float = 4.0,
+                  mad_k: float = 5.0, window: int = 7, min_sd_m: float = 0.01,
+                  smooth: bool = False, fit_beams: int = 1) -> np.ndarray:
+    """Reject mixed pixels, spikes and isolated outliers of laser profiles.
+
+    See the module docstring for the tests and their rationale.
+
+    Parameters
+    ----------
+    ranges_m : array_like, shape (S, B)
+        Ranges (m) of S scans of B beams, beam index = bearing order; NaN = no return.
+    jump_m : float
+        Smallest range step between adjacent beams that counts as a discontinuity (m).
+        Keep it several times the range noise sd (the LMS200's 0.3 m default here is
+        about 15 sd of its 14.5 mm noise at full scale).
+    jump_ratio : float
+        A step must also exceed ``jump_ratio`` times the local typical step (running
+        median of ``|diff|``) to be a jump, so grazing-incidence surfaces are kept.
+    mad_k : float
+        Outlier threshold in robust standard deviations.
+    window : int
+        Beams in the running medians; odd, >= 3.
+    min_sd_m : float
+        Floor of the robust noise scale (m), e.g. the range resolution.
+    smooth : bool
+        Apply a 3-beam median after the rejections (off by default).
+    fit_beams : int
+        Odd, >= 1.  After the rejections (and the median), each return becomes the
+        value at its own beam of the least-squares line through the kept returns within
+        ``fit_beams // 2`` beams on either side, never across a jump (section 4 of the
+        module docstring); 1 (default) leaves the returns as they are.
+
+    Returns
+    -------
+    ndarray, shape (S, B)
+        A new array: the ranges with rejected returns set to NaN (and smoothed when
+        ``smooth``).  Existing NaNs stay NaN.
+
+    Raises
+    ------
+    ValueError
+        On a non-2-D input or invalid parameters.
+    """
+    r = np.array(ranges_m, dtype=np.float64)   # a copy: the input is never modified
+    if r.ndim != 2:
+        raise ValueError(f"ranges_m must have shape (S, B) (scans, beams), got {r.shape}")
+    window = int(window)
+    if window < 3 or window % 2 == 0:
+        raise ValueError(f"window must be odd and >= 3, got {window}")
+    if not (jump_m > 0 and jump_ratio > 0 and mad_k > 0 and min_sd_m >= 0):
+        raise ValueError("jump_m, jump_ratio, mad_k must be > 0 and min_sd_m >= 0")
+    fit_beams = int(fit_beams)
+    if fit_beams < 1 or fit_beams % 2 == 0:
+        raise ValueError(f"fit_beams must be odd and >= 1, got {fit_beams}")
+    s, b = r.shape
+    if s == 0 or b < 3:
+        return r
+
+    # -- 1. jumps: mixed pixels and spikes ------------------------------------------------
+    d = np.diff(r, axis=1)                              # (S, B-1); NaN next to a NaN
+    ad = np.abs(d)
+    step = _running_median(ad, window)                  # local typical step per beam
+    with np.errstate(invalid="ignore"):
+        jump = ad > np.maximum(jump_m, jump_ratio * step)   # NaN -> False
+    bad = np.zeros((s, b), dtype=bool)
+    # run of one return at beam i (1 <= i <= B-2): jumps at steps i-1 and i
+    j_in, j_out = jump[:, :-1], jump[:, 1:]
+    bad[:, 1:-1] |= j_in & j_out     # same direction: mixed pixel; opposite: spike
+    # run of two returns at beams i, i+1 (1 <= i <= B-3): jumps at steps i-1 and i+1,
+    # no jump inside the run
+    if b >= 4:
+        pair = jump[:, :-2] & ~jump[:, 1:-1] & jump[:, 2:]
+        bad[:, 1:-2] |= pair
+        bad[:, 2:-1] |= pair
+
+    # -- 2. isolated outliers: residual from a running median ----------------------------
+    med = _running_median(r, window)
+    res = r - med
+    # noise scale from second differences (sd sqrt(6) sigma for white noise; a smooth
+    # profile adds little): the MAD of the median residuals would collapse to 0 wherever
+    # the range changes by more than the noise per beam (a monotone run is its own median)
+    d2 = np.full((s, b), np.nan)
+    d2[:, 1:-1] = d[:, 1:] - d[:, :-1]
+    sigma = _MAD_TO_SD * _median_rows(np.abs(d2)) / math.sqrt(6.0)           # (S,)
+    sigma = np.where(np.isnan(sigma), min_sd_m, np.maximum(sigma, min_sd_m))[:, None]
+    # linear continuations from the left and from the right (NaN where unavailable)
+    left = np.full((s, b), np.nan)
+    right = np.full((s, b), np.nan)
+    left[:, 2:] = 2.0 * r[:, 1:-1] - r[:, :-2]
+    right[:, :-2] = 2.0 * r[:, 1:-1] - r[:, 2:]
+    off_line = np.fmin(np.abs(r - left), np.abs(r - right))   # NaN only if both missing
+    with np.errstate(invalid="ignore"):
+        far = np.abs(res) > mad_k * sigma
+        unexplained = ~(off_line <= mad_k * math.sqrt(6.0) * sigma)     # NaN -> True
+        bad |= far & unexplained
+
+    r[bad] = np.nan
+
+    # -- 3. optional 3-median -------------------------------------------------------------
+    if smooth:
+        left = np.empty_like(r)
+        right = np.empty_like(r)
+        left[:, 0] = np.nan
+        left[:, 1:] = r[:, :-1]
+        right[:, -1] = np.nan
+        right[:, :-1] = r[:, 1:]
+        both = ~np.isnan(left) & ~np.isnan(right) & ~np.isnan(r)
+        trio = np.stack([left, r, right], axis=-1)
+        m3 = np.median(np.where(both[..., None], trio, 0.0), axis=-1)
+        r = np.where(both, m3, r)
+    if fit_beams > 1:
+        # and never across a step over jump_m between consecutive kept returns either:
+        # dropouts beside a step fill the running median of the steps with it, so that
+        # the relative test of a jump can miss it
+        kept_steps = np.abs(np.diff(_fill_nan_along_beams(r), axis=1))
+        with np.errstate(invalid="ignore"):
+            edges = jump | (kept_steps > jump_m)
+        r = _line_fit_along_beams(r, edges, fit_beams // 2)
+    return r
+
+
+def _line_fit_along_beams(r: np.ndarray, jump: np.ndarray, half: int) -> np.ndarray:
+    """Each return's value on the least-squares line through the returns within ``half``
+    beams of it on the same side of every jump (``jump[:, i]``: a jump between beams
+    ``i`` and ``i + 1``); NaN stays NaN.  The window sums (of 1, k, k^2, r, k r over the
+    offsets k) are accumulated offset by offset, vectorised over scans and beams."""
+    s, b = r.shape
+    ok = ~np.isnan(r)
+    z = np.where(ok, r, 0.0)
+    side = np.zeros((s, b), np.int64)          # how many jumps lie before each beam
+    np.cumsum(jump, axis=1, out=side[:, 1:])
+    s0, s1, s2, sr, skr = (np.zeros((s, b)) for _ in range(5))
+    for k in range(-half, half + 1):
+        lo, hi = max(0, -k), min(b, b - k)     # centres whose neighbour lo+k.. exists
+        if lo >= hi:
+            continue
+        w = (ok[:, lo + k:hi + k] & ok[:, lo:hi]
+             & (side[:, lo + k:hi + k] == side[:, lo:hi])).astype(np.float64)
+        rk = z[:, lo + k:hi + k] * w
+        s0[:, lo:hi] += w
+        s1[:, lo:hi] += k * w
+        s2[:, lo:hi] += k * k * w
+        sr[:, lo:hi] += rk
+        skr[:, lo:hi] += k * rk
+    det = s0 * s2 - s1 * s1
+    with np.errstate(invalid="ignore", divide="ignore"):
+        # a lone return (det 0: no neighbour on its side of the jumps) keeps its value
+        fit = np.where(det > 0.5, (s2 * sr - s1 * skr) / det, r)
+    return np.where(ok, fit, np.nan)
+
+
+def above_ground(z_m, ground_z_m: float, tolerance_m: float) -> np.ndarray:
+    """Which points belong to the pile rather than to the ground.
+
+    Parameters
+    ----------
+    z_m : array_like, any shape
+        Site heights (m); NaN = no point.
+    ground_z_m : float
+        The pile's declared ground level (m, ``PileDeclared.ground_z_m``).
+    tolerance_m : float
+        Margin above the ground (m, >= 0), e.g. 3 sd of the height noise plus the
+        ground's unevenness: points within it are ground.
+
+    Returns
+    -------
+    ndarray of bool, same shape as ``z_m``
+        ``z > ground_z_m + tolerance_m``; False for NaN.
+    """
+    if not (math.isfinite(ground_z_m) and math.isfinite(tolerance_m) and tolerance_m >= 0):
+        raise ValueError("ground_z_m must be finite and tolerance_m finite and >= 0")
+    z = np.asarray(z_m, dtype=np.float64)
+    with np.errstate(invalid="ignore"):
+        return z > ground_z_m + tolerance_m

@@ -1,7 +1,0 @@
-"""The yard simulator: a ground-truth stockyard that speaks the real hardware protocols.
-
-- :mod:`services.sim.kinematics`: bucket-wheel reclaimer kinematics and the cutting envelope
-- :mod:`services.sim.world`: the pile on a fine deposition grid (stacking, reclaiming, truth)
-- :mod:`services.sim.sensors`: encoders, GNSS and the LMS200 scanner with their errors
-- :mod:`services.sim.pty`: pseudo-terminals the emulated serial devices write to
-"""

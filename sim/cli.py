@@ -1,0 +1,172 @@
+"""``stockpile sim``: run a simulated yard and its emulated hardware."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+from sim.scenario import SCENARIOS, scenario_by_name
+
+
+def _wait_liveliness(session, key: str, timeout_s: float) -> bool:
+    import threading
+
+    seen = threading.Event()
+    sub = session.liveliness().declare_subscriber(key, lambda _s: seen.set(), history=True)
+    try:
+        return seen.wait(timeout_s)
+    finally:
+        sub.undeclare()
+
+
+def run_sim(args: argparse.Namespace) -> int:
+    from sim.runner import Simulation
+
+    scenario = scenario_by_name(args.scenario)
+    if args.assay_window is not None:
+        if not (args.assay_window > 0 and math.isfinite(args.assay_window)):
+            raise ValueError(f"--assay-window must be > 0 seconds, got {args.assay_window}")
+        scenario = replace(scenario, assay_window_s=args.assay_window)
+    out = Path(args.out or f"sim-out/{args.scenario}-seed{args.seed}")
+    sinks: list = []
+    ptys: dict[str, object] = {}
+    session = None
+    if args.pty:
+        from sim.pty import PtyDevice
+
+        ptys = {"scanner": PtyDevice(), "gnss": PtyDevice()}
+        print(f"LMS200 scanner on {ptys['scanner'].path}", flush=True)
+        print(f"GNSS receiver  on {ptys['gnss'].path}", flush=True)
+    if args.zenoh:
+        import zenoh
+
+        from sim.publish import ZenohSink
+        from services.zenoh_config import config_from_args
+
+        session = zenoh.open(config_from_args(args))
+        sink = ZenohSink(session, scenario.site_id)
+        sinks.append(sink)
+        endpoints = args.listen or ([args._listen_default] if args._listen_default else [])
+        print(f"publishing stockpile/{scenario.site_id}/@v1/** on zenoh "
+              f"(listen {', '.join(endpoints) or '-'}; connect {', '.join(args.connect) or '-'})",
+              flush=True)
+        if args.wait_subscriber:
+            print(f"waiting up to {args.wait_subscriber:g} s for a subscriber ...", flush=True)
+            if not sink.wait_for_subscriber("clock", "sim.clock", args.wait_subscriber):
+                raise OSError("no zenoh subscriber matched the site's events in time")
+        for key in args.wait_live:
+            print(f"waiting up to {args.wait_live_timeout:g} s for {key} ...", flush=True)
+            if not _wait_liveliness(session, key, args.wait_live_timeout):
+                raise OSError(f"no liveliness token {key} appeared in time")
+    noise = "" if args.noise_seed is None else f", sensor noise seed {args.noise_seed}"
+    print(f"simulating scenario {scenario.name!r}, seed {args.seed}{noise} -> {out}", flush=True)
+    try:
+        sim = Simulation(scenario, args.seed, out, sinks=sinks, scanner_pty=ptys.get("scanner"),
+                         gnss_pty=ptys.get("gnss"), scan_events=args.scan_events,
+                         cut_surfaces=args.truth_cut_surfaces, noise_seed=args.noise_seed,
+                         progress=lambda line: print(f"  {line}", file=sys.stderr, flush=True))
+        stats = sim.run(duration_h=args.duration, speed=args.speed, idle_speed=args.idle_speed)
+        for pty in ptys.values():  # the devices go quiet: their readers see the end
+            pty.close()
+        if session is not None:
+            from services.service import log
+
+            for producer in sim.producers.values():  # logged before the done line
+                log("sim", "published", source=producer.source, epoch=producer.epoch,
+                    count=producer.seq)
+        _print_summary(stats, out)
+        if session is not None:
+            from services.service import Stopper
+
+            if args.linger > 0:
+                # keep the publishers' caches up until told to stop, so a ledger that
+                # missed something can still recover it
+                Stopper().wait(args.linger)
+    finally:
+        for pty in ptys.values():
+            pty.close()
+        if session is not None:
+            session.close()
+    return 0
+
+
+def _print_summary(stats, out: Path) -> None:
+    """The run's summary on stdout (flushed: a supervisor waits for the ``done:`` line)."""
+    truth = json.loads((out / "truth.json").read_text())
+    world = truth["world"]
+    print(f"done: {stats.site_s / 3600:.2f} site h in {stats.wall_s:.1f} s wall "
+          f"({stats.events:,} events = {stats.events / max(stats.wall_s, 1e-9):,.0f}/s; "
+          f"{stats.scans:,} scans, {stats.gga:,} GGA sentences)")
+    if stats.late_events:
+        print(f"  pacing: {stats.late_events:,} events handled > 5 ms behind schedule "
+              f"(largest lag {stats.max_lag_s:.2f} s real); device bytes and clock events "
+              f"were late with them; the schedule moved on {stats.rebases:,} times, giving up "
+              f"{stats.given_up_s:.1f} s real")
+    print(f"  stacked {sum(p['true_tonnes'] for p in truth['passes']):,.3f} t in {stats.passes} passes; "
+          f"reclaimed {sum(c['true_tonnes'] for c in truth['cuts']):,.3f} t in {stats.cuts} cuts; "
+          f"{stats.assays} assays")
+    repose = world.get("repose_angle_estimate_deg")
+    print(f"  pile now {world['tonnes']:,.3f} t, {world['volume_m3']:,.3f} m3, "
+          f"max height {world['max_height_m']:.3f} m, repose "
+          + (f"{repose:.1f} deg" if repose is not None else "- (no pile yet)"))
+    print(f"  files: events.jsonl, lms200.bin, gnss.nmea, truth.json, truth.npz in {out}")
+    sys.stdout.flush()
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    from services.zenoh_config import DEFAULT_LISTEN, add_zenoh_arguments
+
+    p = subparsers.add_parser("sim", help="run the yard simulator (ground truth + emulated hardware)",
+                              description="Run a simulated stockyard: stacking, reclaiming, "
+                              "the laboratory, and the LMS200 scanner, GNSS receiver and encoders "
+                              "with their errors. Writes events, raw device streams and truth.")
+    p.add_argument("--scenario", choices=sorted(SCENARIOS), default="demo", help="default demo")
+    p.add_argument("--seed", type=int, default=1, help="random seed (default 1)")
+    p.add_argument("--noise-seed", type=int, metavar="N",
+                   help="draw the sensors' noise (scanner, encoders, GNSS) from this seed: the "
+                   "same world (belt, stacking, cuts, lab: --seed) measured again "
+                   "(default: --seed)")
+    p.add_argument("--assay-window", type=float, metavar="SECONDS",
+                   help="the lab's sampling window (default: the scenario's: demo 60 s, bench-scale "
+                   "30 s, full-scale 1200 s)")
+    p.add_argument("--duration", type=float, metavar="SITE_HOURS",
+                   help="stop after this many hours of site time (default: until the last assay)")
+    p.add_argument("--idle-speed", type=float, default=0.0, metavar="X",
+                   help="with --speed: site seconds per wall second while no machine moves "
+                   "(waiting for late assays); default: the same as --speed")
+    p.add_argument("--speed", type=float, default=0.0,
+                   help="site seconds per wall second (default 0 = as fast as possible)")
+    p.add_argument("--out", metavar="DIR", help="output folder (default sim-out/SCENARIO-seedN)")
+    p.add_argument("--pty", action="store_true",
+                   help="also write the scanner and GNSS streams to pseudo-terminals (paths printed)")
+    p.add_argument("--zenoh", action="store_true", help="also publish the events on zenoh")
+    p.add_argument("--scan-events", choices=("off", "truth", "encoders"), default="off",
+                   help="also emit, per scan, a 'scan' event (source MACHINE.scanner, as the "
+                   "scanner service decodes the LMS200 telegram) and the scanner's "
+                   "'frame_transform' (source MACHINE.poses, site -> MACHINE/scanner) at the "
+                   "scan time, so a ledger needs no scanner or localizer service: truth = the "
+                   "true scanner pose, encoders = forward kinematics of the latest encoder "
+                   "reading; default off (no such events)")
+    p.add_argument("--truth-cut-surfaces", action="store_true",
+                   help="also keep the true surface at each cut's start in truth.npz "
+                   "(cut_surface_z) and the parcels as stacked at the first cut's start "
+                   "(first_cut_thickness, first_cut_time_ns; for "
+                   "bench/projector_truth.py --explain)")
+    p.add_argument("--wait-subscriber", type=float, default=0.0, metavar="SECONDS",
+                   help="with --zenoh: start only once a subscriber listens (give up after SECONDS)")
+    p.add_argument("--wait-live", action="append", default=[], metavar="KEY",
+                   help="with --zenoh: start only once a liveliness token matching KEY exists "
+                   "(e.g. stockpile/demo/@live/scanner/**; repeatable)")
+    p.add_argument("--wait-live-timeout", type=float, default=60.0, metavar="S",
+                   help="how long --wait-live waits, seconds (default 60)")
+    p.add_argument("--linger", type=float, default=0.0, metavar="S",
+                   help="with --zenoh: after the run keep publishing caches up for S seconds or "
+                   "until SIGTERM (a ledger can still recover missed events)")
+    add_zenoh_arguments(p, listen_default=DEFAULT_LISTEN)
+    p.set_defaults(func=run_sim)
+
+

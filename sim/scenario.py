@@ -1,0 +1,156 @@
+"""Simulator scenarios: the yard, its pile, machines, lots and timetable as data.
+
+=============  =========================================================================
+scenario       what it is
+=============  =========================================================================
+``demo``       a small pile (60 m), 8 chevron layers from 3 lots, one reclaim bench,
+               assays arriving 2-6 h late; the default behind ``make demo``
+``full-scale`` the thesis' 220 m pile, ~30 m high, tens of layers, several benches
+``bench-scale`` the thesis' laboratory pile in metres (Table 4.1 sizes), two reclaims of
+               10 and 5 cuts (§5.3.4)
+``load``       the demo pile with every sensor at its maximum rate (reliability tests)
+=============  =========================================================================
+
+Lengths in metres, times in seconds of site time unless a name says otherwise.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+from sim.grades import LotSpec, table_5_4_lots
+from sim.kinematics import BENCH_SCALE, FULL_SCALE, Machine
+
+#: 2026-11-01T00:00:00Z, the default start of every scenario.
+DEFAULT_START_NS = 1_793_491_200_000_000_000
+
+
+@dataclass(frozen=True)
+class Scenario:
+    """Everything that defines one simulated yard session."""
+
+    name: str
+    site_id: str = "capelambert"
+    datum_lat_deg: float = -20.659739
+    datum_lon_deg: float = 117.078497
+    datum_alt_m: float = 5.0
+    start_ns: int = DEFAULT_START_NS
+
+    # the pile (site ENU; the pile's long axis is +y, along the rail)
+    pile_id: str = "P1"
+    pile_origin_x_m: float = 10.0
+    pile_origin_y_m: float = 0.0
+    pile_length_m: float = 60.0
+    pile_width_m: float = 40.0
+    ground_z_m: float = 0.0
+    surface_cell_m: float = 0.25      # the product's surface grid (declared)
+    voxel_m: float = 1.0              # the product's voxels (declared)
+    bulk_density_t_m3: float = 2.4
+    repose_deg: float = 37.0
+    deposition_cell_m: float = 0.25   # the simulator's own fine grid
+
+    # machines: one bucket-wheel reclaimer that also carries the scanner and GNSS
+    machine_id: str = "bwr1"
+    stacker_id: str = "stk1"
+    machine: Machine = field(default_factory=lambda: replace(FULL_SCALE, rail_x_m=-25.0))
+    scanner_offset_m: tuple[float, float, float] = (0.0, 0.0, 3.0)  # from the wheel centre
+
+    # stacking
+    lots: tuple[LotSpec, ...] = field(default_factory=lambda: tuple(table_5_4_lots()[:3]))
+    passes_per_lot: int = 3
+    tonnes_per_pass: float = 1_800.0
+    pass_duration_s: float = 300.0
+    pass_gap_s: float = 60.0
+    pattern: str = "CHEVRON"
+    belt_scale_error_frac: float = 0.007
+
+    # reclaiming
+    cuts_per_bench: tuple[int, ...] = (10,)   # one entry per bench
+    bench_heights_m: tuple[float, ...] | None = None  # wheel-centre heights; None: from crest
+    cut_duration_s: float = 120.0
+    landing_min_slew_deg: float = 0.0  # land where the cut meets a face this wide in slew
+    first_bench_below_crest_m: float = 3.0  # wheel centre height below the pile's crest
+    bench_step_m: float = 4.0
+
+    # laboratory
+    assay_window_s: float = 1200.0
+    assay_delay_h: tuple[float, float] = (2.0, 6.0)
+
+    # sensors
+    scan_hz: float = 5.0
+    scan_fov_deg: float = 100.0
+    scan_step_deg: float = 0.5
+    scanner_baud: int = 500_000  # RS-422; a telegram reaches the pty its transfer time after the scan
+    gnss_hz: float = 1.0
+    encoder_hz: float = 10.0
+    clock_period_s: float = 10.0
+    #: the clock's period while a machine works (None: ``clock_period_s``); a service
+    #: dating its readings between ticks follows a paced run's unsteady pace closer
+    clock_busy_period_s: float | None = None
+    idle_hz: float = 0.1   # every sensor's rate cap while no machine moves (late assays)
+
+    @property
+    def benches(self) -> int:
+        return len(self.cuts_per_bench)
+
+    @property
+    def lot_count(self) -> int:
+        return len(self.lots)
+
+    @property
+    def stacking_s(self) -> float:
+        n = self.lot_count * self.passes_per_lot
+        return n * self.pass_duration_s + (n - 1) * self.pass_gap_s
+
+
+def demo() -> Scenario:
+    # the lab composites one-minute increments (a cross-belt sampler's cadence): the
+    # belt grade drifts within a pass, and a cut at the pile's end takes the part of
+    # each pass stacked there, so a grade per pass could not say what a cut delivered
+    return Scenario(name="demo", assay_window_s=60.0, clock_busy_period_s=1.0)
+
+
+def load() -> Scenario:
+    return replace(demo(), name="load", scan_hz=75.0, scan_step_deg=0.25, gnss_hz=10.0,
+                   encoder_hz=50.0, clock_period_s=0.1)
+
+
+def full_scale() -> Scenario:
+    # 220 m long, ~60 m wide base, ~30 m high at 37 deg: 12 lots x 3 passes
+    lots = tuple(replace(lot, lot_id=f"{lot.lot_id}{k}") for k in range(3)
+                 for lot in table_5_4_lots())
+    return Scenario(
+        name="full-scale", pile_length_m=220.0, pile_width_m=70.0, pile_origin_x_m=10.0,
+        lots=lots, passes_per_lot=3, tonnes_per_pass=22_000.0, pass_duration_s=1_800.0,
+        pass_gap_s=300.0, cuts_per_bench=(12, 12, 12), cut_duration_s=240.0,
+        landing_min_slew_deg=30.0,
+        first_bench_below_crest_m=4.0, bench_step_m=6.0, deposition_cell_m=0.5,
+        scan_hz=2.0, encoder_hz=2.0)
+
+
+def bench_scale() -> Scenario:
+    # the thesis' laboratory pile (Table 4.1): about 1.2 m long, 0.25 m high, in metres;
+    # two reclaims of 10 and 5 cuts at the bench heights of §5.3.4
+    # the lab weighs the same material the pile is built of (1.65 t/m3, a laboratory
+    # sand), so its assays report that density; it takes a sample every 30 s of feed (a
+    # cut of the 1.2 m pile's end takes a few seconds of each layer's feed)
+    lots = tuple(replace(lot, bulk_density_t_m3=1.65) for lot in table_5_4_lots("LAYER")[:4])
+    return Scenario(
+        name="bench-scale", pile_length_m=1.2, pile_width_m=0.8, pile_origin_x_m=0.0,
+        pile_origin_y_m=0.0, surface_cell_m=0.005, voxel_m=0.02, deposition_cell_m=0.005,
+        machine=replace(BENCH_SCALE, rail_x_m=0.0), scanner_offset_m=(0.0, 0.0, 0.03),
+        lots=lots, passes_per_lot=1, tonnes_per_pass=0.03, pass_duration_s=300.0,
+        pass_gap_s=60.0, cuts_per_bench=(10, 5), bench_heights_m=(0.15297, 0.08929),
+        cut_duration_s=60.0,
+        first_bench_below_crest_m=0.02, bench_step_m=0.06, bulk_density_t_m3=1.65,
+        scan_hz=5.0, assay_window_s=30.0)
+
+
+SCENARIOS = {"demo": demo, "full-scale": full_scale, "bench-scale": bench_scale, "load": load}
+
+
+def scenario_by_name(name: str) -> Scenario:
+    try:
+        return SCENARIOS[name]()
+    except KeyError:
+        raise ValueError(f"unknown scenario {name!r}; choose one of {', '.join(SCENARIOS)}") from None

@@ -1,0 +1,220 @@
+"""``stockpile run --config yard.toml``: start the services a site's config names.
+
+The config (TOML; a documented example ships as ``docs/yard.example.toml``)::
+
+    site = "capelambert"
+
+    [zenoh]                      # shared by every service (the --mode/--connect/... options)
+    mode = "client"
+    connect = ["tcp/127.0.0.1:7447"]
+
+    [router]                     # optional: run a Zenoh router here, on these endpoints
+    listen = ["tcp/127.0.0.1:7447"]
+
+    [services.ledger]            # table name = service name, or set service = "..."
+    ledger = "/var/lib/stockpile/ledger.duckdb"
+
+    [services.scanner-east]
+    service = "scanner"
+    device = "/dev/ttyUSB0"
+
+Every key of a service table becomes that service's command-line option
+(``batch_size = 500`` -> ``--batch-size 500``; ``true`` -> a bare flag; a list
+repeats the option).  Services start in the order ledger, localizer, the rest;
+a service that exits unexpectedly is restarted after ``restart_delay_s`` (default 2 s,
+doubling up to 60 s); SIGINT/SIGTERM stops them in reverse order, the ledger last.
+"""
+
+from __future__ import annotations
+
+import argparse
+import signal
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import zenoh
+
+from services.service import Stopper, ZenohOptions, log
+from stockpile import service_cli
+from stockpile.service_cli import SERVICE_MODULES
+
+START_ORDER = ("ledger", "localizer")
+
+
+class ConfigError(ValueError):
+    """The yard config is unreadable or names something unknown."""
+
+
+@dataclass(frozen=True)
+class ServiceEntry:
+    """One service instance of the config."""
+
+    name: str
+    service: str
+    options: dict[str, Any] = field(default_factory=dict)
+
+    def argv(self, site: str, zenoh_argv: list[str]) -> list[str]:
+        args = ["service", self.service, "--site", site]
+        for key, value in self.options.items():
+            flag = "--" + key.replace("_", "-")
+            if isinstance(value, bool):
+                if value:
+                    args.append(flag)
+            elif isinstance(value, list):
+                for item in value:
+                    args += [flag, str(item)]
+            else:
+                args += [flag, str(value)]
+        return args + zenoh_argv
+
+
+@dataclass(frozen=True)
+class YardConfig:
+    site: str
+    zenoh_argv: list[str]
+    router_listen: list[str]
+    services: list[ServiceEntry]
+    restart_delay_s: float = 2.0
+
+
+def load_config(path: str | Path) -> YardConfig:
+    """Parse and check a yard config; raises :class:`ConfigError` with the reason."""
+    import tomllib
+
+    try:
+        data = tomllib.loads(Path(path).read_text())
+    except OSError as exc:
+        raise ConfigError(f"cannot read {path}: {exc.strerror}") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{path} is not valid TOML: {exc}") from None
+    site = data.get("site")
+    if not isinstance(site, str) or not site:
+        raise ConfigError(f"{path}: 'site' (a string) is required")
+    zenoh = data.get("zenoh", {})
+    zenoh_argv: list[str] = []
+    for key in ("mode", "config"):
+        if key in zenoh:
+            zenoh_argv += [f"--{key}", str(zenoh[key])]
+    for key in ("connect", "listen"):
+        for endpoint in _as_list(zenoh.get(key, []), f"zenoh.{key}"):
+            zenoh_argv += [f"--{key}", endpoint]
+    router = data.get("router", {})
+    router_listen = _as_list(router.get("listen", []), "router.listen")
+    services_table = data.get("services")
+    if not isinstance(services_table, dict) or not services_table:
+        raise ConfigError(f"{path}: no [services.NAME] tables")
+    entries = []
+    for name, options in services_table.items():
+        if not isinstance(options, dict):
+            raise ConfigError(f"{path}: services.{name} must be a table")
+        options = dict(options)
+        service = options.pop("service", name)
+        if service not in SERVICE_MODULES:
+            raise ConfigError(f"{path}: services.{name}: unknown service {service!r} "
+                              f"(known: {', '.join(SERVICE_MODULES)})")
+        entries.append(ServiceEntry(name, service, options))
+    entries.sort(key=lambda e: START_ORDER.index(e.service) if e.service in START_ORDER
+                 else len(START_ORDER))
+    return YardConfig(site, zenoh_argv, router_listen, entries,
+                      float(data.get("restart_delay_s", 2.0)))
+
+
+def _as_list(value: Any, where: str) -> list[str]:
+    if isinstance(value, str):
+        return [value]
+    if isinstance(value, list) and all(isinstance(v, str) for v in value):
+        return list(value)
+    raise ConfigError(f"{where} must be a string or a list of strings")
+
+
+def check_arguments(config: YardConfig) -> None:
+    """Parse every service's command line now, so a typo fails before anything starts."""
+    parser = argparse.ArgumentParser(prog="stockpile")
+    service_cli.register(parser.add_subparsers(dest="command", required=True))
+    for entry in config.services:
+        argv = entry.argv(config.site, config.zenoh_argv)
+        try:
+            parser.parse_args(argv)
+        except SystemExit:
+            raise ConfigError(f"services.{entry.name}: bad options {entry.options}") from None
+
+
+def run(config: YardConfig, *, stopper: Stopper | None = None) -> int:
+    stopper = stopper or Stopper()
+    router = None
+    if config.router_listen:
+        router = zenoh.open(ZenohOptions(mode="router", listen=tuple(config.router_listen)).to_config())
+        log("run", "router", listen=",".join(config.router_listen))
+    children: dict[str, subprocess.Popen] = {}
+    delays = {e.name: config.restart_delay_s for e in config.services}
+    next_start = {e.name: 0.0 for e in config.services}
+    lock = threading.Lock()
+
+    def start(entry: ServiceEntry) -> None:
+        argv = [sys.executable, "-m", "stockpile.cli", *entry.argv(config.site, config.zenoh_argv)]
+        children[entry.name] = subprocess.Popen(argv)
+        log("run", "started", name=entry.name, kind=entry.service,
+            pid=children[entry.name].pid)
+
+    try:
+        for entry in config.services:
+            start(entry)
+        while not stopper.wait(0.5):
+            now = time.monotonic()
+            with lock:
+                for entry in config.services:
+                    proc = children[entry.name]
+                    code = proc.poll()
+                    if code is None:
+                        continue
+                    if next_start[entry.name] == 0.0:
+                        log("run", "exited", level="error", name=entry.name, code=code,
+                            restart_in_s=delays[entry.name])
+                        next_start[entry.name] = now + delays[entry.name]
+                        delays[entry.name] = min(60.0, delays[entry.name] * 2)
+                    elif now >= next_start[entry.name]:
+                        next_start[entry.name] = 0.0
+                        start(entry)
+    finally:
+        for entry in reversed(config.services):
+            proc = children.get(entry.name)
+            if proc is not None and proc.poll() is None:
+                proc.send_signal(signal.SIGTERM)
+                try:
+                    proc.wait(30)
+                except subprocess.TimeoutExpired:
+                    proc.kill()
+                    proc.wait()
+            if proc is not None:
+                log("run", "stopped", name=entry.name, code=proc.returncode)
+        if router is not None:
+            router.close()
+    return 0
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    try:
+        config = load_config(args.config)
+        check_arguments(config)
+    except ConfigError as exc:
+        raise ValueError(str(exc)) from None
+    if args.check:
+        for entry in config.services:
+            print(" ".join(["stockpile", *entry.argv(config.site, config.zenoh_argv)]))
+        return 0
+    return run(config)
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser("run", help="start the services a yard config names (a real site)",
+                              description=__doc__.split("\n\n")[0])
+    p.add_argument("--config", required=True, metavar="TOML",
+                   help="the yard config (see docs/yard.example.toml)")
+    p.add_argument("--check", action="store_true",
+                   help="only check the config and print the command of every service")
+    p.set_defaults(func=cmd_run)
