@@ -1,4 +1,9 @@
-"""Parsing and printing times for people: ISO-8601 or integer UTC nanoseconds."""
+"""Time in the product: integer UTC nanoseconds, its constants, and parsing and printing it.
+
+- :data:`NS_PER_S`, :data:`NS_PER_MIN`, :data:`NS_PER_H`, :data:`NS_PER_DAY`: the one set of
+  time constants every package uses
+- :func:`parse_time_ns`, :func:`format_time_ns`: ISO-8601 or integer UTC nanoseconds, for people
+"""
 
 from __future__ import annotations
 
@@ -10,6 +15,11 @@ _ISO = re.compile(
     r"(?P<tz>Z|[+-]\d{2}:?\d{2})?$"
 )
 _EPOCH = datetime(1970, 1, 1, tzinfo=timezone.utc)
+
+NS_PER_S = 1_000_000_000
+NS_PER_MIN = 60 * NS_PER_S
+NS_PER_H = 3600 * NS_PER_S
+NS_PER_DAY = 86_400 * NS_PER_S
 
 
 def parse_time_ns(text: str) -> int:
