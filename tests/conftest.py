@@ -10,6 +10,11 @@ import sys  # noqa: E402
 
 import pytest  # noqa: E402
 
+# the checks in the shared bad-input helpers are plain asserts: give them pytest's messages
+pytest.register_assert_rewrite("bad_input_helpers")
+
+from bad_input_helpers import Backend  # noqa: E402
+
 
 @pytest.fixture(scope="session")
 def small_yard_sim(tmp_path_factory):
@@ -41,3 +46,13 @@ def process_demo(tmp_path_factory):
          "--duration", "0.2", "--speed", "30", "--record", str(out / "live.mcap")],
         capture_output=True, text=True, timeout=600)
     return out, run
+
+
+@pytest.fixture(params=["memory", "duckdb"])
+def backend(request, tmp_path):
+    """A fresh ledger for the bad-input tests: once in memory, once on a DuckDB file."""
+    b = Backend(request.param, tmp_path)
+    try:
+        yield b
+    finally:
+        b.close()

@@ -1,400 +1,30 @@
-"""Projector geometry: pose interpolation, georeferencing, profile cleaning, rasterising,
-Kalman height fusion and volumes (projector.georef / profile / heightmap).
-
-Every random test prints its seed (shown by pytest on failure, or with ``-s``); set
-``PROJECTOR_GEOMETRY_SEED`` to rerun with another base seed.  Ground truths are computed
-another way than the code under test: scipy's Rotation/Slerp, the simulator's own
-scan-geometry functions, brute-force Python loops, bisection ray casting, closed-form
-integrals.
+"""Tests of the projector's height map (projector.heightmap): rasterising points against a
+brute-force loop, Kalman height fusion and its change gate (stacked layers, cuts, spikes),
+volumes against closed-form integrals, centring heights, plane fits of what was seen, and
+scans of a ridge through every step to its volume; every random test prints its seed (shown
+by pytest on failure, or with ``-s``) and ``PROJECTOR_GEOMETRY_SEED`` reruns it with another
+base seed.
 """
 
 from __future__ import annotations
 
 import math
-import os
 import statistics
 
 import numpy as np
 import pytest
-from scipy.spatial.transform import Rotation, Slerp
+from scipy.spatial.transform import Rotation
 
-from projector.georef import (
-    georeference, interpolate_poses, quaternion_to_matrix, sensor_points)
+from projector.georef import georeference, interpolate_poses
 from projector.grid import GridGeometry, cell_centres
 from projector.heightmap import (
     CellObservations, FuseStats, HeightMap, centre_elevation, fill_holes, fuse,
     plane_fit_of_seen, rasterize, volume_above)
-from projector.profile import above_ground, clean_profile
-
-BASE_SEED = int(os.environ.get("PROJECTOR_GEOMETRY_SEED", "20261107"))
-T0_NS = 1_793_491_200_000_000_000
-NS = 1_000_000_000
-#: scanner x -> site -z, y -> site +x, z -> site -y (the simulator's LOOK_DOWN)
-LOOK_DOWN = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, -1.0], [-1.0, 0.0, 0.0]])
+from projector.profile import clean_profile
+from projector_helpers import LOOK_DOWN, NS, T0_NS, cast_profile, make_rng
 
 
-def make_rng(offset: int = 0) -> np.random.Generator:
-    seed = BASE_SEED + offset
-    print(f"seed={seed}")
-    return np.random.default_rng(seed)
-
-
-def rotation_angle_between(q_a, q_b) -> np.ndarray:
-    """Angle (rad) of the rotation taking q_a to q_b, via scipy (independent of ours)."""
-    return (Rotation.from_quat(q_a).inv() * Rotation.from_quat(q_b)).magnitude()
-
-
-# ----------------------------------------------------------------------------- poses
-
-def test_slerp_matches_scipy_on_random_rotations():
-    rng = make_rng(1)
-    m = 30
-    pose_t = T0_NS + np.cumsum(rng.integers(50_000_000, 150_000_000, m))
-    rots = Rotation.random(m, random_state=int(rng.integers(2**31)))
-    quats = rots.as_quat()
-    quats[rng.random(m) < 0.5] *= -1.0             # either sign: the same rotation
-    trans = rng.normal(0.0, 50.0, (m, 3))
-    t = np.sort(rng.integers(pose_t[0], pose_t[-1], 500))
-    tr, q = interpolate_poses(t, pose_t, trans, quats, max_gap_ns=NS)
-    assert tr.shape == (500, 3) and q.shape == (500, 4)
-    assert np.all(np.isfinite(q))
-    np.testing.assert_allclose(np.linalg.norm(q, axis=1), 1.0, atol=1e-12)
-    # scipy's Slerp works in float seconds; relative times keep full precision
-    ts = (pose_t - pose_t[0]) / NS
-    want = Slerp(ts, Rotation.from_quat(quats))((t - pose_t[0]) / NS)
-    assert np.max(rotation_angle_between(q, want.as_quat())) < 1e-9
-    for k in range(3):
-        np.testing.assert_allclose(tr[:, k], np.interp(t - pose_t[0], pose_t - pose_t[0],
-                                                       trans[:, k]), rtol=0, atol=1e-9)
-
-
-@pytest.mark.parametrize("flip", [False, True], ids=["q", "-q"])
-def test_slerp_known_rotation_and_sign(flip):
-    """Halfway from identity to 90 deg about z is 45 deg about z, whatever the sign of q1."""
-    q0 = np.array([0.0, 0.0, 0.0, 1.0])
-    q1 = np.array([0.0, 0.0, math.sin(math.pi / 4), math.cos(math.pi / 4)])
-    if flip:
-        q1 = -q1
-    pose_t = np.array([T0_NS, T0_NS + NS])
-    tr, q = interpolate_poses(np.array([T0_NS + NS // 2, T0_NS + NS // 4]), pose_t,
-                              np.zeros((2, 3)), np.stack([q0, q1]), max_gap_ns=NS)
-    r = quaternion_to_matrix(q)
-    c45, s45 = math.cos(math.pi / 4), math.sin(math.pi / 4)
-    np.testing.assert_allclose(r[0], [[c45, -s45, 0], [s45, c45, 0], [0, 0, 1]], atol=1e-12)
-    a = math.pi / 8   # a quarter of the way: 22.5 deg (the short way round, not -67.5)
-    np.testing.assert_allclose(r[1], [[math.cos(a), -math.sin(a), 0],
-                                      [math.sin(a), math.cos(a), 0], [0, 0, 1]], atol=1e-12)
-
-
-def test_poses_nan_outside_coverage_and_across_gaps_exact_on_poses():
-    pose_t = T0_NS + np.array([0, 100, 200, 5_000, 5_100]) * 1_000_000   # a 4.8 s gap
-    trans = np.arange(15, dtype=float).reshape(5, 3)
-    quats = Rotation.from_euler("z", np.array([0.0, 10, 20, 30, 40])[:, None],
-                                degrees=True).as_quat()
-    t = T0_NS + np.array([-1, 0, 50, 200, 201, 2_000, 4_999, 5_000, 5_050, 5_100,
-                          5_100_000_001 // 1_000_000]) * 1_000_000
-    t[-1] = pose_t[-1] + 1
-    tr, q = interpolate_poses(t, pose_t, trans, quats, max_gap_ns=500_000_000)
-    nan_rows = np.isnan(tr).any(axis=1)
-    assert np.array_equal(nan_rows, np.isnan(q).any(axis=1))
-    # before the first pose, inside the gap (3 times), after the last pose
-    assert nan_rows.tolist() == [True, False, False, False, True, True, True, False, False,
-                                 False, True]
-    # exactly on a pose: that pose (also on both sides of the gap)
-    for row, pose in ((1, 0), (3, 2), (7, 3), (9, 4)):
-        np.testing.assert_array_equal(tr[row], trans[pose])
-        assert rotation_angle_between(q[row], quats[pose]) < 1e-12
-    np.testing.assert_allclose(tr[2], (trans[0] + trans[1]) / 2)
-    assert abs(Rotation.from_quat(q[2]).as_euler("zyx", degrees=True)[0] - 5.0) < 1e-9
-    np.testing.assert_allclose(tr[8], (trans[3] + trans[4]) / 2)
-    # a single pose covers only its own time
-    tr1, q1 = interpolate_poses(np.array([pose_t[0], pose_t[0] + 1]), pose_t[:1], trans[:1],
-                                quats[:1], max_gap_ns=NS)
-    assert np.isfinite(tr1[0]).all() and np.isnan(tr1[1]).all() and np.isnan(q1[1]).all()
-
-
-def test_interpolate_poses_validates_inputs():
-    pose_t = np.array([T0_NS, T0_NS + 10])
-    good = dict(max_gap_ns=NS)
-    q = np.tile([0.0, 0.0, 0.0, 1.0], (2, 1))
-    with pytest.raises(ValueError, match="sorted"):
-        interpolate_poses(np.array([T0_NS]), pose_t[::-1], np.zeros((2, 3)), q, **good)
-    with pytest.raises(ValueError, match="shape"):
-        interpolate_poses(np.array([T0_NS]), pose_t, np.zeros((3, 3)), q, **good)
-    with pytest.raises(ValueError, match="shape"):
-        interpolate_poses(np.array([T0_NS]), pose_t, np.zeros((2, 3)), q[:, :3], **good)
-    with pytest.raises(ValueError, match="zero quaternion"):
-        interpolate_poses(np.array([T0_NS]), pose_t, np.zeros((2, 3)), np.zeros((2, 4)), **good)
-    with pytest.raises(ValueError, match="integer"):
-        interpolate_poses(np.array([1.5]), pose_t, np.zeros((2, 3)), q, **good)
-
-
-# ----------------------------------------------------------------------------- georeference
-
-def test_sensor_points_laserscan_convention():
-    pts = sensor_points(np.array([[1.0, 2.0, 3.0, np.nan]]), -math.pi / 2, math.pi / 2)
-    assert pts.shape == (1, 4, 3)
-    np.testing.assert_allclose(pts[0, :3], [[0, -1, 0], [2, 0, 0], [0, 3, 0]], atol=1e-15)
-    assert np.isnan(pts[0, 3]).all()
-    with pytest.raises(ValueError, match=r"\(S, B\)"):
-        sensor_points(np.ones(5), 0.0, 0.1)
-
-
-def test_georeference_matches_the_simulator_scan_geometry():
-    """Same points as sim.sensors: position + R @ (range * direction)."""
-    from sim.sensors import beam_angles_rad, beam_directions_scanner_frame, rotation_matrix
-
-    rng = make_rng(2)
-    fov, step = 100.0, 0.5
-    dirs = beam_directions_scanner_frame(fov, step)                     # (B, 3)
-    angles = beam_angles_rad(fov, step)
-    s = 6
-    rots = [LOOK_DOWN, *Rotation.random(s - 1, random_state=int(rng.integers(2**31))).as_matrix()]
-    quats = Rotation.from_matrix(np.stack(rots)).as_quat()
-    pos = rng.normal(0.0, 100.0, (s, 3))
-    ranges = rng.uniform(1.0, 80.0, (s, dirs.shape[0]))
-    want = np.stack([pos[k] + (ranges[k][:, None] * dirs) @ rotation_matrix(quats[k]).T
-                     for k in range(s)])
-    got = georeference(ranges, angles[0], angles[1] - angles[0], pos, quats)
-    np.testing.assert_allclose(got, want, atol=1e-9)
-    # the LOOK_DOWN scanner: beam 0 (-50 deg) goes down and toward -x, the middle one down
-    assert got[0, 0, 0] < pos[0, 0] and got[0, 0, 2] < pos[0, 2]
-    mid = dirs.shape[0] // 2
-    np.testing.assert_allclose(got[0, mid], pos[0] + [0, 0, -ranges[0, mid]], atol=1e-9)
-
-
-def test_georeference_round_trip_from_site_points():
-    """Site points -> sensor frame (scipy, independently) -> ranges -> georeference back."""
-    rng = make_rng(3)
-    s, b = 8, 181
-    angle_min, inc = math.radians(-90.0), math.radians(1.0)
-    a = angle_min + inc * np.arange(b)
-    rot = Rotation.random(s, random_state=int(rng.integers(2**31)))
-    t = rng.uniform(-500, 500, (s, 3))
-    mats = rot.as_matrix()
-    # site points on the scan plane of each pose, along each beam, at random distances
-    dist = rng.uniform(0.5, 60.0, (s, b))
-    site = (t[:, None, :] + dist[..., None] * (np.cos(a)[None, :, None] * mats[:, None, :, 0]
-                                               + np.sin(a)[None, :, None] * mats[:, None, :, 1]))
-    # into the sensor frame with scipy's inverse rotation
-    local = np.stack([rot[k].inv().apply(site[k] - t[k]) for k in range(s)])
-    assert np.max(np.abs(local[..., 2])) < 1e-9                 # on the scan plane
-    ranges = np.hypot(local[..., 0], local[..., 1])
-    bearing = np.arctan2(local[..., 1], local[..., 0])
-    np.testing.assert_allclose(bearing, np.broadcast_to(a, (s, b)), atol=1e-9)
-    ranges[0, 5] = np.nan                                       # a dropout
-    quats = rot.as_quat()
-    quats[1] = np.nan                                           # a scan without a pose
-    back = georeference(ranges, angle_min, inc, t, quats)
-    assert back.shape == (s, b, 3)
-    ok = np.ones((s, b), bool)
-    ok[0, 5] = False
-    ok[1] = False
-    assert np.isnan(back[~ok]).all()
-    np.testing.assert_allclose(back[ok], site[ok], atol=1e-8)
-
-
-# ----------------------------------------------------------------------------- profiles
-
-def cast_profile(surface, x0: float, z0: float, angles_rad: np.ndarray,
-                 t_max: float = 200.0) -> np.ndarray:
-    """Ranges from (x0, z0) along (sin a, -cos a) to the first crossing of z = surface(x).
-
-    Dense march + bisection (a different method from the bench's closed form).
-    """
-    u, v = np.sin(angles_rad), np.cos(angles_rad)
-    ts = np.linspace(0.0, t_max, 40_001)
-    h = (z0 - ts[None, :] * v[:, None]) - surface(x0 + ts[None, :] * u[:, None])
-    below = h <= 0
-    first = np.argmax(below, axis=1)
-    if not below.any(axis=1).all():
-        raise AssertionError("a ray misses the surface")
-    lo, hi = ts[first - 1], ts[first]
-    for _ in range(60):
-        mid = 0.5 * (lo + hi)
-        under = (z0 - mid * v) - surface(x0 + mid * u) <= 0
-        hi = np.where(under, mid, hi)
-        lo = np.where(under, lo, mid)
-    return 0.5 * (lo + hi)
-
-
-BEAMS = np.radians(np.arange(-50.0, 50.0001, 0.25))       # 401 beams
-
-
-def smooth_pile(x):
-    """A smooth pile (hyperbolic section, 35 deg flanks) on flat ground at z = 0."""
-    m = math.tan(math.radians(35.0))
-    return np.maximum(32.0 - np.sqrt(4.0 + (m * (x - 1.0)) ** 2), 0.0)
-
-
-def sharp_pile(x):
-    return np.maximum(17.4 - 0.564 * np.abs(x + 2.0), 0.0)
-
-
-@pytest.mark.parametrize("surface", [smooth_pile, sharp_pile], ids=["smooth", "sharp crest"])
-def test_clean_profile_keeps_a_noise_free_pile(surface):
-    r = cast_profile(surface, 3.0, 45.0, BEAMS)[None, :]
-    out = clean_profile(r)
-    assert out.shape == r.shape
-    assert np.isfinite(out).all(), np.flatnonzero(np.isnan(out))
-    np.testing.assert_array_equal(out, r)
-    # 3-median smoothing leaves the smooth flanks (monotone runs) as they are
-    sm = clean_profile(r, smooth=True)
-    changed = np.flatnonzero(sm[0] != r[0])
-    assert changed.size <= 3                            # at most the crest and the toes
-
-
-def test_clean_profile_keeps_a_noisy_smooth_pile_and_removes_spikes():
-    rng = make_rng(4)
-    base = cast_profile(smooth_pile, 3.0, 45.0, BEAMS)
-    s = 200
-    r = base[None, :] + rng.normal(0.0, 0.0145, (s, base.size))
-    r[rng.random(r.shape) < 0.002] = np.nan               # dropouts
-    out = clean_profile(r)
-    lost = np.isfinite(r) & np.isnan(out)
-    assert lost.mean() < 5e-4, lost.sum()                 # a smooth pile stays
-    # plant isolated outliers (dust in front, multipath behind) away from dropouts, where
-    # the surface is not seen edge-on: on a grazing flank the range changes by more than
-    # a metre per beam, a -1 m error keeps the profile monotone and cannot be told from
-    # the surface in range (its height error there is only ~0.1 m)
-    spikes = np.zeros(r.shape, bool)
-    seen_well = np.flatnonzero(np.convolve(np.abs(np.diff(base)) < 0.3, [1, 1], "valid") == 2) + 1
-    seen_well = seen_well[(seen_well >= 5) & (seen_well < base.size - 5)]
-    assert seen_well.size > 200
-    cols = rng.choice(seen_well, s)
-    spikes[np.arange(s), cols] = True
-    spikes &= np.isfinite(r)
-    spikes[:, 1:] &= np.isfinite(r[:, :-1])
-    spikes[:, :-1] &= np.isfinite(r[:, 1:])
-    planted = r.copy()
-    planted[spikes] += np.where(rng.random(spikes.sum()) < 0.5, -1.0, 1.5)
-    out = clean_profile(planted)
-    assert np.isnan(out[spikes]).all()
-    others = np.isfinite(planted) & ~spikes
-    assert (np.isnan(out) & others).mean() < 1e-3
-    np.testing.assert_array_equal(out[others & np.isfinite(out)],
-                                  planted[others & np.isfinite(out)])
-
-
-def test_clean_profile_removes_mixed_pixels_at_a_step():
-    """A box (a stacker's bench, a wall) on the ground: phantom returns between the levels."""
-    def box(x):
-        return np.where(np.abs(x) < 8.0, 6.0, 0.0)
-
-    r = cast_profile(box, 0.0, 30.0, BEAMS)
-    # the edges: the last beam on the box top and the first on the ground (each side)
-    top = np.abs(30.0 - r * np.cos(BEAMS) - 6.0) < 1e-6
-    edges = np.flatnonzero(np.diff(top.astype(int)))     # step between edges[i] and +1
-    assert edges.size == 2
-    scans = np.tile(r, (4, 1))
-    planted = np.zeros(scans.shape, bool)
-    # scan 0: one phantom at the left edge; scan 1: two phantoms in a row at the right edge
-    # (the beam hit the ground replaced), scan 2: one at each edge; scan 3: clean
-    e0, e1 = edges
-    for row, cols in ((0, [e0 + 1]), (1, [e1 + 1, e1 + 2]), (2, [e0 + 1, e1 + 1])):
-        for c in cols:
-            near = scans[row, e0] if c <= e0 + 2 else scans[row, e1]
-            far = scans[row, c + 1] if c <= e0 + 2 else scans[row, e1 + 3]
-            scans[row, c] = near + (0.35 + 0.1 * (c - cols[0])) * (far - near)
-            planted[row, c] = True
-    out = clean_profile(scans)
-    assert np.isnan(out[planted]).all()
-    assert np.isfinite(out[~planted]).all()               # the true edges survive
-
-
-def test_clean_profile_keeps_a_grazing_surface():
-    """A flank seen almost edge-on: big but steady range steps are not jumps."""
-    beams = np.radians(np.arange(0.0, 47.0001, 0.25))
-    r = cast_profile(lambda x: 30.0 - 0.7 * x, 0.0, 45.0, beams, t_max=400.0)[None, :]
-    steps = np.abs(np.diff(r[0]))
-    assert steps.max() > 2.0                               # far larger than jump_m
-    out = clean_profile(r)
-    assert np.isfinite(out).all()
-    rng = make_rng(10)
-    noisy = r + rng.normal(0.0, 0.0145, (50, r.shape[1]))
-    assert np.isfinite(clean_profile(noisy)).all()
-
-
-def _line_fit_by_polyfit(r: np.ndarray, half: int, jump_m: float) -> np.ndarray:
-    """Brute force: per beam, np.polyfit of degree 1 through the kept returns within
-    ``half`` beams that no step of more than ``jump_m`` separates from it."""
-    out = r.copy()
-    for s_i, row in enumerate(r):
-        for b in range(row.size):
-            if np.isnan(row[b]):
-                continue
-            ks = [0]
-            for direction in (-1, 1):
-                last = row[b]                  # the last kept return on this side
-                for k in range(1, half + 1):
-                    j = b + direction * k
-                    if not 0 <= j < row.size:
-                        break
-                    if np.isnan(row[j]):       # a dropout: the window goes on past it
-                        continue
-                    if abs(row[j] - last) > jump_m:
-                        break                  # a jump: nothing beyond it
-                    ks.append(direction * k)
-                    last = row[j]
-            ks = sorted(ks)
-            if len(ks) >= 2:
-                out[s_i, b] = np.polyval(np.polyfit(ks, row[b + np.array(ks)], 1), 0.0)
-    return out
-
-
-@pytest.mark.parametrize("fit_beams", [3, 5])
-def test_line_fit_of_profiles_matches_polyfit_and_never_crosses_a_jump(fit_beams):
-    rng = make_rng(20 + fit_beams)
-    print("seed offset", 20 + fit_beams)
-    k = np.arange(200)
-    # straight runs with steps of 2 m between them (jumps), noise, and dropouts
-    r = 10.0 + 0.01 * k + 2.0 * (k >= 70) - 2.0 * (k >= 140)
-    scans = np.tile(r, (6, 1)) + rng.normal(0.0, 0.005, (6, k.size))
-    scans[rng.random(scans.shape) < 0.05] = np.nan
-    out = clean_profile(scans, fit_beams=fit_beams, mad_k=50.0)   # no outlier rejection
-    kept = clean_profile(scans, mad_k=50.0)
-    # the level steps are the only steps over 0.3 m between kept returns, also where
-    # a dropout lies on the step
-    expected = _line_fit_by_polyfit(kept, fit_beams // 2, 0.3)
-    np.testing.assert_allclose(out, expected, atol=1e-9)
-    # no fitted return lies between the two levels (it would be a mixed pixel)
-    level = np.abs(out - (10.0 + 0.01 * k + 2.0 * ((k >= 70) & (k < 140))))
-    assert np.nanmax(level) < 0.05
-
-
-def test_line_fit_of_profiles_keeps_a_straight_run_and_cuts_the_noise():
-    rng = make_rng(30)
-    k = np.arange(400)
-    straight = np.tile(5.0 + 0.003 * k, (40, 1))
-    np.testing.assert_allclose(clean_profile(straight, fit_beams=3), straight, atol=1e-12)
-    noisy = straight + rng.normal(0.0, 0.0145, straight.shape)
-    fitted = clean_profile(noisy, fit_beams=3)
-    raw_sd = np.std((clean_profile(noisy) - straight)[:, 1:-1])
-    fit_sd = np.std((fitted - straight)[:, 1:-1])
-    assert fit_sd == pytest.approx(raw_sd / math.sqrt(3.0), rel=0.05)
-
-
-def test_clean_profile_validates():
-    with pytest.raises(ValueError, match=r"\(S, B\)"):
-        clean_profile(np.ones(10))
-    with pytest.raises(ValueError, match="odd"):
-        clean_profile(np.ones((2, 10)), window=4)
-    with pytest.raises(ValueError, match="fit_beams must be odd"):
-        clean_profile(np.ones((2, 10)), fit_beams=2)
-    r = np.ones((2, 10))
-    out = clean_profile(r)
-    assert out is not r and np.array_equal(out, r)
-
-
-def test_above_ground():
-    z = np.array([[0.0, 0.05, 0.2], [np.nan, -1.0, 3.0]])
-    np.testing.assert_array_equal(above_ground(z, 0.0, 0.1),
-                                  [[False, False, True], [False, False, True]])
-    with pytest.raises(ValueError):
-        above_ground(z, 0.0, -0.1)
-
-
-# ----------------------------------------------------------------------------- rasterize
+# -------------------------------------------------------------------- rasterize
 
 def test_rasterize_matches_a_brute_force_loop():
     rng = make_rng(5)
@@ -443,7 +73,7 @@ def test_rasterize_variance_is_not_cancelled_by_large_heights():
     assert obs.z_var_m2[0] == pytest.approx(1e-6, rel=1e-6)
 
 
-# ----------------------------------------------------------------------------- fusion
+# ----------------------------------------------------------------------- fusion
 
 def flat_obs(rng, g, z_true, sd, max_count=5):
     """One noisy observation of every cell of a flat surface (points drawn per cell)."""
@@ -644,7 +274,7 @@ def test_fuse_validates():
                          np.ones(1, dtype=np.int64))
 
 
-# ----------------------------------------------------------------------------- volume
+# ----------------------------------------------------------------------- volume
 
 def test_volume_of_a_plane_with_holes_and_an_unseen_margin():
     """A tilted slab over a rectangle, holes inside, never-seen margin around it."""
@@ -724,7 +354,7 @@ def test_fuse_carries_the_measurement_position():
     assert hm.grid["y_offset_m"][0, 0] == 0.0
 
 
-# ----------------------------------------------------------------------------- end to end
+# ------------------------------------------------------------------- end to end
 
 def test_scans_of_a_prism_to_volume_end_to_end():
     """LOOK_DOWN scans of a long triangular ridge -> clean -> georeference -> fuse -> m3."""
