@@ -36,7 +36,7 @@ sys.path.insert(0, str(ROOT))
 from ledger import EventClock, open_ledger  # noqa: E402
 from ledger.cli import import_lines  # noqa: E402
 from replay.export import export_ledger  # noqa: E402
-from replay.mcap_format import channel_metadata, schema_of  # noqa: E402
+from replay.mcap_writer import channel_metadata, schema_of  # noqa: E402
 from replay.record import Config, Recorder  # noqa: E402
 from replay.replay import iter_events, replay_to_ledger  # noqa: E402
 from schemas.events import encode_attachment  # noqa: E402

@@ -3,13 +3,28 @@
 Exit codes, as for every ``stockpile`` command: 0 ok; 1 the input file was damaged
 or held messages that are not stockpile events (what could be used was used, and
 what was lost or skipped is counted on stderr); 2 bad usage or an error (one line).
-Heavy modules are imported inside the commands, so ``stockpile --help`` stays fast.
 """
 
 from __future__ import annotations
 
 import argparse
 import sys
+import threading
+from pathlib import Path
+
+import zenoh
+
+from ledger import open_ledger
+from ledger.clock import clock_by_name
+from replay import record
+from replay.export import export_ledger
+from replay.mcap_entries import topic_matcher
+from replay.progress import ProgressBar
+from replay.recover import recover
+from replay.replay import iter_events, replay_publish, replay_to_ledger
+from schemas.events import EVENT_TYPES, key_expr
+from services.service import DEFAULT_SITE, Stopper, add_service_arguments
+from services.zenoh_config import add_zenoh_arguments, config_from_args
 
 EXIT_OK, EXIT_DAMAGED, EXIT_USAGE = 0, 1, 2
 
@@ -41,14 +56,10 @@ def cmd_record(args: argparse.Namespace) -> int:
         return _recover(*args.recover)
     if not args.out:
         raise ValueError("give OUT.mcap (or --recover BROKEN FIXED)")
-    from replay import record
-
     return int(record.main(record.config_from_args(args)) or 0)
 
 
 def _recover(broken: str, fixed: str) -> int:
-    from replay.recover import recover
-
     result = recover(broken, fixed)
     report = result.report
     lost = report.lost + result.orphaned
@@ -70,10 +81,6 @@ def _recover(broken: str, fixed: str) -> int:
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
-    from pathlib import Path
-
-    from replay.mcap_format import topic_matcher
-
     if not Path(args.input).is_file():
         raise FileNotFoundError(f"no such file: {args.input}")
     if bool(args.publish) == bool(args.ledger):
@@ -89,11 +96,6 @@ def cmd_replay(args: argparse.Namespace) -> int:
 
 
 def _replay_ledger(args: argparse.Namespace, topics) -> int:
-    from ledger import open_ledger
-    from ledger.clock import clock_by_name
-    from replay.progress import ProgressBar
-    from replay.replay import replay_to_ledger
-
     if args.rate is not None or args.max or args.loop:
         raise ValueError("--rate, --max and --loop are for --publish")
     progress = ProgressBar("replay", enabled=not args.no_progress)
@@ -120,13 +122,6 @@ def _replay_ledger(args: argparse.Namespace, topics) -> int:
 
 
 def _replay_publish(args: argparse.Namespace, topics) -> int:
-    import zenoh
-
-    from replay.progress import ProgressBar
-    from replay.replay import replay_publish
-    from services.service import Stopper
-    from services.zenoh_config import config_from_args
-
     if args.rate is not None and args.max:
         raise ValueError("give --rate R or --max, not both")
     rate = None if args.max else (1.0 if args.rate is None else args.rate)
@@ -158,11 +153,6 @@ def _replay_publish(args: argparse.Namespace, topics) -> int:
 
 def _wait_subscriber(session, args: argparse.Namespace, stopper) -> None:
     """Block until a subscriber matches the first topic of the file (or time runs out)."""
-    import threading
-
-    from replay.replay import iter_events
-    from schemas.events import key_expr
-
     first = next(iter(iter_events(args.input)), None)
     if first is None:
         return
@@ -182,11 +172,6 @@ def _wait_subscriber(session, args: argparse.Namespace, stopper) -> None:
 
 
 def cmd_export_mcap(args: argparse.Namespace) -> int:
-    from ledger import open_ledger
-    from replay.export import export_ledger
-    from replay.progress import ProgressBar
-    from schemas.events import EVENT_TYPES
-
     for name in args.types or ():
         if name not in EVENT_TYPES:
             raise ValueError(f"unknown event type {name!r}; known: {', '.join(EVENT_TYPES)}")
@@ -204,10 +189,6 @@ def cmd_export_mcap(args: argparse.Namespace) -> int:
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     """Add ``record``, ``replay`` and ``export-mcap`` to the ``stockpile`` parser."""
-    from replay.record import add_recording_arguments
-    from services.service import DEFAULT_SITE, add_service_arguments
-    from services.zenoh_config import add_zenoh_arguments
-
     p = subparsers.add_parser(
         "record", help="record the site's events to MCAP (or --recover a damaged recording)",
         description="Subscribe to the site's events and write them to an MCAP file (zstd "
@@ -218,7 +199,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--recover", nargs=2, metavar=("BROKEN", "FIXED"),
                    help="write every readable message of BROKEN to a complete file FIXED and "
                    "report what was lost (exit 1 if anything was)")
-    add_recording_arguments(p)
+    record.add_recording_arguments(p)
     add_service_arguments(p)
     p.set_defaults(func=cmd_record)
 

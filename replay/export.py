@@ -14,8 +14,10 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from replay.mcap_format import DEFAULT_CHUNK_BYTES, EventWriter
+from replay.mcap_format import DEFAULT_CHUNK_BYTES
+from replay.mcap_writer import EventWriter
 from replay.progress import ProgressBar
+from schemas.events import key_expr
 
 
 @dataclass
@@ -30,8 +32,6 @@ def export_ledger(store, out_path: str | Path, *, site: str, types: list[str] | 
                   progress: ProgressBar | None = None,
                   chunk_size_bytes: int = DEFAULT_CHUNK_BYTES) -> ExportResult:
     """Write ``store``'s events (optionally only ``types``) to ``out_path``."""
-    from schemas.events import key_expr
-
     key_expr(site, "clock", "x")  # a bad site id fails here, before any file is made
     started = time.monotonic()
     out_path = Path(out_path)

@@ -25,30 +25,41 @@ Data flow::
 - **Time.** ``log_time`` is the receive time in site-clock time (``--clock wall``:
   the machine's UTC clock; ``--clock site``: the site's ``clock`` events, as the
   scanner service does), never going backwards, across the files of a split too.
+
+The recorder's Zenoh-free parts (file naming, the bounded queue, sequence bookkeeping)
+are in :mod:`replay.record_parts`.
 """
 
 from __future__ import annotations
 
 import argparse
 import gc
-import queue
 import struct
 import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable
+from typing import Callable
 
+import zenoh.ext as zext
+
+from replay.mcap_format import DEFAULT_CHUNK_BYTES, MASK64, SEQ_LOW_MASK, library_id
+from replay.mcap_writer import EventWriter
+from replay.record_parts import (
+    DUPLICATE,
+    WAKE,
+    Counters,
+    FileNamer,
+    SampleQueue,
+    StreamTracker,
+)
 from schemas.events import EVENT_TYPES, decode_attachment, parse_key_expr, site_key_expr
-
-from replay.mcap_format import MASK64, SEQ_LOW_MASK, DEFAULT_CHUNK_BYTES, EventWriter, library_id
-from services.service import Inbox, ServiceRuntime, SiteTime, Stopper, ZenohOptions, log
+from schemas.times import NS_PER_S
+from services.service import ServiceRuntime, SiteTime, Stopper, ZenohOptions, log
 
 SERVICE = "recorder"
 DEFAULT_FLUSH_INTERVAL_S = 1.0
 DEFAULT_QUEUE_SIZE = 100_000
-#: most samples the writer takes from the queue at once
-DRAIN_BATCH = 10_000
 
 
 @dataclass(frozen=True)
@@ -148,164 +159,6 @@ def config_from_args(args: argparse.Namespace) -> Config:
                   flush_interval_s=args.flush_interval, status_period_s=args.status_period)
 
 
-# -- files --------------------------------------------------------------------------------
-
-
-class FileNamer:
-    """The files of one recording: ``out`` itself, or numbered parts when splitting."""
-
-    def __init__(self, out: str, split: bool) -> None:
-        self.out, self.split = Path(out), split
-        self.next_index = self._first_free() if split else 0
-
-    def _part(self, index: int) -> Path:
-        return self.out.with_name(f"{self.out.stem}-{index:04d}{self.out.suffix or '.mcap'}")
-
-    def _first_free(self) -> int:
-        index = 0
-        pattern = f"{self.out.stem}-[0-9][0-9][0-9][0-9]{self.out.suffix or '.mcap'}"
-        for path in self.out.parent.glob(pattern):
-            index = max(index, int(path.stem.rsplit("-", 1)[1]) + 1)
-        return index
-
-    def check(self) -> None:
-        """Raise FileExistsError when the single output file is already there."""
-        if not self.split and self.out.exists():
-            raise FileExistsError(f"{self.out} exists; record to a new file (nothing was "
-                                  "overwritten)")
-        self.out.parent.mkdir(parents=True, exist_ok=True)
-
-    def next(self) -> Path:
-        if not self.split:
-            return self.out
-        path = self._part(self.next_index)
-        self.next_index += 1
-        return path
-
-
-# -- the queue between Zenoh and the writer -------------------------------------------------
-
-
-class SampleQueue:
-    """A bounded FIFO: ``put`` blocks while full; ``drain`` takes many at once.
-
-    An :class:`services.service.Inbox` carries the items (the Zenoh callback pays one
-    cheap put; the writer's wait for them keeps its timeout through signals); a
-    producer that finds it full waits on a condition the consumer signals after
-    draining.  :meth:`close` wakes a waiting consumer at once.
-    """
-
-    def __init__(self, capacity: int) -> None:
-        self.capacity = int(capacity)
-        self._q = Inbox()
-        self._space = threading.Condition()
-        self._blocked = 0
-        self._closed = False
-
-    def put(self, item: object) -> None:
-        if self._q.qsize() >= self.capacity and not self._closed:
-            self._wait_for_space()
-        self._q.put(item)
-
-    def _wait_for_space(self) -> None:
-        with self._space:
-            self._blocked += 1
-            try:
-                while self._q.qsize() >= self.capacity and not self._closed:
-                    self._space.wait(0.05)
-            finally:
-                self._blocked -= 1
-
-    def drain(self, timeout_s: float, limit: int = DRAIN_BATCH) -> list:
-        """Up to ``limit`` items (and :data:`WAKE` markers); waits up to ``timeout_s``
-        when there are none."""
-        q = self._q
-        try:                          # a closed queue is drained without waiting
-            out = [q.get(0.0 if self._closed else timeout_s)]
-        except queue.Empty:
-            return []
-        get = q.get_nowait
-        try:
-            for _ in range(limit - 1):
-                out.append(get())
-        except queue.Empty:
-            pass
-        if self._blocked:
-            with self._space:
-                self._space.notify_all()
-        return out
-
-    def close(self) -> None:
-        self._closed = True
-        self._q.put(WAKE)
-        with self._space:
-            self._space.notify_all()
-
-    @property
-    def closed(self) -> bool:
-        return self._closed
-
-    def __len__(self) -> int:
-        return self._q.qsize()
-
-
-#: put by :meth:`SampleQueue.close` so a waiting consumer wakes at once
-WAKE = object()
-
-
-# -- sequence bookkeeping ------------------------------------------------------------------
-
-NEW, DUPLICATE = 0, 1
-
-
-class StreamTracker:
-    """Per (source, epoch): the highest sequence seen and the missing ranges.
-
-    :meth:`observe` returns ``NEW`` or ``DUPLICATE`` and, for a jump, the gap it
-    opened as ``(first_seq, last_seq)``.  :meth:`cell` gives a stream's one-item list
-    ``[highest seq]``, which the recorder's hot loop advances in place for the next
-    sequence number.
-    """
-
-    def __init__(self) -> None:
-        self._tops: dict[tuple[str, int], list[int]] = {}
-        self._gaps: dict[tuple[str, int], list[list[int]]] = {}
-
-    def cell(self, source: str, epoch: int) -> list[int]:
-        stream = (source, epoch)
-        cell = self._tops.get(stream)
-        if cell is None:
-            cell = self._tops[stream] = [-1]
-        return cell
-
-    def observe(self, source: str, epoch: int, seq: int) -> tuple[int, tuple[int, int] | None]:
-        stream = (source, epoch)
-        cell = self.cell(source, epoch)
-        top = cell[0]
-        if seq == top + 1:
-            cell[0] = seq
-            return NEW, None
-        if seq > top:
-            cell[0] = seq
-            gap = (top + 1, seq - 1)
-            self._gaps.setdefault(stream, []).append([gap[0], gap[1]])
-            return NEW, gap
-        return (NEW if self._fill(stream, seq) else DUPLICATE), None
-
-    def _fill(self, stream: tuple[str, int], seq: int) -> bool:
-        gaps = self._gaps.get(stream, ())
-        for i, (first, last) in enumerate(gaps):
-            if first <= seq <= last:
-                parts = [[a, b] for a, b in ((first, seq - 1), (seq + 1, last)) if a <= b]
-                gaps[i:i + 1] = parts  # type: ignore[index]
-                return True
-        return False
-
-    def open_gaps(self) -> list[dict[str, Any]]:
-        return [{"source": s, "epoch": e, "first_seq": a, "last_seq": b}
-                for (s, e), gaps in sorted(self._gaps.items()) for a, b in gaps]
-
-
 # -- the recorder ----------------------------------------------------------------------------
 
 
@@ -314,19 +167,6 @@ class _Miss:
 
     def __init__(self, publisher: str, count: int, arrived_s: float) -> None:
         self.publisher, self.count, self.arrived_s = publisher, count, arrived_s
-
-
-class Counters:
-    """Counter sink when no :class:`services.service.StatusReporter` is used (tests, bench)."""
-
-    def __init__(self) -> None:
-        self.counters: dict[str, int] = {}
-
-    def add(self, name: str, n: int = 1) -> None:
-        self.counters[name] = self.counters.get(name, 0) + n
-
-    def get(self, name: str) -> int:
-        return self.counters.get(name, 0)
 
 
 class Recorder:
@@ -473,7 +313,7 @@ class Recorder:
             return None
         ref = batch[-1] if batch[-1] is not WAKE or len(batch) == 1 else batch[-2]
         ref_s = ref[3] if type(ref) is tuple else getattr(ref, "arrived_s", time.monotonic())
-        return st.at(ref_s), st.speed * 1e9
+        return st.at(ref_s), st.speed * NS_PER_S
 
     def _write_batch(self, batch: list) -> None:
         """Write a drained batch.  The loop is the recorder's hot path: the common case
@@ -625,8 +465,6 @@ def main(config: Config, *, stopper: Stopper | None = None) -> int:
 
 def _record(config: Config, runtime: ServiceRuntime, recorder: Recorder,
             site_time: SiteTime) -> int:
-    import zenoh.ext as zext
-
     assert runtime.stopper is not None
     session = runtime.session
     site_time.follow(session, config.site)

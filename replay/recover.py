@@ -1,6 +1,6 @@
 """``stockpile record --recover BROKEN FIXED``: salvage what a crash or a bad disk left.
 
-Reads BROKEN with :class:`replay.mcap_format.McapScan` (every intact chunk, what can
+Reads BROKEN with :class:`replay.mcap_scan.McapScan` (every intact chunk, what can
 be decompressed of a chunk cut short, metadata and attachments) and writes FIXED as
 a complete MCAP file: the same schemas, channels (with their metadata), messages
 (times and sequence numbers unchanged) and records, with a proper summary.  A
@@ -15,15 +15,11 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
-from replay.mcap_format import (
-    DEFAULT_CHUNK_BYTES,
-    AttachmentRecord,
-    McapScan,
-    MetadataRecord,
-    RawMessage,
-    ScanReport,
-    library_id,
-)
+from mcap.writer import CompressionType, Writer
+
+from replay.mcap_format import DEFAULT_CHUNK_BYTES, library_id
+from replay.mcap_records import AttachmentRecord, MetadataRecord, RawMessage
+from replay.mcap_scan import McapScan, ScanReport
 
 
 @dataclass
@@ -37,8 +33,6 @@ class RecoverResult:
 
 def recover(broken: str | Path, fixed: str | Path) -> RecoverResult:
     """Copy every readable record of ``broken`` into a complete file ``fixed``."""
-    from mcap.writer import CompressionType, Writer
-
     broken, fixed = Path(broken), Path(fixed)
     if fixed.exists() and fixed.resolve() == broken.resolve():
         raise ValueError("FIXED must be a new file, not BROKEN itself")

@@ -30,12 +30,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Iterator
 
-from schemas.events import Event, encode_attachment, event_from_sample, key_expr
-
-from replay.mcap_format import Entry, MalformedSample, McapScan, ScanReport, read_entries
+from replay.mcap_entries import Entry, MalformedSample, read_entries
+from replay.mcap_scan import McapScan, ScanReport
 from replay.progress import ProgressBar
+from schemas.events import Event, encode_attachment, event_from_sample, key_expr
+from schemas.times import NS_PER_S
+from services.service import declare_ledger_publisher
 
-NS_PER_S = 1_000_000_000
 DEFAULT_BATCH = 5_000
 
 
@@ -163,8 +164,6 @@ class Publishers:
     def put(self, key: str, payload: bytes, attachment: bytes) -> None:
         publisher = self._by_key.get(key)
         if publisher is None:
-            from services.service import declare_ledger_publisher
-
             publisher = declare_ledger_publisher(self.session, key,
                                                  cache_samples=self.cache_samples)
             self._by_key[key] = publisher

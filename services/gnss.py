@@ -60,6 +60,7 @@ import serial
 from foxglove_schemas_protobuf.LocationFix_pb2 import LocationFix
 
 from schemas.events import is_valid_source, set_timestamp_ns
+from schemas.times import NS_PER_DAY
 from devices import nmea
 from services.serial_device import DevicePipeline, run_serial_service
 from services.service import (
@@ -97,7 +98,6 @@ VERTICAL_SIGMA_FACTOR = 2.0
 READ_TIMEOUT_S = 0.1
 #: Status counters summed into the status line's ``errors``.
 ERROR_KEYS = ("checksum_errors", "unparseable")
-NS_PER_DAY = 86_400 * 1_000_000_000
 
 
 # -- configuration ------------------------------------------------------------------------

@@ -15,6 +15,8 @@ import json
 import threading
 from typing import Any, Callable, Sequence
 
+import zenoh
+
 from ledger.errors import LedgerError, OperationalError
 from ledger.records import RecordedEvent
 from ledger.wire import decode_records
@@ -53,8 +55,6 @@ class LedgerClient:
         self.stop = stop
 
     def _get(self, what: str, params: dict[str, Any] | None = None) -> list:
-        import zenoh
-
         replies = self.session.get(
             query_key(self.site, what),
             payload=json.dumps(params or {}).encode(),
@@ -79,8 +79,6 @@ class LedgerClient:
         if self.stop is None:
             yield from handler
             return
-        import zenoh
-
         while True:
             try:
                 reply = handler.try_recv()

@@ -54,19 +54,16 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from schemas.events import Malformed, event_from_sample
+import zenoh
+import zenoh.ext as zext
 
 from ledger import clock_by_name, open_ledger
 from ledger.cli import stats_to_json
 from ledger.errors import LedgerError
 from ledger.store import LedgerStore
 from ledger.wire import encode_records
-from services.service import (
-    ServiceRuntime,
-    Stopper,
-    ZenohOptions,
-    log,
-)
+from schemas.events import Malformed, decode_attachment, event_from_sample
+from services.service import ServiceRuntime, Stopper, ZenohOptions, log
 
 SERVICE = "ledger"
 DEFAULT_BATCH_SIZE = 2_000
@@ -300,10 +297,6 @@ class GapRepair:
             return any(first <= seq <= last for first, last in self._open.get((source, epoch), ()))
 
     def _ask(self, source: str):
-        import zenoh.ext as zext
-
-        from schemas.events import decode_attachment
-
         def on_sample(sample) -> None:
             attachment = sample.attachment
             if attachment is None:
@@ -423,9 +416,6 @@ def head_json(store: LedgerStore) -> dict[str, Any]:
 
 def main(config: Config, *, stopper: Stopper | None = None) -> int:
     """Run the ledger service until SIGINT/SIGTERM (or ``stopper``); return an exit code."""
-    import zenoh
-    import zenoh.ext as zext
-
     try:
         if config.ledger_path != ":memory:":
             Path(config.ledger_path).parent.mkdir(parents=True, exist_ok=True)
@@ -442,13 +432,13 @@ def main(config: Config, *, stopper: Stopper | None = None) -> int:
         runtime.open(rate_of="appended", backlog=samples.qsize, error_keys=error_keys,
                      announce=False)
         try:
-            return _serve(config, store, samples, runtime, zenoh, zext)
+            return _serve(config, store, samples, runtime)
         finally:
             runtime.close()
 
 
-def _serve(config: Config, store: LedgerStore, samples: queue.Queue, runtime: ServiceRuntime,
-           zenoh, zext) -> int:
+def _serve(config: Config, store: LedgerStore, samples: queue.Queue,
+           runtime: ServiceRuntime) -> int:
     session = runtime.session
     status = runtime.status
     assert status is not None and runtime.stopper is not None

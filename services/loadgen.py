@@ -19,18 +19,20 @@ import json
 import math
 import os
 import sys
-import threading
 import time
 
 import numpy as np
+import zenoh
 from foxglove_schemas_protobuf.LaserScan_pb2 import LaserScan
 
 from schemas.events import set_timestamp_ns
 from schemas.stockpile.v1 import events_pb2 as pb
+from schemas.times import NS_PER_S
 from services.service import EventPublisher, Stopper, ZenohOptions, log
+from services.zenoh_config import add_zenoh_arguments
 
 TICK_S = 0.01
-BASE_TIME_NS = 1_790_000_000 * 1_000_000_000  # 2026-09-21, a fixed valid-time origin
+BASE_TIME_NS = 1_790_000_000 * NS_PER_S  # 2026-09-21, a fixed valid-time origin
 
 
 def make_message(type_name: str, index: int, rng: np.random.Generator, beams: int):
@@ -86,10 +88,6 @@ def run(session, *, site: str, source: str, type_name: str, rate_hz: float, dura
 
 
 def main(argv: list[str] | None = None) -> int:
-    import zenoh
-
-    from services.zenoh_config import add_zenoh_arguments
-
     p = argparse.ArgumentParser(prog="python -m services.loadgen", description=__doc__.splitlines()[0])
     p.add_argument("--site", default="load")
     p.add_argument("--source", required=True)

@@ -33,13 +33,14 @@ from projector.grades import AssayRecord
 from projector.query import PileState, summarise
 from schemas.events import decode_payload
 from schemas.jsonl import json_safe
+from schemas.times import NS_PER_S
+from services.ledger_client import LedgerClient, LedgerUnavailable
 from services.service import DEFAULT_SITE, Inbox, ServiceRuntime, Stopper, ZenohOptions
 
 SERVICE = "projector"
 DEFAULT_REORDER_S = 5.0
 DEFAULT_PUBLISH_PERIOD_S = 1.0
 READ_CHUNK = 5_000
-S = 1_000_000_000
 
 
 def state_key(site: str, pile_id: str) -> str:
@@ -165,8 +166,6 @@ def _summary_json(projection: LiveProjection, rebuilds: int) -> bytes:
     return json.dumps(json_safe(body), allow_nan=False).encode()
 
 
-
-
 def catch_up(client, projection: LiveProjection, head_seq: int, log=None) -> int:
     """Read committed records ``ledger_seq + 1 .. head_seq`` in chunks and add them."""
     read = 0
@@ -205,12 +204,10 @@ def newest_head(heads: Inbox, timeout_s: float) -> int | None:
 
 def main(config: Config, *, stopper: Stopper | None = None) -> int:
     """Run the projector until SIGINT/SIGTERM (or ``stopper``); return the exit code."""
-    from services.ledger_client import LedgerClient, LedgerUnavailable
-
     heads = Inbox()
     runtime = ServiceRuntime(SERVICE, config.site, config.zenoh, name=config.pile_id,
                              status_period_s=config.status_period_s, stopper=stopper)
-    projection = LiveProjection(config.pile_id, int(config.reorder_s * S))
+    projection = LiveProjection(config.pile_id, int(config.reorder_s * NS_PER_S))
     runtime.open(backlog=lambda: heads.qsize(), error_keys=("errors",), announce=False)
     latest: list[bytes] = [b""]
     lock = threading.Lock()

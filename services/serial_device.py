@@ -18,6 +18,7 @@ import time
 from typing import Callable
 
 import serial
+import zenoh
 
 from services.service import ServiceRuntime, SiteTime, Stopper, log
 
@@ -94,8 +95,6 @@ def run_serial_service(service: str, config, *, error_keys: tuple[str, ...],
     ``source``, ``status_period_s`` and ``clock``.  Returns 0 on a clean stop, 2 if the
     device cannot be opened or the Zenoh session cannot start.
     """
-    import zenoh
-
     stopper = stopper or Stopper()  # installed first: SIGTERM during start-up stops cleanly
     try:
         port = serial.Serial(config.device, config.baud, timeout=config.read_timeout_s)

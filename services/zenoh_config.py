@@ -2,13 +2,17 @@
 
 Defaults suit one machine: peer mode, multicast scouting off, so processes find each
 other only through the endpoints they are given (``--listen`` on one side,
-``--connect`` on the other).
+``--connect`` on the other).  :func:`add_zenoh_arguments` adds the options to a parser,
+:class:`ZenohOptions` holds them (typed, frozen; also as command-line arguments for a
+child process), and :func:`zenoh_config` / :func:`config_from_args` make the
+``zenoh.Config``.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+from dataclasses import dataclass
 from typing import Sequence
 
 import zenoh
@@ -31,6 +35,41 @@ def add_zenoh_arguments(parser: argparse.ArgumentParser, *, listen_default: str 
     group.add_argument("--scouting", action="store_true",
                        help="enable multicast scouting (off by default)")
     parser.set_defaults(_listen_default=listen_default)
+
+
+@dataclass(frozen=True)
+class ZenohOptions:
+    """The shared Zenoh options.  Defaults: peer mode, multicast scouting off."""
+
+    mode: str = "peer"
+    connect: tuple[str, ...] = ()
+    listen: tuple[str, ...] = ()
+    config_file: str | None = None
+    scouting: bool = False
+
+    @classmethod
+    def from_args(cls, args: argparse.Namespace) -> ZenohOptions:
+        return cls(mode=args.mode, connect=tuple(args.connect or ()),
+                   listen=tuple(args.listen or ()), config_file=args.zenoh_config,
+                   scouting=bool(args.scouting))
+
+    def to_config(self) -> zenoh.Config:
+        """A ``zenoh.Config`` from these options."""
+        return zenoh_config(mode=self.mode, connect=self.connect, listen=self.listen,
+                            config_file=self.config_file, scouting=self.scouting)
+
+    def to_argv(self) -> list[str]:
+        """The same options as command-line arguments (to start a child process)."""
+        argv = ["--mode", self.mode]
+        for endpoint in self.connect:
+            argv += ["--connect", endpoint]
+        for endpoint in self.listen:
+            argv += ["--listen", endpoint]
+        if self.config_file:
+            argv += ["--config", self.config_file]
+        if self.scouting:
+            argv.append("--scouting")
+        return argv
 
 
 def zenoh_config(*, mode: str = "peer", connect: Sequence[str] = (), listen: Sequence[str] = (),

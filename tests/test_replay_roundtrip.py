@@ -29,7 +29,8 @@ from mcap_protobuf.decoder import DecoderFactory
 
 from ledger import open_ledger
 from ledger.cli import export_lines
-from replay.mcap_format import McapScan, schema_of
+from replay.mcap_scan import McapScan
+from replay.mcap_writer import schema_of
 from replay.replay import iter_events
 from schemas import pb
 from schemas.events import EVENT_TYPES, Event, decode_payload, make_event, set_timestamp_ns

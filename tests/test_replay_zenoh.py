@@ -20,7 +20,9 @@ from pathlib import Path
 from mcap.reader import make_reader
 
 from ledger import open_ledger
-from replay.mcap_format import EventWriter, McapScan, RawMessage
+from replay.mcap_records import RawMessage
+from replay.mcap_scan import McapScan
+from replay.mcap_writer import EventWriter
 from replay.replay import iter_events
 from schemas import pb
 from schemas.events import key_expr, make_event, set_timestamp_ns
