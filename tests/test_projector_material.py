@@ -19,7 +19,8 @@ from hypothesis import strategies as st
 from projector.envelope import Reclaimer, cut_floor, in_slew_arc, wheel_centre
 from projector.grades import AssayRecord, effective_assays, grade_at, grade_classes
 from projector.grid import GridGeometry, cell_centre
-from projector.layers import DepositInfo, LayerStack, fit_local_quadratic
+from projector.layers import DepositInfo, LayerStack
+from projector.surface_fit import fit_local_quadratic
 from projector.voxels import ClassWeights, integrate
 
 T0 = 1_700_000_000 * 10**9  # an arbitrary UTC epoch (ns)
