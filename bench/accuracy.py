@@ -71,9 +71,10 @@ if str(ROOT) not in sys.path:
 import numpy as np  # noqa: E402
 from scipy import integrate  # noqa: E402
 
+from projector.elevation import volume_above  # noqa: E402
 from projector.georef import georeference, interpolate_poses  # noqa: E402
 from projector.grid import GridGeometry  # noqa: E402
-from projector.heightmap import HeightMap, fuse, rasterize, volume_above  # noqa: E402
+from projector.heightmap import HeightMap, fuse, rasterize  # noqa: E402
 from projector.fold import FoldConfig  # noqa: E402
 from projector.profile import clean_profile  # noqa: E402
 

@@ -1,7 +1,7 @@
 """Grades joined to material at query time, from the assays known at a time K.
 
 A lot is sampled on the belt over windows; the lab reports each window's assay hours later
-(DOMAIN.md §1, §2).  Material deposited at time t from lot L takes the grade of the assay of
+(docs/domain.md §1, §2).  Material deposited at time t from lot L takes the grade of the assay of
 L whose sampling window contains t, *as known at K* (recorded at or before K); without one
 it takes the lot's planned grade and is marked not assayed.  So the same pile has different
 grades as of different K, and the answer changes exactly when an assay is recorded.
@@ -33,6 +33,8 @@ from typing import Iterable, Mapping, Sequence
 
 import numpy as np
 
+from schemas.times import NS_PER_S
+
 __all__ = ["AssayRecord", "GradeClasses", "effective_assays", "grade_at", "grade_classes",
            "timestamp_ns", "STATUSES"]
 
@@ -50,7 +52,7 @@ def timestamp_ns(value) -> int:
     if isinstance(value, (int, np.integer)):
         return int(value)
     if hasattr(value, "seconds") and hasattr(value, "nanos"):
-        return int(value.seconds) * 1_000_000_000 + int(value.nanos)
+        return int(value.seconds) * NS_PER_S + int(value.nanos)
     raise TypeError(f"a time must be a Timestamp or integer ns, got {type(value).__name__}")
 
 

@@ -5,8 +5,9 @@ geometry (corner, cell size, shape, frame); NaN means "no data".  Cells are squa
 
 Conventions
 -----------
-- x runs across the pile, y along the rail (site ENU, metres; DOMAIN.md §2).
-- A layer is a ``float64`` array of shape ``(nx, ny)`` indexed ``[ix, iy]``.
+- x runs across the pile, y along the rail (site ENU, metres; docs/domain.md §2).
+- A layer is a ``float64`` array of shape ``(nx, ny)`` indexed ``[ix, iy]``; an elevation
+  layer holds heights (m), NaN where a cell was never seen (:func:`check_elevation`).
 - Cell ``(ix, iy)`` covers ``[x0 + ix*cell, x0 + (ix+1)*cell) x [y0 + iy*cell, ...)``;
   its centre is at ``x0 + (ix + 0.5)*cell``.
 """
@@ -18,7 +19,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["GridGeometry", "GridMap", "cell_index", "cell_centre", "inside", "cell_centres"]
+__all__ = ["GridGeometry", "GridMap", "cell_index", "cell_centre", "inside", "cell_centres",
+           "check_elevation"]
 
 
 @dataclass(frozen=True)
@@ -121,6 +123,22 @@ def cell_centres(geometry: GridGeometry) -> tuple[np.ndarray, np.ndarray]:
     """``(X, Y)``, each ``(nx, ny)``: the centre of every cell."""
     ix, iy = np.meshgrid(np.arange(geometry.nx), np.arange(geometry.ny), indexing="ij")
     return cell_centre(geometry, ix, iy)
+
+
+def check_elevation(elevation) -> np.ndarray:
+    """``elevation`` as a ``float64 (nx, ny)`` array of heights (m), NaN = never seen.
+
+    Raises
+    ------
+    ValueError
+        When it is not 2-D or holds an infinity.
+    """
+    e = np.asarray(elevation, dtype=np.float64)
+    if e.ndim != 2:
+        raise ValueError(f"elevation must have shape (nx, ny), got {e.shape}")
+    if np.isinf(e).any():
+        raise ValueError("elevation must not contain infinities (NaN = never seen)")
+    return e
 
 
 @dataclass

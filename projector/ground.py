@@ -1,13 +1,13 @@
 """Scanner heights referenced to the declared ground each scan sees.
 
 A reclaimer's scanner pose comes from the localizer, whose luff is observable only
-through GNSS height: on the demo's live path its scanner height is off by 8 cm on
-average (16 cm rms), slowly varying, and every point of a scan is off by that much
-(the scanner's orientation does not depend on the luff, so the error is a vertical
-translation).  Folded as is, the pile reads 4 % heavy.  Most scans also see bare
-ground beside the pile, whose height the pile's declaration gives: the lowest dense
-cluster of a scan's points over cells the layer stack holds as bare is that ground,
-and its offset from the declared level is the scan's height error.
+through GNSS height, so its scanner height carries a slowly varying error, and every
+point of a scan is off by that much (the scanner's orientation does not depend on the
+luff, so the error is a vertical translation); folded as is, it makes the pile read
+heavy (figures: docs/design-notes.md).  Most scans also see bare ground beside the pile,
+whose height the pile's declaration gives: the lowest dense cluster of a scan's points
+over cells the layer stack holds as bare is that ground, and its offset from the
+declared level is the scan's height error.
 
 Pure functions, vectorised over the scans of a batch; no I/O:
 
@@ -104,9 +104,9 @@ def scan_ground_offsets(z_m, candidate, ground_z_m: float, *, window_m: float,
 
     Per scan, among the candidate points within ``max_offset_m + window_m`` of
     ``ground_z_m``, the lowest pair of half-window bins (``window_m`` wide together)
-    holding ``min_points`` points starts the estimate; it is refined ``iterations`` times to the median of the points
-    within ``window_m`` of it (so it settles on the mode of the ground's noise, not on
-    its low tail).  Material on the ground is above it and never the lowest cluster.
+    holding ``min_points`` points starts the estimate; it is refined ``iterations``
+    times to the median of the points within ``window_m`` of it (so it settles on the
+    mode of the ground's noise, not on its low tail).  Material on the ground is above it and never the lowest cluster.
 
     Parameters
     ----------

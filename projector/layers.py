@@ -13,7 +13,7 @@ order of deposition.
 - :meth:`LayerStack.clamp` lowers every surface above a floor to the floor (a reclaimer cut,
   :func:`projector.envelope.cut_floor`) and reports what it removed per deposit;
 - :meth:`LayerStack.fit_boundaries` replaces buried surfaces by a local quadratic fit
-  (:func:`fit_local_quadratic`): their per-cell noise, never measured again, would
+  (:mod:`projector.surface_fit`): their per-cell noise, never measured again, would
   otherwise mix deposits wherever a cut's floor passes close to them.
 
 A band is well mixed per column, like the simulator's parcels: material of one deposit that
@@ -24,215 +24,31 @@ Stacks are immutable values: every operation returns a new stack, which shares t
 did not change with the old one (copy-on-write per array).  The arrays handed out are
 read-only; copy them to modify them.  Times are UTC nanoseconds; per-cell deposition times
 are returned as float64 (about 256 ns resolution at current epochs); internally they are
-kept relative to the first raise's time (about 1 ns resolution over 100 days).
+kept relative to the first raise's time (about 1 ns resolution over 100 days).  The
+deposits and what a clamp removed are value types of :mod:`projector.deposits`.
 """
 
 from __future__ import annotations
 
-import math
-from dataclasses import dataclass
-
 import numpy as np
-from scipy import ndimage
 
+from projector.deposits import DepositInfo, DepositRemoval, Removal, removal_of_drops
 from projector.grid import GridGeometry
+from projector.surface_fit import check_window, fit_local_quadratic, fit_top_above_floor
 
-__all__ = ["DepositInfo", "DepositRemoval", "Removal", "LayerStack", "fit_local_quadratic"]
-
-
-@dataclass(frozen=True)
-class DepositInfo:
-    """What a deposit is: one stacking pass (or material that rose outside any pass).
-
-    Attributes
-    ----------
-    index : int
-        1-based position in the stack: the band ``(S(index-1), S(index)]``.
-    pass_id : str
-        The stacking pass (``""`` when none).
-    lot_id : str
-        The lot stacked (``""`` when unknown).
-    opened_ns : int
-        When the deposit was opened (UTC ns).
-    flagged : bool
-        True for material that rose outside any stacking pass.
-    """
-
-    index: int
-    pass_id: str
-    lot_id: str
-    opened_ns: int
-    flagged: bool = False
-
-
-@dataclass(frozen=True, eq=False)
-class DepositRemoval:
-    """What one clamp removed from one deposit.
-
-    Attributes
-    ----------
-    index : int
-        The deposit (1-based).
-    info : DepositInfo
-    volume_m3 : float
-        Total removed volume (m3).
-    ix, iy : ndarray, shape (m,), int64
-        The cells some of the deposit was removed from.
-    cell_volume_m3 : ndarray, shape (m,)
-        Removed volume per cell (m3, > 0).
-    deposition_time_ns : ndarray, shape (m,), float64
-        When the removed material arrived in that cell (UTC ns): the band's
-        thickness-weighted mean deposition time.
-    """
-
-    index: int
-    info: DepositInfo
-    volume_m3: float
-    ix: np.ndarray
-    iy: np.ndarray
-    cell_volume_m3: np.ndarray
-    deposition_time_ns: np.ndarray
-
-    @property
-    def mean_deposition_time_ns(self) -> float:
-        """Volume-weighted mean deposition time of the removed material (UTC ns)."""
-        if self.volume_m3 <= 0:
-            return math.nan
-        return float(np.sum(self.cell_volume_m3 * self.deposition_time_ns) / self.volume_m3)
-
-
-@dataclass(frozen=True, eq=False)
-class Removal:
-    """What one :meth:`LayerStack.clamp` removed, per deposit (only deposits that lost material).
-
-    Attributes
-    ----------
-    deposits : tuple of DepositRemoval
-        In deposit order (bottom to top).
-    """
-
-    deposits: tuple[DepositRemoval, ...] = ()
-
-    @property
-    def volume_m3(self) -> float:
-        """Total removed volume (m3)."""
-        return float(sum(d.volume_m3 for d in self.deposits))
-
-    def by_index(self) -> dict[int, DepositRemoval]:
-        """The removals keyed by deposit index."""
-        return {d.index: d for d in self.deposits}
-
-    def within(self, mask) -> "Removal":
-        """The part of this removal in the cells where ``mask`` (bool, (nx, ny)) is True."""
-        mask = np.asarray(mask, dtype=bool)
-        parts = []
-        for d in self.deposits:
-            sel = mask[d.ix, d.iy]
-            if sel.any():
-                vol = d.cell_volume_m3[sel]
-                parts.append(DepositRemoval(d.index, d.info, float(np.sum(vol)), d.ix[sel],
-                                            d.iy[sel], vol, d.deposition_time_ns[sel]))
-        return Removal(tuple(parts))
-
-    def removed_m(self, geometry: GridGeometry) -> np.ndarray:
-        """Removed thickness per cell, all deposits, shape (nx, ny) (m)."""
-        out = np.zeros(geometry.shape)
-        for d in self.deposits:
-            np.add.at(out, (d.ix, d.iy), d.cell_volume_m3 / geometry.cell_area_m2)
-        return out
-
-
-def _quadratic_basis(window: int) -> np.ndarray:
-    """The terms ``1, dx, dy, dx^2, dx dy, dy^2`` at each offset of a square window,
-    shape (window * window, 6), offsets in cells, row-major over (dx, dy)."""
-    half = window // 2
-    dx, dy = np.meshgrid(np.arange(-half, half + 1, dtype=np.float64),
-                         np.arange(-half, half + 1, dtype=np.float64), indexing="ij")
-    dx, dy = dx.ravel(), dy.ravel()
-    return np.stack([np.ones_like(dx), dx, dy, dx * dx, dx * dy, dy * dy], axis=1)
-
-
-def _check_window(window) -> None:
-    if isinstance(window, bool) or not isinstance(window, (int, np.integer)) \
-            or window < 3 or window % 2 == 0:
-        raise ValueError(f"window must be an odd int >= 3, got {window!r}")
-
-
-def fit_local_quadratic(z_m, mask, window: int = 7) -> np.ndarray:
-    """Each masked cell's value on the least-squares quadratic surface through the masked
-    cells of the ``window`` x ``window`` square around it.
-
-    A surface estimated per cell carries each cell's own noise.  The fit takes it down
-    (the standard deviation times 0.39, 0.27 and 0.21 for full 5, 7 and 9 cell windows)
-    and, unlike a mean, returns any surface that is quadratic over the window unchanged:
-    a plane, a rounded crest, a toe, also where the mask cuts the window short.
-
-    Parameters
-    ----------
-    z_m : array_like, shape (nx, ny)
-        The surface (m).
-    mask : array_like of bool, shape (nx, ny)
-        The cells to fit and to fit from (NaN cells never count).
-    window : int
-        The square's edge in cells: odd, >= 3.
-
-    Returns
-    -------
-    ndarray, shape (nx, ny), float64
-        The fit on the masked cells.  Elsewhere ``z_m``; also where a window's masked cells
-        do not determine a quadratic (fewer than six, or all on two lines).
-
-    Raises
-    ------
-    ValueError
-        On shapes that differ or are not 2-D, or a window that is even or below 3.
-    """
-    z = np.asarray(z_m, dtype=np.float64)
-    m = np.asarray(mask, dtype=bool)
-    if z.ndim != 2 or m.shape != z.shape:
-        raise ValueError(f"z_m and mask must be 2-D of one shape, got {z.shape} and {m.shape}")
-    _check_window(window)
-    m = m & np.isfinite(z)
-    out = z.copy()
-    if not m.any():
-        return out
-    window, half = int(window), int(window) // 2
-    basis = _quadratic_basis(window)
-    # a full window: one fixed kernel, the least-squares weights of the centre value
-    # (Savitzky-Golay)
-    centre = np.linalg.pinv(basis)[0].reshape(window, window)
-    zm = np.where(m, z, 0.0)
-    counts = ndimage.correlate(m.astype(np.float64), np.ones((window, window)), mode="constant")
-    full = m & (counts > window * window - 0.5)
-    out[full] = ndimage.correlate(zm, centre, mode="constant")[full]
-    # a window the mask cuts short: its own least squares, from the cells it holds
-    part = np.flatnonzero(m & ~full)
-    if part.size:
-        ny = z.shape[1]
-        zp, mp = np.pad(zm, half), np.pad(m, half)
-        ix, iy = np.unravel_index(part, z.shape)
-        offsets = (np.arange(window)[:, None] * (ny + 2 * half)
-                   + np.arange(window)[None, :]).ravel()
-        flat = (ix * (ny + 2 * half) + iy)[:, None] + offsets[None, :]   # window's top-left
-        w = mp.ravel()[flat].astype(np.float64)                           # (p, window^2)
-        products = (basis[:, :, None] * basis[:, None, :]).reshape(len(basis), 36)
-        a = (w @ products).reshape(-1, 6, 6)                      # the normal equations
-        b = (w * zp.ravel()[flat]) @ basis
-        # singular where the cells do not determine a quadratic: the determinant against
-        # the product of the diagonal (1 for orthogonal terms, 0 for dependent ones)
-        sign, logdet = np.linalg.slogdet(a)
-        diagonal = np.einsum("pii->pi", a)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            ok = (sign > 0) & (logdet - np.sum(np.log(diagonal), axis=1) > math.log(1e-10))
-        if ok.any():
-            sol = np.linalg.solve(a[ok], b[ok][..., None])[..., 0]
-            out.ravel()[part[ok]] = sol[:, 0]
-    return out
+__all__ = ["DepositInfo", "DepositRemoval", "Removal", "LayerStack"]
 
 
 def _frozen(a: np.ndarray) -> np.ndarray:
     a.setflags(write=False)
     return a
+
+
+def _mixed_time(t_old, old_m, t_add, add_m):
+    """Deposition time (ns) of a band's material after ``add_m`` (m, > 0) arriving at
+    ``t_add`` joins ``old_m`` (m, >= 0) deposited at ``t_old``: their thickness-weighted
+    mean (``t_add`` where there was none)."""
+    return np.where(old_m > 0, (t_old * old_m + t_add * add_m) / (old_m + add_m), t_add)
 
 
 def _check_layer(geometry: GridGeometry, values, name: str) -> np.ndarray:
@@ -451,7 +267,7 @@ class LayerStack:
         new_top[up] = surf[up]
         new_time = self._times[-1].copy()
         t_old = new_time[up]
-        new_time[up] = np.where(old > 0, (t_old * old + t_rel * add) / (old + add), t_rel)
+        new_time[up] = _mixed_time(t_old, old, t_rel, add)
         stack = LayerStack(self._geometry, self._surfaces[:-1] + (_frozen(new_top),),
                            self._times[:-1] + (_frozen(new_time),), self._infos, epoch)
         return stack, float(np.sum(add) * self._geometry.cell_area_m2)
@@ -544,7 +360,7 @@ class LayerStack:
                 times[k - 1] = times[k - 1].copy()
                 owned_t.add(k - 1)
             tv = times[k - 1].ravel()
-            tv[c] = np.where(old > 0, (tv[c] * old + t_rel * add) / (old + add), t_rel)
+            tv[c] = _mixed_time(tv[c], old, t_rel, add)
         if not owned_s:
             return self, raised_all
         return LayerStack(self._geometry, tuple(_frozen(a) for a in surfaces),
@@ -592,7 +408,7 @@ class LayerStack:
         new_time = times[k - 1].copy()
         t_rel = t[cells] - float(epoch)
         a = add[cells]
-        new_time[cells] = np.where(old > 0, (new_time[cells] * old + t_rel * a) / (old + a), t_rel)
+        new_time[cells] = _mixed_time(new_time[cells], old, t_rel, a)
         times[k - 1] = _frozen(new_time)
         return LayerStack(self._geometry, tuple(surfaces), tuple(times), self._infos, epoch)
 
@@ -603,10 +419,11 @@ class LayerStack:
         The volume above a floor of a surface with per-cell noise is biased high where
         the surface runs close to the floor: ``E[max(z + e - f, 0)] > max(z - f, 0)``.
         A cut's first slice of a freshly stacked pile is a few cell-noises thick, so the
-        bias is a few percent of it.  :func:`fit_local_quadratic` over the top deposit's
-        cells takes most of the noise out; the fit replaces the top where it or the top
-        stands above the floor, never below the floor or the deposit under the top one
-        (the top deposit's material and deposition times stay, its thickness moves).
+        bias is a few percent of it.  A local quadratic fit over the top deposit's cells
+        takes most of the noise out; the fit replaces the top where it or the top stands
+        above the floor, never below the floor or the deposit under the top one (the top
+        deposit's material and deposition times stay, its thickness moves;
+        :func:`projector.surface_fit.fit_top_above_floor`).
 
         Parameters
         ----------
@@ -620,32 +437,16 @@ class LayerStack:
         ValueError
             On a floor of another shape or a bad window.
         """
-        _check_window(window)
+        check_window(window)
         floor = np.asarray(floor_m, dtype=np.float64)
         if floor.shape != self._geometry.shape:
             raise ValueError(f"floor_m must have shape {self._geometry.shape}, got {floor.shape}")
         n = self.n_deposits
         if n == 0:
             return self
-        ix, iy = np.nonzero(np.isfinite(floor))
-        if ix.size == 0:
+        top = fit_top_above_floor(self._surfaces[n - 1], self._surfaces[n], floor, window)
+        if top is None:
             return self
-        # the fit at a cell sees the window around it: the floor's block, padded by half
-        # a window, gives the same values there as the whole grid would
-        pad = window // 2
-        block = (slice(max(0, ix.min() - pad), ix.max() + pad + 1),
-                 slice(max(0, iy.min() - pad), iy.max() + pad + 1))
-        lo, z, f = self._surfaces[n - 1][block], self._surfaces[n][block], floor[block]
-        mask = z > lo
-        if not mask.any():
-            return self
-        fitted = fit_local_quadratic(z, mask, window)
-        with np.errstate(invalid="ignore"):
-            near = mask & np.isfinite(f) & ((z > f) | (fitted > f))
-        if not near.any():
-            return self
-        top = np.array(self._surfaces[n])
-        top[block] = np.where(near, np.maximum(np.fmax(fitted, f), lo), z)
         surfaces = list(self._surfaces)
         surfaces[n] = _frozen(top)
         return LayerStack(self._geometry, tuple(surfaces), self._times, self._infos,
@@ -658,10 +459,11 @@ class LayerStack:
         noise; once the next deposit covers it, no scan measures it again.  Where a cut's
         floor passes close to it, that noise decides per cell which deposit the cut takes,
         and takes more of the lower one than a smooth boundary would (wherever the noise
-        lifted the boundary above the floor).  :func:`fit_local_quadratic` over the cells
-        where both deposit ``k`` and deposit ``k + 1`` have material replaces it there, kept
-        between ``S(k-1)`` and ``S(k+1)``: material moves between the two deposits only,
-        each cell's top and deposition times stay.
+        lifted the boundary above the floor).  A local quadratic fit
+        (:func:`projector.surface_fit.fit_local_quadratic`) over the cells where both
+        deposit ``k`` and deposit ``k + 1`` have material replaces it there, kept between
+        ``S(k-1)`` and ``S(k+1)``: material moves between the two deposits only, each
+        cell's top and deposition times stay.
 
         Parameters
         ----------
@@ -676,7 +478,7 @@ class LayerStack:
             On a ``k`` out of range (the top deposit's top is the measured surface) or a
             bad window.
         """
-        _check_window(window)
+        check_window(window)
         ks = sorted(set(ks))
         for k in ks:
             self._check_k(k)
@@ -721,7 +523,6 @@ class LayerStack:
         cut = np.flatnonzero(floor < top)
         if cut.size == 0 or self.n_deposits == 0:
             return self, Removal()
-        shape = self._geometry.shape
         f = np.maximum(floor.ravel()[cut], self._surfaces[0].ravel()[cut])
         surfaces = list(self._surfaces)
         lowered = []  # lowered[k] = S(k) - S'(k) at the cut cells, k = n, n-1, ...
@@ -736,27 +537,12 @@ class LayerStack:
             lowered.append((k, drop))
         if not lowered:
             return self, Removal()
-        area = self._geometry.cell_area_m2
-        epoch = float(self._epoch_ns) if self._epoch_ns is not None else 0.0
-        removals = []
         lowered.reverse()  # bottom-most lowered surface first
-        below = np.zeros(cut.size)
-        for k, drop in lowered:
-            removed = drop - below  # (S(k) - S'(k)) - (S(k-1) - S'(k-1)) >= 0
-            below = drop
-            sel = removed > 0
-            if not sel.any():
-                continue
-            cells = cut[sel]
-            ix, iy = np.unravel_index(cells, shape)
-            vol = removed[sel] * area
-            removals.append(DepositRemoval(
-                index=k, info=self._infos[k - 1], volume_m3=float(np.sum(vol)),
-                ix=ix.astype(np.int64), iy=iy.astype(np.int64), cell_volume_m3=vol,
-                deposition_time_ns=self._times[k - 1].ravel()[cells] + epoch))
+        removal = removal_of_drops(cut, lowered, self._geometry, self._infos, self._times,
+                                   self._epoch_ns)
         stack = LayerStack(self._geometry, tuple(surfaces), self._times, self._infos,
                            self._epoch_ns)
-        return stack, Removal(tuple(removals))
+        return stack, removal
 
     def __repr__(self) -> str:
         return (f"LayerStack({self._geometry.nx}x{self._geometry.ny} cells, "

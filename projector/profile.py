@@ -8,7 +8,7 @@ What is rejected (set to NaN), and why
 --------------------------------------
 1. **Range discontinuities: mixed pixels and spikes.**  The LMS200's beam footprint can
    straddle the edge of a near and a far surface and return a range in between
-   ("phantom" points, thesis §3.4, DOMAIN.md §5).  Such a return sits on neither surface.
+   ("phantom" points, thesis §3.4, docs/domain.md §5).  Such a return sits on neither surface.
    A step between beams ``k`` and ``k + 1`` is a *jump* when
 
        |r[k+1] - r[k]| > max(jump_m, jump_ratio * s_k)
@@ -72,9 +72,9 @@ What is rejected (set to NaN), and why
    - A sharp apex (a crest seen as a V in range) moves by two thirds of one beam's
      range change for 3 beams.
 
-   Why: at bench scale the LMS200's 14.5 mm range noise spreads each point along its
-   beam over up to three 5 mm cells.  The fusion averages the height noise but not
-   that spread, and the layers and cuts there are a few mm thick.
+   The fusion averages the height noise of the points in a cell, but not the spread of
+   a point along its beam over neighbouring cells, which the fit reduces (see
+   docs/design-notes.md).
 
 The running medians treat NaN returns by carrying the nearest earlier valid return
 into them (then the nearest later one at the start of a scan) before filtering; that
@@ -195,13 +195,39 @@ def clean_profile(ranges_m, *, jump_m: float = 0.3, jump_ratio: float = 4.0,
     s, b = r.shape
     if s == 0 or b < 3:
         return r
-
-    # -- 1. jumps: mixed pixels and spikes ------------------------------------------------
     d = np.diff(r, axis=1)                              # (S, B-1); NaN next to a NaN
+    # 1. jumps: mixed pixels and spikes; 2. isolated outliers
+    jump = _jumps(d, window, jump_m, jump_ratio)
+    bad = _runs_between_jumps(jump) | _isolated_outliers(r, d, window, mad_k, min_sd_m)
+    r[bad] = np.nan
+    if smooth:                                          # 3. optional 3-median
+        r = _median_of_3(r)
+    if fit_beams > 1:                                   # 4. optional line fit
+        # never across a jump, nor a step over jump_m between consecutive kept returns:
+        # dropouts beside a step fill the running median of the steps with it, so that
+        # the relative test of a jump can miss it
+        kept_steps = np.abs(np.diff(_fill_nan_along_beams(r), axis=1))
+        with np.errstate(invalid="ignore"):
+            edges = jump | (kept_steps > jump_m)
+        r = _line_fit_along_beams(r, edges, fit_beams // 2)
+    return r
+
+
+def _jumps(d: np.ndarray, window: int, jump_m: float, jump_ratio: float) -> np.ndarray:
+    """Which steps ``d`` (m, shape (S, B-1), ``r[:, k+1] - r[:, k]``) are jumps: over
+    ``jump_m`` and over ``jump_ratio`` times the running median of the step sizes over
+    ``window`` steps; False next to a NaN."""
     ad = np.abs(d)
     step = _running_median(ad, window)                  # local typical step per beam
     with np.errstate(invalid="ignore"):
-        jump = ad > np.maximum(jump_m, jump_ratio * step)   # NaN -> False
+        return ad > np.maximum(jump_m, jump_ratio * step)   # NaN -> False
+
+
+def _runs_between_jumps(jump: np.ndarray) -> np.ndarray:
+    """Which returns (bool, shape (S, B)) form a run of one or two bounded by jumps on
+    both sides (``jump``: bool, shape (S, B-1)): mixed pixels (both jumps the same way)
+    and spikes (opposite ways)."""
+    s, b = jump.shape[0], jump.shape[1] + 1
     bad = np.zeros((s, b), dtype=bool)
     # run of one return at beam i (1 <= i <= B-2): jumps at steps i-1 and i
     j_in, j_out = jump[:, :-1], jump[:, 1:]
@@ -212,8 +238,15 @@ def clean_profile(ranges_m, *, jump_m: float = 0.3, jump_ratio: float = 4.0,
         pair = jump[:, :-2] & ~jump[:, 1:-1] & jump[:, 2:]
         bad[:, 1:-2] |= pair
         bad[:, 2:-1] |= pair
+    return bad
 
-    # -- 2. isolated outliers: residual from a running median ----------------------------
+
+def _isolated_outliers(r: np.ndarray, d: np.ndarray, window: int, mad_k: float,
+                       min_sd_m: float) -> np.ndarray:
+    """Which returns (bool, shape (S, B)) are far from the running median of ``window``
+    beams and off both linear continuations of the profile, in robust sd (test 2 of the
+    module docstring); ``r`` ranges (m, shape (S, B)), ``d`` their steps (m, (S, B-1))."""
+    s, b = r.shape
     med = _running_median(r, window)
     res = r - med
     # noise scale from second differences (sd sqrt(6) sigma for white noise; a smooth
@@ -232,31 +265,22 @@ def clean_profile(ranges_m, *, jump_m: float = 0.3, jump_ratio: float = 4.0,
     with np.errstate(invalid="ignore"):
         far = np.abs(res) > mad_k * sigma
         unexplained = ~(off_line <= mad_k * math.sqrt(6.0) * sigma)     # NaN -> True
-        bad |= far & unexplained
+        return far & unexplained
 
-    r[bad] = np.nan
 
-    # -- 3. optional 3-median -------------------------------------------------------------
-    if smooth:
-        left = np.empty_like(r)
-        right = np.empty_like(r)
-        left[:, 0] = np.nan
-        left[:, 1:] = r[:, :-1]
-        right[:, -1] = np.nan
-        right[:, :-1] = r[:, 1:]
-        both = ~np.isnan(left) & ~np.isnan(right) & ~np.isnan(r)
-        trio = np.stack([left, r, right], axis=-1)
-        m3 = np.median(np.where(both[..., None], trio, 0.0), axis=-1)
-        r = np.where(both, m3, r)
-    if fit_beams > 1:
-        # and never across a step over jump_m between consecutive kept returns either:
-        # dropouts beside a step fill the running median of the steps with it, so that
-        # the relative test of a jump can miss it
-        kept_steps = np.abs(np.diff(_fill_nan_along_beams(r), axis=1))
-        with np.errstate(invalid="ignore"):
-            edges = jump | (kept_steps > jump_m)
-        r = _line_fit_along_beams(r, edges, fit_beams // 2)
-    return r
+def _median_of_3(r: np.ndarray) -> np.ndarray:
+    """3-beam median along axis 1 where a return and both neighbours are there; the
+    other returns (and NaNs) as they are."""
+    left = np.empty_like(r)
+    right = np.empty_like(r)
+    left[:, 0] = np.nan
+    left[:, 1:] = r[:, :-1]
+    right[:, -1] = np.nan
+    right[:, :-1] = r[:, 1:]
+    both = ~np.isnan(left) & ~np.isnan(right) & ~np.isnan(r)
+    trio = np.stack([left, r, right], axis=-1)
+    m3 = np.median(np.where(both[..., None], trio, 0.0), axis=-1)
+    return np.where(both, m3, r)
 
 
 def _line_fit_along_beams(r: np.ndarray, jump: np.ndarray, half: int) -> np.ndarray:

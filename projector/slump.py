@@ -1,7 +1,7 @@
 """The angle of repose: what a granular pile's surface can and cannot be.
 
 Dry ore fines hold no slope steeper than their angle of repose (iron-ore fines about
-35-38 deg, DOMAIN.md §4).  The fold uses two consequences of that:
+35-38 deg, docs/domain.md §4).  The fold uses three consequences of that:
 
 - **slump**: the face a reclaim cut leaves is steeper than repose; it slides until no
   slope exceeds it.  Material moves from the top of the face to its toe, mass conserved,

@@ -21,11 +21,8 @@ Cost: per deposit a few vectorised passes over the cells with material (into buf
 reused by every deposit) and, for the weights, one bincount of the pieces per (grade
 class, QVO) (:class:`ClassWeights`, the form the query uses) or one sparse-dense product
 (per-cell weight arrays); no cells x deposits x bins cube is formed, and the QVO table is
-written once into buffers reserved with ``np.empty``.  The full-scale case (220 m x 60 m
-pile, 0.25 m cells, 1 m voxels, 60 chevron deposits of 1-3 grade classes, 6 weights;
-1.3 M QVOs) takes about 0.5 s on one core of the development machine with warm memory and
-0.5-0.9 s as a fresh process's first query, where page faults on new memory add up to
-0.3 s of system time (``bench/projector.py`` section 2).
+written once into buffers reserved with ``np.empty`` (measured times: see
+docs/design-notes.md).
 """
 
 from __future__ import annotations
@@ -282,9 +279,8 @@ def integrate(stack: LayerStack, voxel_m: float,
         ``(nx, ny, A)`` (per-cell weights) or ``(A,)`` (one weight vector for the whole
         deposit), or a :class:`ClassWeights` (a class per cell, a (C, A) table; the
         cheapest form when a deposit takes a few grades), with the same ``A`` for all.
-        Read one at a time, so a lazy sequence
-        works.  Weights of cells where the deposit has no material are ignored (NaN is
-        fine there).
+        Read one at a time, so a lazy sequence works.  Weights of cells where the deposit
+        has no material are ignored (NaN is fine there).
 
     Returns
     -------
@@ -319,13 +315,8 @@ def integrate(stack: LayerStack, voxel_m: float,
         raise ValueError(f"weights must have one entry per deposit ({n}), got {len(weights)}")
     nvx, nvy = -(-nx // m), -(-ny // m)
     ncell = nx * ny
-    ground = stack.ground()
-    z0 = float(ground.min())
-    top = stack.surface()
-    material = top > ground
-    nvz = 1
-    if material.any():
-        nvz = max(1, int(math.ceil((float(top[material].max()) - z0) / v)))
+    z0 = float(stack.ground().min())
+    nvz = _bins_to_top(stack, z0, v)
     nvox = nvx * nvy * nvz
     if nvox >= 2**31 or ncell >= 2**31:
         raise ValueError(f"voxel grid too large: {nvox} voxels, {ncell} cells")
@@ -334,119 +325,206 @@ def integrate(stack: LayerStack, voxel_m: float,
     # flat voxel index of bin 0 of every cell's voxel column, (nx * ny,), C order
     base_of_cell = ((np.arange(nx, dtype=np.int32) // m)[:, None] * (nvy * nvz)
                     + (np.arange(ny, dtype=np.int32) // m)[None, :] * nvz).ravel()
-
-    w_first = None
-    n_w = 0
-    if weights is not None and n > 0:
-        w_first = _weights_for(weights, 1, (nx, ny), None)
-        n_w = (w_first.table.shape[1] if isinstance(w_first, ClassWeights)
-               else w_first.shape[2])
-    touched = np.zeros(nvox, dtype=bool)       # scratch: voxels one deposit reaches
-    compact = np.zeros(nvox, dtype=np.int32)   # scratch: voxel -> row of the deposit's QVOs
+    w_first, n_w = _first_weights(weights, n, (nx, ny))
+    bands = _BandPieces(stack.surface_k(0), z0, v, base_of_cell)
+    rows_of = _QVORows(nvox, 2 * ncell)
     out = _QVOColumns(n_w)
-
-    # every surface in bins: u = (z - z0) / voxel_m, and its bin floor(u) (as float); a
-    # surface's u and floor serve the deposit below it and the deposit above it.  Two
-    # buffers each, swapped per deposit, and piece buffers reused by every deposit: fresh
-    # memory costs page faults, which on a sandboxed machine cost more than the arithmetic.
-    u_lo_all, u_hi_all = np.empty(ncell), np.empty(ncell)
-    fl_lo_all, fl_hi_all = np.empty(ncell), np.empty(ncell)
-    span_all = np.empty(ncell)
-    np.divide(np.subtract(stack.surface_k(0).ravel(), z0, out=u_lo_all), v, out=u_lo_all)
-    np.floor(u_lo_all, out=fl_lo_all)
-    cap = 2 * ncell  # first and last pieces; whole bins beyond that get their own arrays
-    data_buf, tmp_buf = np.empty(cap), np.empty(ncell)
-    vox_buf, col_buf, rows_buf = (np.empty(cap, dtype=np.int32) for _ in range(3))
-    base_less_1 = base_of_cell - 1
     for k in range(1, n + 1):
-        np.subtract(stack.surface_k(k).ravel(), z0, out=u_hi_all)
-        np.divide(u_hi_all, v, out=u_hi_all)
-        np.floor(u_hi_all, out=fl_hi_all)
+        band = bands.next_band(stack.surface_k(k))
         w = None
         if weights is not None:
             w = w_first if k == 1 else _weights_for(weights, k, (nx, ny), n_w)
-        # three kinds of pieces, each at most one per cell and bin:
-        #   first: bin fl_lo, min(u_hi, fl_lo + 1) - u_lo (cells with material)
-        #   last:  bin fl_hi > fl_lo, u_hi - fl_hi (possibly 0: dropped with the zero QVOs)
-        #   whole: bins fl_lo + 1 .. fl_hi - 1, 1 each
-        # together a sparse (QVO x cell) matrix in COO form (bin units; x piece_m3 at the end)
-        cells = np.flatnonzero(u_hi_all > u_lo_all)  # a band < 1 ulp of u is dropped
-        n1 = cells.size
-        if n1:
-            data, vox, col = data_buf[:n1], vox_buf[:n1], col_buf[:n1]
-            next_bin = np.take(fl_lo_all, cells, out=tmp_buf[:n1], mode="clip")
-            next_bin += 1.0                                # fl_lo + 1
-            np.minimum(np.take(u_hi_all, cells, out=data, mode="clip"), next_bin, out=data)
-            data -= np.take(u_lo_all, cells)
-            np.add(np.take(base_less_1, cells, out=vox, mode="clip"), next_bin, out=vox,
-                   casting="unsafe")
-            col[:] = cells
-            np.subtract(fl_hi_all, fl_lo_all, out=span_all)  # 0 where there is no material
-            last_cells = np.flatnonzero(span_all > 0)
-            n2 = n1 + last_cells.size
-            extra = []
-            if n2 > n1:
-                fl_hi = np.take(fl_hi_all, last_cells, out=tmp_buf[:n2 - n1], mode="clip")
-                last_data, last_vox = data_buf[n1:n2], vox_buf[n1:n2]
-                np.subtract(np.take(u_hi_all, last_cells, out=last_data, mode="clip"), fl_hi,
-                            out=last_data)
-                np.add(np.take(base_of_cell, last_cells, out=last_vox, mode="clip"), fl_hi,
-                       out=last_vox, casting="unsafe")
-                col_buf[n1:n2] = last_cells
-                mid_cells = np.flatnonzero(span_all > 1)
-                if mid_cells.size:
-                    n_whole = np.take(span_all, mid_cells).astype(np.int64) - 1
-                    first_of = np.cumsum(n_whole) - n_whole  # where each cell's run starts
-                    offset = (np.arange(int(first_of[-1] + n_whole[-1]), dtype=np.int32)
-                              - np.repeat(first_of.astype(np.int32), n_whole) + 1)
-                    bottom = (np.take(base_of_cell, mid_cells)
-                              + np.take(fl_lo_all, mid_cells).astype(np.int32))
-                    extra = [np.ones(offset.size), np.repeat(bottom, n_whole) + offset,
-                             np.repeat(mid_cells, n_whole)]
-            data, vox, col = data_buf[:n2], vox_buf[:n2], col_buf[:n2]
-            if extra:
-                data, vox, col = (np.concatenate((a, b)) for a, b in zip((data, vox, col),
-                                                                          extra))
-        u_lo_all, u_hi_all = u_hi_all, u_lo_all
-        fl_lo_all, fl_hi_all = fl_hi_all, fl_lo_all
-        if n1 == 0:
+        if band is None:
             continue
-        touched[vox] = True
-        nz = np.flatnonzero(touched)
-        touched[nz] = False
-        compact[nz] = np.arange(nz.size, dtype=np.int32)
-        rows = (np.take(compact, vox) if extra
-                else np.take(compact, vox, out=rows_buf[:vox.size], mode="clip"))
+        data, vox, col, fresh = band
+        nz, rows = rows_of.rows(vox, fresh)
         q_k = np.bincount(rows, weights=data, minlength=nz.size)
         q_k *= piece_m3
         if w is None or n_w == 0:
             out.append(*_nonzero(nz, q_k, None), k, n - k)
             continue
-        if isinstance(w, ClassWeights):
-            n_c = w.table.shape[0]
-            if n_c == 1:
-                q_wt = w.table[0][:, None] * q_k[None, :]
-            else:
-                # volume per (class, QVO), then the class table: one bincount, no per-cell
-                # weight rows
-                key = np.multiply(np.take(w.index.ravel(), col), nz.size, dtype=np.int64)
-                key += rows
-                per_class = np.bincount(key, weights=data, minlength=nz.size * n_c)
-                per_class = per_class.reshape(n_c, nz.size)
-                used = np.flatnonzero(per_class.any(axis=1))
-                q_wt = w.table[used].T @ per_class[used]
-                q_wt *= piece_m3
-        elif w.shape[:2] == (1, 1):
-            q_wt = w[0, 0][:, None] * q_k[None, :]  # one weight vector for the deposit
-        else:
-            pieces = sparse.coo_array((data, (rows, col)), shape=(nz.size, ncell))
-            q_wt = (pieces @ w.reshape(ncell, n_w)).T
-            q_wt *= piece_m3
+        q_wt = _weighted_sums(w, data, rows, col, q_k, piece_m3, ncell)
         out.append(*_nonzero(nz, q_k, q_wt), k, n - k)
+    return _voxel_grid(out.table((nvx, nvy, nvz)), geometry, v, z0, m)
 
-    qvo = out.table((nvx, nvy, nvz))
+
+def _bins_to_top(stack: LayerStack, z0: float, v: float) -> int:
+    """Bins of ``v`` (m) from ``z0`` (m) up to the highest material, at least 1."""
+    ground = stack.ground()
+    top = stack.surface()
+    material = top > ground
+    nvz = 1
+    if material.any():
+        nvz = max(1, int(math.ceil((float(top[material].max()) - z0) / v)))
+    return nvz
+
+
+def _first_weights(weights, n: int, shape: tuple[int, int]):
+    """Deposit 1's weights (checked) and the number A of weights (``(None, 0)`` without)."""
+    if weights is None or n == 0:
+        return None, 0
+    w_first = _weights_for(weights, 1, shape, None)
+    n_w = (w_first.table.shape[1] if isinstance(w_first, ClassWeights)
+           else w_first.shape[2])
+    return w_first, n_w
+
+
+class _BandPieces:
+    """The pieces of deposit bands in z bins, band after band from the ground up.
+
+    Every surface is taken in bins, ``u = (z - z0) / voxel_m``, with its bin ``floor(u)``
+    (as float); a surface's u and floor serve the band below it and the band above it.
+    Two buffers each, swapped per band, and piece buffers reused by every band: fresh
+    memory costs page faults, which on a sandboxed machine cost more than the arithmetic.
+
+    A band's pieces are of three kinds, each at most one per cell and bin:
+
+    - first: bin ``fl_lo``, ``min(u_hi, fl_lo + 1) - u_lo`` (cells with material);
+    - last: bin ``fl_hi > fl_lo``, ``u_hi - fl_hi`` (possibly 0: dropped with the zero
+      QVOs);
+    - whole: bins ``fl_lo + 1 .. fl_hi - 1``, 1 each;
+
+    together a sparse (QVO x cell) matrix in COO form (bin units; x the volume of one
+    whole bin of one cell gives m3).
+    """
+
+    def __init__(self, ground_m: np.ndarray, z0: float, v: float,
+                 base_of_cell: np.ndarray) -> None:
+        ncell = base_of_cell.size
+        self.z0, self.v = z0, v
+        self.base_of_cell = base_of_cell
+        self.base_less_1 = base_of_cell - 1
+        self.u_lo, self.u_hi = np.empty(ncell), np.empty(ncell)
+        self.fl_lo, self.fl_hi = np.empty(ncell), np.empty(ncell)
+        self.span = np.empty(ncell)
+        np.divide(np.subtract(ground_m.ravel(), z0, out=self.u_lo), v, out=self.u_lo)
+        np.floor(self.u_lo, out=self.fl_lo)
+        cap = 2 * ncell  # first and last pieces; whole bins beyond that get their own arrays
+        self.data_buf, self.tmp_buf = np.empty(cap), np.empty(ncell)
+        self.vox_buf, self.col_buf = (np.empty(cap, dtype=np.int32) for _ in range(2))
+
+    def next_band(self, top_m: np.ndarray):
+        """The pieces of the band from the last surface up to ``top_m`` ((nx, ny), m).
+
+        Returns ``(data, vox, col, fresh)``: the piece heights (bins), their flat voxel
+        indices and cells; ``fresh`` when the arrays are new rather than views of the
+        buffers (valid until the next call).  None when no cell has material.
+        """
+        np.subtract(top_m.ravel(), self.z0, out=self.u_hi)
+        np.divide(self.u_hi, self.v, out=self.u_hi)
+        np.floor(self.u_hi, out=self.fl_hi)
+        band = self._pieces()
+        self.u_lo, self.u_hi = self.u_hi, self.u_lo
+        self.fl_lo, self.fl_hi = self.fl_hi, self.fl_lo
+        return band
+
+    def _pieces(self):
+        """:meth:`next_band`'s pieces, before the surfaces' buffers are swapped."""
+        u_lo_all, u_hi_all, fl_lo_all, fl_hi_all = self.u_lo, self.u_hi, self.fl_lo, self.fl_hi
+        data_buf, tmp_buf = self.data_buf, self.tmp_buf
+        vox_buf, col_buf = self.vox_buf, self.col_buf
+        cells = np.flatnonzero(u_hi_all > u_lo_all)  # a band < 1 ulp of u is dropped
+        n1 = cells.size
+        if n1 == 0:
+            return None
+        data, vox, col = data_buf[:n1], vox_buf[:n1], col_buf[:n1]
+        next_bin = np.take(fl_lo_all, cells, out=tmp_buf[:n1], mode="clip")
+        next_bin += 1.0                                # fl_lo + 1
+        np.minimum(np.take(u_hi_all, cells, out=data, mode="clip"), next_bin, out=data)
+        data -= np.take(u_lo_all, cells)
+        np.add(np.take(self.base_less_1, cells, out=vox, mode="clip"), next_bin, out=vox,
+               casting="unsafe")
+        col[:] = cells
+        np.subtract(fl_hi_all, fl_lo_all, out=self.span)  # 0 where there is no material
+        last_cells = np.flatnonzero(self.span > 0)
+        n2 = n1 + last_cells.size
+        extra = []
+        if n2 > n1:
+            fl_hi = np.take(fl_hi_all, last_cells, out=tmp_buf[:n2 - n1], mode="clip")
+            last_data, last_vox = data_buf[n1:n2], vox_buf[n1:n2]
+            np.subtract(np.take(u_hi_all, last_cells, out=last_data, mode="clip"), fl_hi,
+                        out=last_data)
+            np.add(np.take(self.base_of_cell, last_cells, out=last_vox, mode="clip"), fl_hi,
+                   out=last_vox, casting="unsafe")
+            col_buf[n1:n2] = last_cells
+            mid_cells = np.flatnonzero(self.span > 1)
+            if mid_cells.size:
+                extra = self._whole_bins(mid_cells)
+        data, vox, col = data_buf[:n2], vox_buf[:n2], col_buf[:n2]
+        if extra:
+            data, vox, col = (np.concatenate((a, b)) for a, b in zip((data, vox, col), extra))
+        return data, vox, col, bool(extra)
+
+    def _whole_bins(self, mid_cells: np.ndarray) -> list[np.ndarray]:
+        """``[data, vox, col]`` of the whole-bin pieces of the cells ``mid_cells``."""
+        n_whole = np.take(self.span, mid_cells).astype(np.int64) - 1
+        first_of = np.cumsum(n_whole) - n_whole  # where each cell's run starts
+        offset = (np.arange(int(first_of[-1] + n_whole[-1]), dtype=np.int32)
+                  - np.repeat(first_of.astype(np.int32), n_whole) + 1)
+        bottom = (np.take(self.base_of_cell, mid_cells)
+                  + np.take(self.fl_lo, mid_cells).astype(np.int32))
+        return [np.ones(offset.size), np.repeat(bottom, n_whole) + offset,
+                np.repeat(mid_cells, n_whole)]
+
+
+class _QVORows:
+    """Each piece's row among one band's QVOs: the voxels the band reaches, in order.
+
+    Scratch arrays over all voxels, reused by every band (and left clear after each)."""
+
+    def __init__(self, nvox: int, cap: int) -> None:
+        self.touched = np.zeros(nvox, dtype=bool)      # voxels one deposit reaches
+        self.compact = np.zeros(nvox, dtype=np.int32)  # voxel -> row of the deposit's QVOs
+        self.rows_buf = np.empty(cap, dtype=np.int32)
+
+    def rows(self, vox: np.ndarray, fresh: bool) -> tuple[np.ndarray, np.ndarray]:
+        """``(nz, rows)``: the flat voxel indices reached (ascending) and each piece's
+        row among them; ``rows`` is a view of a buffer unless ``fresh``."""
+        touched, compact = self.touched, self.compact
+        touched[vox] = True
+        nz = np.flatnonzero(touched)
+        touched[nz] = False
+        compact[nz] = np.arange(nz.size, dtype=np.int32)
+        rows = (np.take(compact, vox) if fresh
+                else np.take(compact, vox, out=self.rows_buf[:vox.size], mode="clip"))
+        return nz, rows
+
+
+def _weighted_sums(w, data: np.ndarray, rows: np.ndarray, col: np.ndarray, q_k: np.ndarray,
+                   piece_m3: float, ncell: int) -> np.ndarray:
+    """Each QVO's weighted sums, shape (A, n_qvo): the pieces (``data`` in bins, QVO
+    ``rows``, cells ``col``) times the deposit's weights ``w``, with ``q_k`` the QVOs'
+    volumes (m3) and ``piece_m3`` the volume of one whole bin of one cell."""
+    n_qvo = q_k.size
+    if isinstance(w, ClassWeights):
+        n_c = w.table.shape[0]
+        if n_c == 1:
+            return w.table[0][:, None] * q_k[None, :]
+        # volume per (class, QVO), then the class table: one bincount, no per-cell weight
+        # rows
+        key = np.multiply(np.take(w.index.ravel(), col), n_qvo, dtype=np.int64)
+        key += rows
+        per_class = np.bincount(key, weights=data, minlength=n_qvo * n_c)
+        per_class = per_class.reshape(n_c, n_qvo)
+        used = np.flatnonzero(per_class.any(axis=1))
+        q_wt = w.table[used].T @ per_class[used]
+        q_wt *= piece_m3
+        return q_wt
+    if w.shape[:2] == (1, 1):
+        return w[0, 0][:, None] * q_k[None, :]  # one weight vector for the deposit
+    pieces = sparse.coo_array((data, (rows, col)), shape=(n_qvo, ncell))
+    q_wt = (pieces @ w.reshape(ncell, w.shape[2])).T
+    q_wt *= piece_m3
+    return q_wt
+
+
+def _voxel_grid(qvo: QVOTable, geometry, v: float, z0: float, m: int) -> VoxelGrid:
+    """The voxel grid of a QVO table: a voxel's volume and weighted sums are the sums of
+    its QVOs'."""
+    nvx, nvy, nvz = qvo.grid_shape
+    nvox = nvx * nvy * nvz
+    n_w = qvo.weighted.shape[1]
     volume = np.bincount(qvo.flat, weights=qvo.volume_m3, minlength=nvox)
-    # a voxel's weighted sums are the sums of its QVOs'
     weighted = np.empty((nvox, n_w))
     for a in range(n_w):   # qvo.weighted's columns are contiguous
         weighted[:, a] = np.bincount(qvo.flat, weights=qvo.weighted[:, a], minlength=nvox)

@@ -17,10 +17,10 @@ from scipy.spatial.transform import Rotation
 
 from projector.georef import georeference, interpolate_poses
 from projector.grid import GridGeometry, cell_centres
-from projector.heightmap import (
-    CellObservations, FuseStats, HeightMap, centre_elevation, fill_holes, fuse,
-    plane_fit_of_seen, rasterize, volume_above)
+from projector.elevation import centre_elevation, fill_holes, volume_above
+from projector.heightmap import CellObservations, FuseStats, HeightMap, fuse, rasterize
 from projector.profile import clean_profile
+from projector.surface_fit import plane_fit_of_seen
 from projector_helpers import LOOK_DOWN, NS, T0_NS, cast_profile, make_rng
 
 

@@ -15,7 +15,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from projector.grid import GridGeometry, cell_centre
-from projector.layers import DepositInfo, LayerStack, fit_local_quadratic
+from projector.layers import DepositInfo, LayerStack
+from projector.surface_fit import fit_local_quadratic
 from projector_helpers import H, T0
 from projector_helpers import random_stack as _random_stack
 
