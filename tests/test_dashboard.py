@@ -188,7 +188,7 @@ def test_offline_render_shows_the_planned_bench_coloured_by_predicted_grade(ledg
     # each footprint's colour is its predicted Fe on the scale the table states
     import re
 
-    from services.dashboard import colour_map
+    from services.dashboard.style import colour_map
 
     (table,) = [x for _v, _s, x in rrd.rows("/plan/table", "TextDocument:text")]
     lo, hi = map(float, re.search(r"predicted Fe: ([-0-9.]+) % blue to ([-0-9.]+) % red",
@@ -240,7 +240,8 @@ def test_machine_joints_from_the_localizers_scanner_pose_round_trip():
     import numpy as np
 
     from projector.envelope import Reclaimer
-    from services.dashboard import _quat_matrix, joints_from_wheel_pose, wheel_from_scanner
+    from services.dashboard.pose import joints_from_wheel_pose, wheel_from_scanner
+    from services.dashboard.pose import quat_matrix as _quat_matrix
     from services.ukf import MachineGeometry, scanner_pose
 
     mount_q = (0.5, 0.5, 0.5, -0.5)   # the simulator's scanner-in-wheel rotation
@@ -260,7 +261,8 @@ def test_machine_joints_from_the_localizers_scanner_pose_round_trip():
 def test_merged_voxels_keep_tonnes_and_grade_tonnes():
     import numpy as np
 
-    from services.dashboard import _merge_voxels, colour_map
+    from services.dashboard.scene import merge_voxels as _merge_voxels
+    from services.dashboard.style import colour_map
 
     rng = np.random.default_rng(SEED)
     tonnes = rng.random((7, 5, 3)) * (rng.random((7, 5, 3)) > 0.3)
