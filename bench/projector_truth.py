@@ -241,7 +241,7 @@ def explain(result: dict) -> None:
 
 def _hole_fill(before, floor_m, true_before_m, true_after_m, t0_ns: int,
                ground_m: float) -> tuple[float, float, float]:
-    """What slid into one cut's hole (m3): our slide (``fold._slump_face`` after clamping to
+    """What slid into one cut's hole (m3): our slide (``cuts.slump_face`` after clamping to
     the envelope floor ``floor_m``, +inf outside the footprint) run on our stack at the
     cut's start (``before``) and on the simulator's true surface then, and the simulator's
     own slide (its surface at the next cut's start less what the cut left).  The hole's
@@ -259,7 +259,7 @@ def _hole_fill(before, floor_m, true_before_m, true_after_m, t0_ns: int,
     """
     import numpy as np
 
-    from projector import fold as F
+    from projector import cuts
 
     footprint = np.isfinite(floor_m)
     true_before = np.nan_to_num(true_before_m, nan=ground_m)
@@ -273,7 +273,7 @@ def _hole_fill(before, floor_m, true_before_m, true_after_m, t0_ns: int,
             state.stack, _ = state.stack.raise_to(surface, int(t0_ns))
         start = state.stack.surface()
         state.stack, _ = state.stack.clamp(floor_m)
-        F._slump_face(state, floor_m)
+        cuts.slump_face(state, floor_m)
         fills.append(float(np.sum((state.stack.surface() - np.minimum(start, floor_m))[footprint]))
                      * area_m2)
     sim = float(np.sum((true_after - np.minimum(true_before, floor_m))[footprint])) * area_m2
@@ -287,7 +287,7 @@ def _buried_tops(before, arrays, truth: dict, ground_m: float) -> None:
     that cut fits them (``FoldConfig.boundary_fit_cells``)."""
     import numpy as np
 
-    from projector import fold as F
+    from projector import cuts
 
     thickness = arrays["first_cut_thickness"].astype(np.float64)
     tops = ground_m + np.cumsum(thickness, axis=0)
@@ -298,7 +298,7 @@ def _buried_tops(before, arrays, truth: dict, ground_m: float) -> None:
         print("\n(buried tops: our deposits and the simulator's layers do not pair one to one)")
         return
     fitted = before.copy()
-    F._fit_buried_boundaries(fitted)
+    cuts.fit_buried_boundaries(fitted)
 
     def on_ours(z_m):
         return _on_our_grid(arrays, stack.geometry, z_m)

@@ -1,8 +1,8 @@
 """``project(store, pile_id, V, K)``: the pile as of valid time V as known at K.
 
-The edge of the projector: it reads the ledger (``as_of``), runs the pure fold
-(:mod:`projector.fold`), optionally starting from a snapshot
-(:class:`SnapshotStore`), and joins grades as known at K.
+The edge of the projector: it reads the ledger (``as_of``), runs the fold
+(:mod:`projector.fold`, no I/O inside) on a state of its own, fresh or loaded from a
+snapshot (:class:`SnapshotStore`), and joins grades as known at K.
 
 Snapshots hold the geometric state after folding every geometry event up to a
 position ``(valid ns, global seq)`` as known when the ledger's head was ``head_seq``.
@@ -17,19 +17,27 @@ after the snapshot.
 from __future__ import annotations
 
 import math
+import os
 import pickle
 import struct
+import uuid
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import duckdb
 import numpy as np
 import zstandard
 
+from schemas.events import decode_payload
+
 from projector import fold as F
+from projector.config import snapshot_repr
 from projector.grades import (AssayRecord, GradeClasses, effective_assays,
                                      grade_classes)
 from projector.grid import GridGeometry
+from projector.voxels import ClassWeights, integrate
 
 __all__ = ["DepositSummary", "GradeJoin", "CutSummary", "PileState", "project", "grade_inputs",
            "summarise", "SnapshotStore", "CANONICAL_ANALYTES"]
@@ -98,8 +106,6 @@ class PileState:
 
     def voxel_grades(self):
         """``(tonnes (nvx, nvy, nvz), grade (nvx, nvy, nvz, A) %, voxel grid)``."""
-        from projector.voxels import integrate
-
         weights = None if self._join is None else _deposit_weights(self.state, self._join)
         grid = integrate(self.state.stack, self.state.pile.voxel_m, weights)
         tonnes = grid.weighted[..., 0]
@@ -150,18 +156,12 @@ def grade_inputs(store, valid_time_ns: int, known_time_ns: int
     lots, assays = {}, []
     for event in store.as_of(int(valid_time_ns), int(known_time_ns),
                              types=["lot_declared", "assay"]):
-        msg = _decode(event)
+        msg = decode_payload(event.type, event.payload)
         if event.type == "lot_declared":
             lots[msg.lot_id] = dict(msg.planned_grade)
         else:
             assays.append(AssayRecord.from_message(msg, event.recorded_time_ns))
     return lots, assays
-
-
-def _decode(event):
-    from schemas.events import decode_payload
-
-    return decode_payload(event.type, event.payload)
 
 
 def analytes_of(lots: dict[str, dict[str, float]], assays: list[AssayRecord]) -> tuple[str, ...]:
@@ -267,8 +267,6 @@ def _deposit_weights(state: F.ProjectorState, join: GradeJoin) -> list["ClassWei
     """Per deposit, :class:`projector.voxels.ClassWeights` for
     :func:`projector.voxels.integrate`: each cell's grade class and per class the bulk
     density (t/m3), then density x grade (t/m3 x %) per analyte."""
-    from projector.voxels import ClassWeights
-
     stack = state.stack
     shape = state.pile.geometry.shape
     weights = []
@@ -321,20 +319,16 @@ class SnapshotStore:
     ``(valid ns, global seq)`` folded to, the ledger head (global seq) and its recorded
     time when it was taken, the latest recorded time of the events folded in, and the
     name of the file holding the pickled state (:func:`_pack`: zstd level 1 of the
-    pickle and of each array's buffer in frames of their own; the latest state of a
-    24-hour full-scale ledger, 377 MB, packs to 79 MB and unpacks in 0.23 s on two
-    threads, 0.60 s on one (one frame for everything: 0.56 s), with the arrays left in
-    place; zlib and an in-band pickle took 0.8 s for a 200 MB state) in the folder
-    ``<path>.d`` beside it: DuckDB reads a large BLOB far slower than a file
-    (8.5 s for a 30 MB full-scale state), so the table holds only the keys.  It is a
-    cache: deleting both loses nothing (a file of an older layout is ignored).
+    pickle and of each array's buffer in frames of their own, unpacked on every core
+    with the arrays left in place) in the folder ``<path>.d`` beside it: DuckDB reads a
+    large BLOB far slower than a file, so the table holds only the keys.  It is a cache:
+    deleting both loses nothing (a file of an older layout is ignored).  How the layout
+    was chosen: see docs/design-notes.md.
     """
 
     TABLE = "snapshots_v7"
 
     def __init__(self, path: str | Path) -> None:
-        import duckdb
-
         self.path = str(path)
         self.folder = Path(self.path + ".d")
         self.folder.mkdir(parents=True, exist_ok=True)
@@ -361,8 +355,6 @@ class SnapshotStore:
         (default ``known_ns``: then it serves no query known before ``known_ns``).  The
         state's file is written (and renamed into place) before its row.
         """
-        import uuid
-
         valid_ns, gseq = state.high_water
         folded = known_ns if folded_recorded_ns is None else min(folded_recorded_ns, known_ns)
         name = f"{uuid.uuid4().hex}.snap.zst"
@@ -430,8 +422,9 @@ class SnapshotStore:
 
 
 def _config_key(config: F.FoldConfig) -> str:
-    """What a snapshot is keyed by besides its position: the fold's version and config."""
-    return f"fold v{F.FOLD_VERSION} {config!r}"
+    """What a snapshot is keyed by besides its position: the fold's version (read from
+    :mod:`projector.fold` when called) and config (:func:`projector.config.snapshot_repr`)."""
+    return f"fold v{F.FOLD_VERSION} {snapshot_repr(config)}"
 
 
 SNAPSHOT_MAGIC = b"SPSNAP7\0"
@@ -477,11 +470,9 @@ def _per_thread(make, items: list) -> list[bytes]:
     """``[f(item) for item in items]`` with an empty item giving ``b""``, the items split
     by size into one contiguous run per thread, each thread with its own ``f = make()``
     (a zstd context serves one thread; its calls release the GIL, so the runs go on in
-    parallel).  zstd's own multi-frame calls were not used: they mishandle empty inputs
-    (a trailing one got no frame; frames of empty content made the parallel
-    decompression fail or crash) and were slower here (0.32 s against 0.17 s)."""
-    from concurrent.futures import ThreadPoolExecutor
-
+    parallel).  zstd's own multi-frame calls are not used: they mishandle empty inputs
+    (a trailing one gets no frame; frames of empty content make the parallel
+    decompression fail or crash)."""
     out = [b""] * len(items)
 
     def run(indices) -> None:
@@ -502,8 +493,6 @@ def _per_thread(make, items: list) -> list[bytes]:
 
 
 def _threads() -> int:
-    import os
-
     if SNAPSHOT_THREADS:
         return SNAPSHOT_THREADS
     if hasattr(os, "sched_getaffinity"):

@@ -21,7 +21,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from ledger import open_ledger
-from projector import fold as F
+from projector import cuts, fold as F
 from projector.query import (FAR_FUTURE_NS, SnapshotStore, build_snapshots,
                                     grade_inputs, project, summarise)
 from ledger.records import RecordedEvent
@@ -368,24 +368,24 @@ def test_each_buried_top_is_fitted_once_at_the_first_cut_after_its_pass():
         stack = lay(stack, k)
     state = F.initial_state(PILE)
     state.stack = stack
-    F._fit_buried_boundaries(state)
+    cuts.fit_buried_boundaries(state)
     assert state.boundaries_fitted == 2 and state.counters["boundaries_fitted"] == 2
     once = stack.fit_boundaries([1, 2], 7)
     np.testing.assert_array_equal(state.stack.surfaces(), once.surfaces())
     assert not np.array_equal(once.surfaces(), stack.surfaces())
-    F._fit_buried_boundaries(state)                     # nothing new is buried: no change
+    cuts.fit_buried_boundaries(state)                     # nothing new is buried: no change
     np.testing.assert_array_equal(state.stack.surfaces(), once.surfaces())
     assert state.counters["boundaries_fitted"] == 2
     state.stack = lay(state.stack, 4)                  # a new pass buries deposit 3's top
     before = state.stack
-    F._fit_buried_boundaries(state)
+    cuts.fit_buried_boundaries(state)
     assert state.boundaries_fitted == 3 and state.counters["boundaries_fitted"] == 3
     np.testing.assert_array_equal(state.stack.surfaces(),
                                   before.fit_boundaries([3], 7).surfaces())
     # off: the tops stay as fused
     off = F.initial_state(F.FoldConfig(pile_id=PILE, boundary_fit_cells=1))
     off.stack = stack
-    F._fit_buried_boundaries(off)
+    cuts.fit_buried_boundaries(off)
     assert off.stack is stack and off.boundaries_fitted == 0
     with pytest.raises(ValueError, match="boundary_fit_cells"):
         F.FoldConfig(pile_id=PILE, boundary_fit_cells=4)

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 import projector.fold as F
-from projector import slump
+from projector import attribution, completion, cuts, follow, scans, slump
 from projector.grid import GridGeometry
 from projector.heightmap import CellObservations, HeightMap, fuse
 from projector.layers import DepositInfo, LayerStack
@@ -70,7 +70,7 @@ def test_a_cell_a_pass_crossed_takes_the_new_layer_at_the_next_look():
         obs = _obs(g, 1.0 + rise)
         seen = state.height.grid["last_update_ns"].copy()
         if refresh:
-            F._refresh_crossed(state, obs, 40 * NS, seen)
+            scans.refresh_crossed(state, obs, 40 * NS, seen)
         p_prior = float(state.height.variance[0, 0]) + state.process_sd_m ** 2
         gain = p_prior / (p_prior + SD ** 2)
         assert rise < 3.0 * math.sqrt(p_prior + SD ** 2)   # inside the 3-sigma gate
@@ -98,7 +98,7 @@ def test_refresh_only_where_a_pass_came_since_the_last_look():
                                        start_y_m=0.0, end_y_m=5.0)
     before = state.height.variance.copy()
     seen = state.height.grid["last_update_ns"].copy()
-    F._refresh_crossed(state, _obs(g, 1.0), 40 * NS, seen)
+    scans.refresh_crossed(state, _obs(g, 1.0), 40 * NS, seen)
     y = (np.arange(g.ny) + 0.5) * g.cell_m
     after = state.height.variance
     reached = y <= 5.0
@@ -115,7 +115,7 @@ def test_refresh_reach_is_the_height_over_tan_repose():
     state.passes["new"] = F.PassRecord("new", "L1", "stk1", 20 * NS, 2, 30 * NS,
                                        start_y_m=0.0, end_y_m=5.0)
     seen = state.height.grid["last_update_ns"].copy()
-    F._refresh_crossed(state, _obs(g, z0), 40 * NS, seen)
+    scans.refresh_crossed(state, _obs(g, z0), 40 * NS, seen)
     reach = z0 / math.tan(math.radians(35.0))     # 4.28 m beyond the pass's end
     y = (np.arange(g.ny) + 0.5) * g.cell_m
     refreshed = state.height.variance[0] >= (3 * SD) ** 2 - 1e-15
@@ -153,7 +153,7 @@ def test_only_a_drop_in_the_cut_s_footprint_is_the_cut_s(follow_far):
     state.height.grid["elevation"][:] = elevation
     state.height.grid["variance"][:] = SD ** 2 / 10
     volume = 0.3 * g.cell_area_m2 * g.nx
-    F._follow_height(state, 60 * NS)
+    follow.follow_height(state, 60 * NS)
     # in the footprint (grown by a cell) the measurement wins and the cut is charged
     assert math.isclose(cut.residual_m3, volume * inside.sum(), rel_tol=1e-9)
     np.testing.assert_allclose(state.stack.surface()[:, inside], elevation[:, inside])
@@ -191,7 +191,7 @@ def test_a_never_seen_flank_rises_to_the_cone_beyond_the_fixed_margin_only():
     target = np.where(low, cone - 0.05, np.where(slight, cone - 0.01, np.inf))
     state.stack, _ = state.stack.clamp(np.broadcast_to(target, g.shape))
     before = state.stack.surface().copy()
-    F._complete_unseen(state, 100 * NS)
+    completion.complete_unseen(state, 100 * NS)
     top = state.stack.surface()
     np.testing.assert_allclose(top[:, low], np.broadcast_to(cone[low], (g.nx, low.sum())),
                                atol=1e-9)
@@ -212,10 +212,10 @@ def test_a_cut_undoes_the_rises_its_own_digging_caused_in_its_footprint():
         elevation = state.height.grid["elevation"]
         elevation[:, cells] = 1.0 + rise
         state.height.grid["variance"][:, cells] = SD ** 2 / 10
-        F._follow_height(state, t_s * NS, drops=False)
+        follow.follow_height(state, t_s * NS, drops=False)
     np.testing.assert_allclose(state.stack.surface()[:, early], 1.3)
     np.testing.assert_allclose(state.stack.surface()[:, during], 1.4)
-    undone = F._undo_digging_rises(state, 40 * NS, footprint)
+    undone = cuts.undo_digging_rises(state, 40 * NS, footprint)
     top = state.stack.surface()
     inside = during & (y < 5.0)
     np.testing.assert_allclose(top[:, inside], 1.0)          # back to where it stood
@@ -223,7 +223,7 @@ def test_a_cut_undoes_the_rises_its_own_digging_caused_in_its_footprint():
     np.testing.assert_allclose(top[:, early], 1.3)           # before the cut began
     assert math.isclose(undone, 0.4 * g.cell_area_m2 * g.nx * inside.sum(), rel_tol=1e-9)
     # the journal forgets what is older than dig_journal_s
-    F._journal_rises(state, int((45 + config.dig_journal_s + 1) * NS),
+    cuts.journal_rises(state, int((45 + config.dig_journal_s + 1) * NS),
                      np.zeros(0, np.intp), state.stack.surface())
     assert state.rises_journal == []
 
@@ -248,11 +248,11 @@ def test_a_rise_the_map_first_saw_while_the_cut_dug_stays_if_no_look_preceded_it
     elevation = state.height.grid["elevation"]
     elevation[:, looked | first] = 1.4
     state.height.grid["variance"][:, looked | first] = SD ** 2 / 10
-    F._follow_height(state, 110 * NS, drops=False, sighted_before_ns=sighted)
+    follow.follow_height(state, 110 * NS, drops=False, sighted_before_ns=sighted)
     np.testing.assert_allclose(state.stack.surface()[:, looked | first], 1.4)
     footprint = np.zeros(g.shape, bool)
     footprint[:, y < 8.0] = True
-    undone = F._undo_digging_rises(state, 100 * NS, footprint)
+    undone = cuts.undo_digging_rises(state, 100 * NS, footprint)
     top = state.stack.surface()
     np.testing.assert_allclose(top[:, looked], 1.0)     # seen after the pass: the walls
     np.testing.assert_allclose(top[:, first], 1.4)      # never seen, or not since 9 s
@@ -283,7 +283,7 @@ def test_a_never_seen_cell_s_cone_is_not_the_maximum_of_the_seen_heights_noise()
         grid["elevation"][:] = flank[None, :] + rng.normal(0.0, noise_sd, g.shape)
         grid["variance"][:] = noise_sd ** 2
         _never_seen(state, hidden)
-        F._complete_unseen(state, 100 * NS)
+        completion.complete_unseen(state, 100 * NS)
         band = hidden & (y < 14.0)                       # the first 8 hidden rows
         lifted[cells] = float(np.mean(state.stack.surface()[:, band] - flank[band]))
     # the raw heights' maximum stands about 2.2 sd high (seeds 0-4: 2.1-2.3); the fitted
@@ -316,7 +316,7 @@ def test_a_stale_seen_flank_rises_to_the_cone_beyond_the_fixed_margin_only():
     state.passes["A"] = F.PassRecord("A", "L1", "stk1", 20 * NS, 2, 30 * NS,
                                      start_y_m=0.0, end_y_m=g.length_y_m)
     before = state.stack.surface().copy()
-    F._complete_unseen(state, 100 * NS)
+    completion.complete_unseen(state, 100 * NS)
     top = state.stack.surface()
     np.testing.assert_allclose(top[:, strip], flank[:, strip], atol=1e-9)
     np.testing.assert_array_equal(top[:, ~strip], before[:, ~strip])
@@ -349,7 +349,7 @@ def test_a_completed_cell_s_later_rise_goes_to_the_passes_after_its_completion()
         _never_seen(state, hidden)
         state.stack, _ = state.stack.raise_to(np.where(hidden, np.nan, flank + rise_m),
                                               (t0_s + 15) * NS)
-        F._complete_unseen(state, (t0_s + 20) * NS)
+        completion.complete_unseen(state, (t0_s + 20) * NS)
         if pass_id == "A":
             np.testing.assert_allclose(state.stack.surface()[:, far], flank[:, far], atol=1e-9)
             a_m = state.stack.thickness(2)[:, far].copy()
@@ -368,7 +368,7 @@ def test_a_pass_layer_seen_late_is_dated_when_the_stacker_crossed_it():
     state.stack = state.stack.open_deposit(DepositInfo(2, "B", "L1", 20 * NS))
     state.passes["B"] = F.PassRecord("B", "L1", "stk1", 20 * NS, 2, 60 * NS,
                                      start_y_m=20.0, end_y_m=0.0)
-    state.stack, _ = state.stack.raise_to(np.full(g.shape, 1.3), F._deposition_ns(state, 90 * NS))
+    state.stack, _ = state.stack.raise_to(np.full(g.shape, 1.3), attribution.deposition_ns(state, 90 * NS))
     got = state.stack.deposition_time_ns(2)
     for iy in (0, 39, 79):
         y_m = (iy + 0.5) * g.cell_m
@@ -385,17 +385,17 @@ def test_a_deposition_time_is_never_after_the_rise_was_seen_nor_outside_the_pass
     # y = 0 is crossed at 30 s and y = 20 m at 20 s
     state.passes["B"] = F.PassRecord("B", "L1", "stk1", 20 * NS, 2, None,
                                      start_y_m=20.0, end_y_m=0.0)
-    times = np.asarray(F._deposition_ns(state, 30 * NS))
+    times = np.asarray(attribution.deposition_ns(state, 30 * NS))
     assert times.shape == g.shape
     assert times.max() <= 30 * NS and times.min() >= 20 * NS
     assert times[0, -1] < times[0, 0]            # the far end (y = 20 m) was crossed first
     # a pass that declared no rail positions: the time seen, clipped to the pass
     state.passes["B"] = F.PassRecord("B", "L1", "stk1", 20 * NS, 2, 60 * NS)
-    assert F._deposition_ns(state, 90 * NS) == 60 * NS
-    assert F._deposition_ns(state, 40 * NS) == 40 * NS
+    assert attribution.deposition_ns(state, 90 * NS) == 60 * NS
+    assert attribution.deposition_ns(state, 40 * NS) == 40 * NS
     # material outside any pass (a flagged deposit): when it was seen
     state.stack = state.stack.open_deposit(DepositInfo(3, "", "", 70 * NS, flagged=True))
-    assert F._deposition_ns(state, 95 * NS) == 95 * NS
+    assert attribution.deposition_ns(state, 95 * NS) == 95 * NS
 
 
 def test_a_layer_is_dated_before_the_stacker_crossed_it_by_the_poured_cone_s_front():
@@ -413,7 +413,7 @@ def test_a_layer_is_dated_before_the_stacker_crossed_it_by_the_poured_cone_s_fro
     state.passes["B"] = F.PassRecord("B", "L1", "stk1", 20 * NS, 2, 60 * NS,
                                      start_y_m=20.0, end_y_m=0.0)
     state.height.grid["elevation"][:] = ridge + 0.3
-    times = np.asarray(F._deposition_ns(state, 90 * NS))
+    times = np.asarray(attribution.deposition_ns(state, 90 * NS))
     tan = math.tan(math.radians(35.0))
     for iy in (0, 39, 79):
         crossing_ns = 20 * NS + (20.0 - (iy + 0.5) * g.cell_m) * 2 * NS
@@ -469,7 +469,7 @@ def test_a_flank_seen_while_the_pass_still_poured_on_it_is_completed_as_that_pas
     state, layer_top, strip, crossed_ns = _ridge_with_a_pass(True, 2.0)
     before = state.stack.surface().copy()
     a_before = state.stack.volume_m3(2)
-    F._complete_unseen(state, 100 * NS)
+    completion.complete_unseen(state, 100 * NS)
     top = state.stack.surface()
     np.testing.assert_allclose(top[strip], layer_top[strip], atol=1e-9)
     np.testing.assert_array_equal(top[~strip], before[~strip])
@@ -479,7 +479,7 @@ def test_a_flank_seen_while_the_pass_still_poured_on_it_is_completed_as_that_pas
     times = state.stack.deposition_time_ns(2)
     # dated when its stacker crossed, but for the rows within the cone's reach of the
     # run's end (y = 10 m), where fewer releases followed: earlier, by at most the front's
-    # lead (F._crossing_dates)
+    # lead (attribution.crossing_dates)
     g = state.pile.geometry
     ahead = g.length_y_m - (np.arange(g.ny) + 0.5) * g.cell_m
     offset = np.broadcast_to((((np.arange(g.nx) + 0.5) - 10.5) * g.cell_m)[:, None], g.shape)
@@ -494,7 +494,7 @@ def test_a_flank_seen_while_the_pass_still_poured_on_it_is_completed_as_that_pas
 
     state, _, _, _ = _ridge_with_a_pass(False, 2.0)
     before = state.stack.surface().copy()
-    F._complete_unseen(state, 100 * NS)
+    completion.complete_unseen(state, 100 * NS)
     np.testing.assert_array_equal(state.stack.surface(), before)
 
 
@@ -506,5 +506,5 @@ def test_a_flank_seen_after_the_pass_s_cone_left_it_stays_as_seen():
     assert math.sqrt(h * h + 2 * h * 2.25) / 0.25 < 8.0 - 1.0
     state, _, strip, _ = _ridge_with_a_pass(True, 8.0)
     before = state.stack.surface().copy()
-    F._complete_unseen(state, 100 * NS)
+    completion.complete_unseen(state, 100 * NS)
     np.testing.assert_array_equal(state.stack.surface(), before)

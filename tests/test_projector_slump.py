@@ -168,6 +168,7 @@ def test_the_fold_measures_slopes_over_a_run_long_enough_for_its_noise():
     # about 0.2 deg; over the fold's baseline (run >= 8 point sds of 15 mm) by ~0.03 deg
     # (plus the estimator's own binning, a few hundredths)
     import projector.fold as F
+    from projector import repose
 
     seed = 11
     print("seed", seed)
@@ -179,7 +180,7 @@ def test_the_fold_measures_slopes_over_a_run_long_enough_for_its_noise():
     state = F.initial_state("P1")
     state.pile = F.PileInfo("P1", GridGeometry(0.0, 0.0, cell, 200, 200), 0.0, 0.02, 1.65)
     state.point_sd_m = 0.015
-    b = F._slope_baseline_cells(state)
+    b = repose.slope_baseline_cells(state)
     assert b == 12
     run = 2 * 4 * cell
     steep = math.degrees(math.atan(math.sqrt(TAN37 ** 2 + 2 * (2 * 0.002 ** 2) / run ** 2)))
@@ -191,7 +192,7 @@ def test_the_fold_measures_slopes_over_a_run_long_enough_for_its_noise():
     # a yard's 25 cm cells and 5 cm point sd keep 4 cells (a 2 m run)
     state.pile = F.PileInfo("P1", GridGeometry(0.0, 0.0, 0.25, 10, 10), 0.0, 1.0, 1.65)
     state.point_sd_m = 0.05
-    assert F._slope_baseline_cells(state) == 4
+    assert repose.slope_baseline_cells(state) == 4
 
 
 def test_a_young_pile_s_slopes_are_measured_over_a_run_its_flanks_hold():
@@ -201,6 +202,7 @@ def test_a_young_pile_s_slopes_are_measured_over_a_run_its_flanks_hold():
     # and read the angle shallow; the fold keeps the half run within a quarter of a
     # flank's run (at tan 35 deg, 0.1 / 0.700 / 0.005 / 4: 6 or 7 cells)
     import projector.fold as F
+    from projector import repose
     from projector.heightmap import HeightMap
 
     seed = 5
@@ -221,7 +223,7 @@ def test_a_young_pile_s_slopes_are_measured_over_a_run_its_flanks_hold():
     state.stack = LayerStack.empty(g, 0.0)
     state.height = HeightMap.empty(g)
     state.height.grid["elevation"][:] = noisy
-    b = F._slope_baseline_cells(state)
+    b = repose.slope_baseline_cells(state)
     assert b == int(noisy.max() / math.tan(math.radians(35.0)) / cell / 4) in (6, 7)
     young = estimate_repose_deg(noisy, cell, baseline_cells=b)
     long_run = estimate_repose_deg(noisy, cell, baseline_cells=12)
@@ -229,7 +231,7 @@ def test_a_young_pile_s_slopes_are_measured_over_a_run_its_flanks_hold():
     assert long_run < 35.5 and abs(young - 37.0) < 0.5 * abs(long_run - 37.0)
     # once the pile stands 30 cm its flanks hold the long run again
     state.height.grid["elevation"][:] = 3.0 * noisy
-    assert F._slope_baseline_cells(state) == 12
+    assert repose.slope_baseline_cells(state) == 12
 
 
 def _poured_mean_distance_m(thickness_m: float, offset_m: float, tan_repose: float) -> float:
@@ -370,6 +372,7 @@ def test_a_pass_s_material_is_dated_earlier_only_toward_and_past_the_end_of_its_
     reach of the run's end the front's lead counts in proportion, in full at the end, and
     past the end the travel the boom still had to go (slump.pour_end_lead_m)."""
     import projector.fold as F
+    from projector import attribution, crossings
 
     g = GridGeometry(0.0, 0.0, 0.01, 60, 200)              # 0.6 m x 2 m, 1 cm cells
     state = F.initial_state(F.FoldConfig(pile_id="P1", repose_deg=37.0))
@@ -389,8 +392,8 @@ def test_a_pass_s_material_is_dated_earlier_only_toward_and_past_the_end_of_its_
     tan = TAN37
     for cols in (ix, ix_flank):
         cells = cols * g.ny + rows
-        crossing = F._crossing_ns(record, (rows + 0.5) * g.cell_m, 200 * s_ns, None)
-        got = F._crossing_dates(state, record, cells, thickness, crossing, None)
+        crossing = crossings.crossing_ns(record, (rows + 0.5) * g.cell_m, 200 * s_ns, None)
+        got = attribution.crossing_dates(state, record, cells, thickness, crossing, None)
         y = (rows + 0.5) * g.cell_m
         offset = np.abs((cols - 30) * g.cell_m)[None, :]
         reach = pour_reach_m(thickness[None, :], offset, tan)[0]
@@ -408,6 +411,6 @@ def test_a_pass_s_material_is_dated_earlier_only_toward_and_past_the_end_of_its_
                               tan)[0]
         np.testing.assert_allclose((crossing - got)[past] / s_ns, (end / 0.01)[past], rtol=1e-9)
     # never before the pass started
-    early = F._crossing_dates(state, record, np.array([30 * g.ny + 150]), np.array([5.0]),
+    early = attribution.crossing_dates(state, record, np.array([30 * g.ny + 150]), np.array([5.0]),
                               np.array([1.0 * s_ns]), None)
     assert early[0] == 0.0
