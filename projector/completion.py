@@ -16,13 +16,15 @@ from scipy import ndimage
 
 from schemas.times import NS_PER_S
 
-from projector import heightmap, slump
+from projector import slump
+from projector.elevation import fill_holes
 from projector.attribution import deposition_ns, rise_to_crossing_passes
 from projector.crossings import (last_crossings, row_crests_m, stacker_speed_m_s, stale,
                                  typical_pass_s)
 from projector.cuts import journal_rises
 from projector.repose import cone, tan_repose
 from projector.state import ProjectorState
+from projector.surface_fit import plane_fit_of_seen
 
 __all__ = ["filled_elevation", "unseen_floor", "seen_while_pouring", "complete_unseen",
            "accounted_ns", "catch_up_rises"]
@@ -33,7 +35,7 @@ def filled_elevation(state: ProjectorState) -> np.ndarray:
     interpolated."""
     if not state.config.fill_gap_cells:
         return state.height.elevation
-    return heightmap.fill_holes(state.height.elevation, method="linear",
+    return fill_holes(state.height.elevation, method="linear",
                                 max_gap_cells=state.config.fill_gap_cells)
 
 
@@ -46,7 +48,7 @@ def unseen_floor(state: ProjectorState, elevation: np.ndarray, t_ns: int,
 
     A never-seen cell's cone rises from the seen heights fitted with a plane over
     ``cone_smooth_cells`` x ``cone_smooth_cells`` cells
-    (:func:`heightmap.plane_fit_of_seen`), not from their noisy maximum; so does a cell
+    (:func:`projector.surface_fit.plane_fit_of_seen`), not from their noisy maximum; so does a cell
     seen while poured on (it lies down a flank seen with few points).  ``pouring_ns``: the
     :func:`seen_while_pouring` of this state, when the caller has it.
     """
@@ -61,7 +63,7 @@ def unseen_floor(state: ProjectorState, elevation: np.ndarray, t_ns: int,
     floor = cone(state, elevation)
     n = int(state.config.cone_smooth_cells)
     if n > 1 and fitted.any():
-        floor = np.where(fitted, cone(state, heightmap.plane_fit_of_seen(elevation, n)), floor)
+        floor = np.where(fitted, cone(state, plane_fit_of_seen(elevation, n)), floor)
     return np.where(stale_, floor, np.nan)
 
 

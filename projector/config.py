@@ -2,19 +2,19 @@
 
 Its defaults suit an LMS200 on a full-scale reclaimer; a laboratory pile (cells under
 5 cm) resolves the noise-dependent ones differently (:func:`projector.fold.apply` on
-``pile_declared``).  Snapshots are keyed by the config (:func:`snapshot_repr`), so one
+``pile_declared``).  Snapshots are keyed by the config's ``repr``, so one
 folded with another config never serves a query.  Why each rule and its default were
 chosen: see docs/design-notes.md.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from typing import Any
 
 from schemas.times import NS_PER_S
 
-__all__ = ["FoldConfig", "snapshot_repr"]
+__all__ = ["FoldConfig"]
 
 
 @dataclass(frozen=True)
@@ -196,26 +196,3 @@ class FoldConfig:
             value = int(getattr(self, name))
             if value < 1 or value % 2 == 0:
                 raise ValueError(f"{name} must be odd and >= 1, got {getattr(self, name)}")
-
-
-#: Switches :class:`FoldConfig` had until their alternatives were dropped, each with the
-#: value every fold has had it at, listed after the field they followed.
-_RETIRED_AFTER: dict[str, tuple[tuple[str, bool], ...]] = {
-    "strong_points": (("attribute_by_crossing", True), ("slump_in_place", False)),
-    "repose_deg": (("slump_after_cut", True),),
-    "refresh_reach": (("residual_near_cut", True),),
-    "relax_slack": (("accept_rises_at_pass_start", True),),
-}
-
-
-def snapshot_repr(config: FoldConfig) -> str:
-    """The config as snapshots are keyed by it: its ``repr`` with the retired switches
-    written in at the places and values they had, so that the key of a config is the same
-    string as before they were retired and the snapshots taken then still serve it (they
-    folded the same events to the same state)."""
-    parts = []
-    for f in fields(config):
-        if f.repr:
-            parts.append(f"{f.name}={getattr(config, f.name)!r}")
-        parts.extend(f"{name}={value!r}" for name, value in _RETIRED_AFTER.get(f.name, ()))
-    return f"{type(config).__qualname__}({', '.join(parts)})"

@@ -78,13 +78,11 @@ GEOMETRY_TYPES = ("pile_declared", "machine_declared", "stack_started", "stack_e
                   "frame_transform", "scan", "reclaim_cut")
 
 #: The fold's version: bumped whenever a change makes the same events and config fold to
-#: a different state.  Snapshots are keyed by it as well as by the config, so those of an
-#: older fold are never used (:class:`projector.query.SnapshotStore`, which reads it from
-#: this module).
-FOLD_VERSION = 22
-
-#: a pending scan's class as snapshots pickled before :mod:`projector.state` held it
-_Scan = PendingScan
+#: a different state, or changes what a snapshot stores (the classes it pickles, by their
+#: module paths).  Snapshots are keyed by it as well as by the config, so those of another
+#: version are never used (:class:`projector.query.SnapshotStore`, which reads it from this
+#: module, and ``SnapshotStore.drop_other_versions`` deletes them).
+FOLD_VERSION = 23
 
 DEFAULT_CELL_M = 0.25
 DEFAULT_VOXEL_M = 1.0

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from projector import heightmap
+from projector.elevation import fill_holes
 from projector.attribution import deposition_ns, rise_to_crossing_passes
 from projector.completion import filled_elevation, unseen_floor
 from projector.crossings import stale
@@ -91,7 +91,7 @@ def _elevation_to_follow(state: ProjectorState, t_ns: int, drops: bool, region,
         if state.config.fill_gap_cells:
             # an unseen strip between seen cells (between two scan lines, behind a
             # crest) is interpolated rather than left at the ground
-            elevation = heightmap.fill_holes(elevation, method="linear",
+            elevation = fill_holes(elevation, method="linear",
                                              max_gap_cells=state.config.fill_gap_cells)
     else:
         region = (slice(None), slice(None))

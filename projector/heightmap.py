@@ -55,15 +55,11 @@ from typing import NamedTuple
 
 import numpy as np
 
-from projector.elevation import centre_elevation, fill_holes
+from projector.elevation import centre_elevation
 from projector.grid import GridGeometry, GridMap, cell_index
-from projector.surface_fit import plane_fit_of_seen
 
-# fill_holes (projector.elevation) and plane_fit_of_seen (projector.surface_fit) are
-# re-exported: projector/fold.py calls them as heightmap.fill_holes and
-# heightmap.plane_fit_of_seen.
 __all__ = ["CellObservations", "rasterize", "HeightMap", "FuseStats", "fuse", "accept_rises",
-           "clear_evidence", "fill_holes", "plane_fit_of_seen"]
+           "clear_evidence"]
 
 
 # --------------------------------------------------------------------------------------

@@ -33,7 +33,6 @@ import zstandard
 from schemas.events import decode_payload
 
 from projector import fold as F
-from projector.config import snapshot_repr
 from projector.grades import (AssayRecord, GradeClasses, effective_assays,
                                      grade_classes)
 from projector.grid import GridGeometry
@@ -423,8 +422,8 @@ class SnapshotStore:
 
 def _config_key(config: F.FoldConfig) -> str:
     """What a snapshot is keyed by besides its position: the fold's version (read from
-    :mod:`projector.fold` when called) and config (:func:`projector.config.snapshot_repr`)."""
-    return f"fold v{F.FOLD_VERSION} {snapshot_repr(config)}"
+    :mod:`projector.fold` when called) and config (its ``repr``)."""
+    return f"fold v{F.FOLD_VERSION} {config!r}"
 
 
 SNAPSHOT_MAGIC = b"SPSNAP7\0"
