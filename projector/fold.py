@@ -48,9 +48,10 @@ from scipy import ndimage
 from schemas.events import decode_payload, timestamp_ns
 
 from projector import georef, ground, heightmap, profile, slump
-from projector.envelope import Reclaimer, cut_floor
+from projector.envelope import cut_floor
 from projector.grades import AssayRecord
 from projector.grid import GridGeometry, cell_centre
+from projector.kinematics import Reclaimer
 from projector.layers import DepositInfo, LayerStack, Removal
 
 __all__ = ["FOLD_VERSION", "FoldConfig", "PileInfo", "PassRecord", "CutRecord", "ProjectorState",

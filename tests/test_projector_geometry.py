@@ -18,12 +18,12 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation, Slerp
 
-from projector.georef import (
-    georeference, interpolate_poses, quaternion_to_matrix, sensor_points)
+from projector.georef import georeference, interpolate_poses, sensor_points
 from projector.grid import GridGeometry, cell_centres
 from projector.heightmap import (
     CellObservations, FuseStats, HeightMap, centre_elevation, fill_holes, fuse,
     plane_fit_of_seen, rasterize, volume_above)
+from projector.kinematics import quaternion_to_matrix
 from projector.profile import above_ground, clean_profile
 
 BASE_SEED = int(os.environ.get("PROJECTOR_GEOMETRY_SEED", "20261107"))

@@ -16,9 +16,10 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from projector.envelope import Reclaimer, cut_floor, in_slew_arc, wheel_centre
+from projector.envelope import cut_floor, in_slew_arc
 from projector.grades import AssayRecord, effective_assays, grade_at, grade_classes
 from projector.grid import GridGeometry, cell_centre
+from projector.kinematics import Reclaimer, wheel_centre
 from projector.layers import DepositInfo, LayerStack, fit_local_quadratic
 from projector.voxels import ClassWeights, integrate
 
