@@ -16,9 +16,9 @@ What it does (thesis §3.2-§3.3):
    with correction outages and the heavy-tailed yard noise, antenna at the wheel centre).
 3. Three wheel-centre estimates, scored by the RMSE of the 3-D distance error:
    encoders alone (forward kinematics of the readings), GNSS alone (the fix, as
-   ``bench/sim_errors.py``), and the UKF (:class:`services.ukf.LocalizerFilter`)
+   ``bench/sim_errors.py``), and the UKF (:class:`services.localizer_filter.LocalizerFilter`)
    fusing both.  The filter sees only the readings and the fixes (with a covariance
-   from their fix quality and HDOP, :func:`services.ukf.gnss_covariance_m2`) and the
+   from their fix quality and HDOP, :func:`services.localizer_tuning.gnss_covariance_m2`) and the
    encoder set's datasheet drift figures; never the truth.
 4. Target (the issue's acceptance figure): UKF RMSE <= 1/3 of GNSS alone and <= 1/3 of
    encoders alone, on the mean over runs.
@@ -55,8 +55,9 @@ import numpy as np  # noqa: E402
 from scipy.linalg import solve_discrete_are  # noqa: E402
 
 from sim_errors import NS_PER_S, bench_reclaim_trajectory, rmse_m  # noqa: E402
-from services.ukf import (  # noqa: E402
-    FilterTuning, MachineGeometry, filter_sequence, gnss_covariance_m2)
+from projector.kinematics import MachineGeometry  # noqa: E402
+from services.localizer_batch import filter_sequence  # noqa: E402
+from services.localizer_tuning import FilterTuning, gnss_covariance_m2  # noqa: E402
 from sim.kinematics import FULL_SCALE, Machine, wheel_centre  # noqa: E402
 from sim.scenario import DEFAULT_START_NS, Scenario  # noqa: E402
 from sim.sensors import (  # noqa: E402

@@ -42,7 +42,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from planner.grades import predict_cuts  # noqa: E402
-from planner.kinematics import PlannerMachine  # noqa: E402
+from projector.kinematics import PlannerMachine  # noqa: E402
 from planner.plan import plan_reclaim  # noqa: E402
 from sim.drive import lab_assays, stacked_world, truth_stack  # noqa: E402
 from sim.scenario import scenario_by_name  # noqa: E402

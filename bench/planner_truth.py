@@ -45,7 +45,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from planner.grades import predict_cuts  # noqa: E402
-from planner.kinematics import PlannerMachine  # noqa: E402
+from projector.kinematics import PlannerMachine  # noqa: E402
 from planner.plan import evaluate_landings, plan_bench_from, plan_reclaim  # noqa: E402
 from projector.grades import AssayRecord  # noqa: E402
 from sim.drive import drive_bench, lab_assays, stacked_world, truth_stack  # noqa: E402

@@ -3,8 +3,9 @@
 Pure numerical functions (numpy arrays in and out, no I/O) on the projector's pile model
 (:mod:`projector`); the command line is :mod:`planner.cli`.
 
-- :mod:`planner.kinematics`: the machine's constants for planning (wheel body Rk,
-  fall angle, bucket width: max cutting height H, advance per cut), inverse kinematics
+- :mod:`projector.kinematics`: the machine's constants for planning
+  (:class:`~projector.kinematics.PlannerMachine`: wheel body Rk, fall angle, bucket width:
+  max cutting height H, advance per cut), inverse kinematics
 - :mod:`planner.landing`: candidate landing points on the surface, normals, wheel
   centres and joints (thesis §5.1.2)
 - :mod:`planner.bench`: one cut's slew range and the collision model (wheel body,

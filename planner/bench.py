@@ -60,9 +60,10 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from projector.envelope import boom_radius_m, wheel_centre_z_m
 from projector.grid import GridGeometry
-from planner.kinematics import PlannerMachine
+from projector.kinematics import PlannerMachine, boom_height_m, boom_radius_m
+from projector.slump import estimate_repose_deg
+from planner.settle import relax_region
 
 __all__ = ["PlanParams", "CellSet", "CutGeometry", "cell_set", "cut_step", "simulate_bench",
            "slew_motion", "slump_after"]
@@ -138,8 +139,6 @@ class PlanParams:
         rv = machine.cutting_radius_m
         repose = self.repose_deg
         if repose is None and surface_m is not None:
-            from projector.slump import estimate_repose_deg
-
             repose = estimate_repose_deg(surface_m, float(cell_m))
             repose = repose if math.isfinite(repose) else 35.0
         return replace(
@@ -305,6 +304,43 @@ def _arc_offsets(azimuth: np.ndarray, lo: float) -> np.ndarray:
     return np.mod(azimuth - lo, _TWO_PI)
 
 
+def _check_cut_inputs(surface_m: np.ndarray, geometry: GridGeometry, travel_m: float,
+                      luff_rad: float, reference_slew_rad: float) -> None:
+    """ValueError unless the surface has the grid's shape and the joints are finite."""
+    if surface_m.shape != geometry.shape:
+        raise ValueError(f"surface_m must have shape {geometry.shape}, got {surface_m.shape}")
+    for name, value in (("travel_m", travel_m), ("luff_rad", luff_rad),
+                        ("reference_slew_rad", reference_slew_rad)):
+        if not math.isfinite(float(value)):
+            raise ValueError(f"{name} must be finite, got {value!r}")
+
+
+def _slew_range(azimuth_hit: np.ndarray, reference_slew_rad: float) -> tuple[float, float]:
+    """``(lo, hi)`` slew (rad) over the hit columns' azimuths, unwrapped around the reference.
+
+    A hair wider than the extreme columns' azimuths, so that the unwrapping's rounding
+    never drops them from the arc test (the projector's and the simulator's alike).
+    """
+    ref = float(reference_slew_rad)
+    unwrapped = ref + np.mod(azimuth_hit - ref + math.pi, _TWO_PI) - math.pi
+    return float(unwrapped.min()) - _ARC_PAD_RAD, float(unwrapped.max()) + _ARC_PAD_RAD
+
+
+def _wheel_body_check(s: np.ndarray, g: np.ndarray, dr: np.ndarray, swept: np.ndarray,
+                      c_z: float, rk: float, hw_k: float) -> tuple[int, float]:
+    """Columns whose material is above the floor of the (inflated) Rk torus: (count, deepest m).
+
+    ``s``, ``g``, ``dr``: surface, ground (m) and ``r - rho`` (m) of the columns near the
+    ring; ``swept``: those on the cut's arc holding material; ``rk``, ``hw_k``: the
+    inflated wheel-body radius and its horizontal half-width (m).
+    """
+    ring_k = (np.abs(dr) < hw_k) & swept
+    w_floor = c_z - rk * np.sqrt(np.clip(1.0 - (dr[ring_k] / hw_k) ** 2, 0.0, None))
+    intrusion = s[ring_k] - np.maximum(w_floor, g[ring_k])
+    wheel_cells = int(np.count_nonzero(intrusion > 0))
+    return wheel_cells, (float(intrusion.max()) if wheel_cells else 0.0)
+
+
 def cut_step(surface_m: np.ndarray, cells: CellSet, machine: PlannerMachine, travel_m: float,
              luff_rad: float, reference_slew_rad: float, params: PlanParams, *,
              apply: bool | str = True) -> CutGeometry:
@@ -332,12 +368,7 @@ def cut_step(surface_m: np.ndarray, cells: CellSet, machine: PlannerMachine, tra
     CutGeometry
     """
     geometry = cells.geometry
-    if surface_m.shape != geometry.shape:
-        raise ValueError(f"surface_m must have shape {geometry.shape}, got {surface_m.shape}")
-    for name, value in (("travel_m", travel_m), ("luff_rad", luff_rad),
-                        ("reference_slew_rad", reference_slew_rad)):
-        if not math.isfinite(float(value)):
-            raise ValueError(f"{name} must be finite, got {value!r}")
+    _check_cut_inputs(surface_m, geometry, travel_m, luff_rad, reference_slew_rad)
     m = machine.reclaimer
     rv = m.cutting_radius_m
     cos_b = math.cos(m.wheel_tilt_rad)
@@ -345,7 +376,7 @@ def cut_step(surface_m: np.ndarray, cells: CellSet, machine: PlannerMachine, tra
     rk = machine.wheel_radius_m + params.clearance_m
     hw_k = rk * cos_b
     rho = float(boom_radius_m(m, luff_rad))
-    c_z = float(wheel_centre_z_m(m, luff_rad))
+    c_z = float(boom_height_m(m, luff_rad))
     bite = params.min_bite_m
     big = abs(rho) + max(hw, hw_k)
     sl = cells.window(travel_m - big, travel_m + big)
@@ -368,22 +399,13 @@ def cut_step(surface_m: np.ndarray, cells: CellSet, machine: PlannerMachine, tra
         return CutGeometry(float(travel_m), float(luff_rad), nan, nan, 0, 0.0, 0.0, 0, 0.0, 0,
                            0.0, False, machine.max_cutting_height_m)
     azimuth = np.arctan2(dx[near], dy[near])
-    ref = float(reference_slew_rad)
-    unwrapped = ref + np.mod(azimuth[hit] - ref + math.pi, _TWO_PI) - math.pi
-    # a hair wider than the extreme columns' azimuths, so that the unwrapping's rounding
-    # never drops them from the arc test (the projector's and the simulator's alike)
-    lo, hi = float(unwrapped.min()) - _ARC_PAD_RAD, float(unwrapped.max()) + _ARC_PAD_RAD
+    lo, hi = _slew_range(azimuth[hit], reference_slew_rad)
     in_arc = _arc_offsets(azimuth, lo) <= hi - lo
     # the bank the cut faces, and the border
     bench_floor = np.maximum(c_z - rv, g[hit])
     bank = float(np.max(s[hit] - bench_floor))
     edge = bool(np.any(cells.border[sl][near][hit]))
-    # wheel body: material above the (inflated) Rk torus' floor over the arc
-    ring_k = (np.abs(dr) < hw_k) & in_arc & material
-    w_floor = c_z - rk * np.sqrt(np.clip(1.0 - (dr[ring_k] / hw_k) ** 2, 0.0, None))
-    intrusion = s[ring_k] - np.maximum(w_floor, g[ring_k])
-    wheel_cells = int(np.count_nonzero(intrusion > 0))
-    wheel_in = float(intrusion.max()) if wheel_cells else 0.0
+    wheel_cells, wheel_in = _wheel_body_check(s, g, dr, in_arc & material, c_z, rk, hw_k)
     boom_cells, boom_in = _boom_check(surface_m, geometry, machine, travel_m, luff_rad, lo, hi,
                                       params, rho, c_z, hw)
     # the cut: every footprint column down to the envelope floor (never below ground)
@@ -513,8 +535,6 @@ def slump_after(surface_m: np.ndarray, cells: CellSet, cut: CutGeometry,
     The region is the cut's footprint widened by the run of a slope at repose from the
     top of its bank, ``bank / tan(repose)``, plus two blocks.
     """
-    from planner.settle import relax_region
-
     geometry = cells.geometry
     tan = math.tan(math.radians(params.repose_deg if params.repose_deg is not None else 35.0))
     block = max(1, int(round(params.slump_block_m / geometry.cell_m)))

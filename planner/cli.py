@@ -88,7 +88,7 @@ def make_plan(args: argparse.Namespace, store=None) -> dict:
     from ledger import open_ledger
     from planner.bench import PlanParams
     from planner.grades import check_bounds, predict_cuts
-    from planner.kinematics import PlannerMachine
+    from projector.kinematics import PlannerMachine
     from planner.plan import plan_reclaim
     from projector.query import FAR_FUTURE_NS, project
 

@@ -19,6 +19,7 @@ import numpy as np
 from projector import fold as F
 from projector.grid import GridGeometry
 from projector.layers import LayerStack, Removal
+from projector.query import summarise
 
 __all__ = ["CutPrediction", "predict_cuts", "BoundsReport", "check_bounds"]
 
@@ -71,8 +72,6 @@ def predict_cuts(geometry: GridGeometry, removals: Sequence[Removal | Sequence[R
     -------
     list of CutPrediction
     """
-    from projector.query import summarise
-
     if not (math.isfinite(default_bulk_density_t_m3) and default_bulk_density_t_m3 > 0):
         raise ValueError(f"default_bulk_density_t_m3 must be > 0, got "
                          f"{default_bulk_density_t_m3!r}")

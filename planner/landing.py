@@ -4,7 +4,7 @@ Candidates
 ----------
 1. A square grid over the surface: every ``k``-th cell centre in x and y (``k`` =
    ``spacing_m`` / cell, rounded, at least 1), at the surface height there, on material.
-2. The effective cutting region (DOMAIN.md §3): without a bench height, the top H of the
+2. The effective cutting region (docs/domain.md §3): without a bench height, the top H of the
    pile, ``z >= z_top - H`` (``z_top`` the highest surface; thesis: De = max(PL_z) - H);
    with a bench floor Z (the lowest point of the envelope, ``c_z - Rv``), the slice
    ``Z < z <= Z + H`` that bench cuts.
@@ -13,7 +13,7 @@ Candidates
 4. Wheel centre: ``c = p + Rv n`` (thesis: Cbw = pq + Rv Ns).  With a bench floor Z the
    centre must be at ``Z + Rv``: ``c = p + t n_h / |n_h| + (Z + Rv - p_z) z`` with
    ``t = sqrt(Rv^2 - (Z + Rv - p_z)^2)``, so the cutting circle still passes through p.
-5. Joints by inverse kinematics (:func:`planner.kinematics.inverse_kinematics`); of
+5. Joints by inverse kinematics (:func:`projector.kinematics.inverse_kinematics`); of
    the two travel solutions the one whose slew axis the normal faces (the smaller
    ``n_h . (c - axis)``, thesis Fig. 5.3: V points to the slew axis).  The bench then
    advances the way the boom points (``sign(cos theta2)``), into the bank.
@@ -31,7 +31,7 @@ import numpy as np
 from scipy import ndimage
 
 from projector.grid import GridGeometry
-from planner.kinematics import PlannerMachine, inverse_kinematics
+from projector.kinematics import PlannerMachine, inverse_kinematics
 
 __all__ = ["surface_normals", "Candidates", "landing_candidates"]
 

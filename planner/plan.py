@@ -28,11 +28,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from projector.envelope import cut_floor, wheel_centre
+from projector.envelope import cut_floor
+from projector.kinematics import PlannerMachine, wheel_centre
 from projector.layers import LayerStack, Removal
 from planner.bench import (CellSet, CutGeometry, PlanParams, cell_set, cut_step,
-                                  simulate_bench, slew_motion)
-from planner.kinematics import PlannerMachine
+                           simulate_bench, slew_motion)
 from planner.landing import Candidates, landing_candidates
 from planner.settle import settle_stack
 

@@ -2,15 +2,14 @@
 
 A cut leaves walls steeper than repose; they fail and the material runs into the hole,
 where the next cut takes it (the simulator's world does the same, by its own avalanche
-model).  Ignoring it makes the cut after a deep landing tens of percent light.
+model; see docs/design-notes.md).
 
 The planner uses the projector's relaxation, :func:`projector.slump.relax_surface`
 (volume-conserving flow between neighbours down to the repose slope), on a grid of
 ``block`` x ``block`` cells around the cut (block means of the surface and the ground),
-because at the surface cell it needs seconds per cut.  The change of each block is then
-put back on its cells exactly: a block that lost material loses it from its highest cells
-down (a water level from the top), a block that gained fills its lowest cells up.  Volume
-is conserved to rounding.
+for speed.  The change of each block is then put back on its cells exactly: a block that
+lost material loses it from its highest cells down (a water level from the top), a block
+that gained fills its lowest cells up.  Volume is conserved to rounding.
 
 On a layer stack (:func:`settle_stack`) the composition moves with the material, as in the
 projector's fold: the stack is clamped where the surface fell (what slid, per deposit) and
@@ -25,6 +24,7 @@ import math
 import numpy as np
 
 from projector.layers import LayerStack, Removal
+from projector.slump import relax_surface
 
 __all__ = ["relax_region", "settle_stack", "level_down", "level_up"]
 
@@ -124,8 +124,6 @@ def relax_region(surface_m: np.ndarray, ground_m: np.ndarray, cell_m: float, tan
         raise ValueError(f"tan_repose must be > 0, got {tan_repose!r}")
     if isinstance(block, bool) or int(block) < 1:
         raise ValueError(f"block must be >= 1, got {block!r}")
-    from projector.slump import relax_surface
-
     b = int(block)
     xs, ys = region
     x0, x1, _ = xs.indices(surface_m.shape[0])

@@ -1,6 +1,7 @@
-"""The bucket-wheel reclaimer's forward kinematics and the floor of its cutting envelope.
+"""The floor of a bucket-wheel reclaimer's cutting envelope: what one cut removes.
 
-DOMAIN.md §3 is the contract.  Joints: travel ``d1`` (m, along the rail = +y), slew
+docs/domain.md §3 is the contract; the machine's constants and its forward kinematics are
+:mod:`projector.kinematics`.  Joints: travel ``d1`` (m, along the rail = +y), slew
 ``theta2`` (rad, boom azimuth measured from +y toward +x), luff ``theta3`` (rad, boom
 elevation above horizontal).  Site frame: ENU metres, x across the pile, y along the rail.
 
@@ -36,110 +37,15 @@ to the next cut).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 import numpy as np
 
 from projector.grid import GridGeometry
+from projector.kinematics import Reclaimer, boom_height_m, boom_radius_m
 
-__all__ = ["Reclaimer", "wheel_centre", "boom_radius_m", "wheel_centre_z_m", "cut_floor",
-           "in_slew_arc"]
+__all__ = ["cut_floor", "in_slew_arc"]
 
 _TWO_PI = 2.0 * math.pi
-
-
-@dataclass(frozen=True)
-class Reclaimer:
-    """Kinematic constants of a bucket-wheel reclaimer (DOMAIN.md §3), metres and radians.
-
-    Attributes
-    ----------
-    rail_x_m, rail_z_m : float
-        Rail position across the pile (x_r) and rail height (z_r), site frame.
-    l2_m, l3_m : float
-        L2 + L3 = height of the boom pivot above the rail.
-    l4_m : float
-        Horizontal offset of the pivot from the slew axis.
-    l5_m : float
-        Boom length, pivot -> wheel centre.
-    cutting_radius_m : float
-        Rv, wheel plus buckets (> 0).
-    wheel_tilt_rad : float
-        beta, |beta| < pi/2.
-    """
-
-    rail_x_m: float
-    rail_z_m: float
-    l2_m: float
-    l3_m: float
-    l4_m: float
-    l5_m: float
-    cutting_radius_m: float
-    wheel_tilt_rad: float
-
-    def __post_init__(self) -> None:
-        for name in ("rail_x_m", "rail_z_m", "l2_m", "l3_m", "l4_m", "l5_m", "cutting_radius_m",
-                     "wheel_tilt_rad"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not math.isfinite(float(value)):
-                raise ValueError(f"{name} must be a finite number, got {value!r}")
-        if not self.cutting_radius_m > 0:
-            raise ValueError(f"cutting_radius_m must be > 0, got {self.cutting_radius_m}")
-        if not abs(self.wheel_tilt_rad) < math.pi / 2:
-            raise ValueError(f"wheel_tilt_rad must be in (-pi/2, pi/2), got {self.wheel_tilt_rad}")
-
-    @classmethod
-    def from_message(cls, msg) -> "Reclaimer":
-        """The constants of a ``MachineDeclared`` message (or any object with those attributes)."""
-        names = ("rail_x_m", "rail_z_m", "l2_m", "l3_m", "l4_m", "l5_m", "cutting_radius_m",
-                 "wheel_tilt_rad")
-        return cls(**{name: float(getattr(msg, name)) for name in names})
-
-    @property
-    def pivot_height_m(self) -> float:
-        """Height of the boom pivot above the rail, L2 + L3 (m)."""
-        return self.l2_m + self.l3_m
-
-    @property
-    def half_width_m(self) -> float:
-        """Horizontal half-width of the envelope's cross-section, Rv cos(beta) (m)."""
-        return self.cutting_radius_m * math.cos(self.wheel_tilt_rad)
-
-
-def boom_radius_m(machine: Reclaimer, luff_rad):
-    """Horizontal distance of the wheel centre from the slew axis, ``L4 + L5 cos(theta3)`` (m)."""
-    return machine.l4_m + machine.l5_m * np.cos(np.asarray(luff_rad, dtype=np.float64))
-
-
-def wheel_centre_z_m(machine: Reclaimer, luff_rad):
-    """Height of the wheel centre, ``z_r + L2 + L3 + L5 sin(theta3)`` (m)."""
-    return (machine.rail_z_m + machine.pivot_height_m
-            + machine.l5_m * np.sin(np.asarray(luff_rad, dtype=np.float64)))
-
-
-def wheel_centre(machine: Reclaimer, travel_m, slew_rad, luff_rad) -> np.ndarray:
-    """Forward kinematics: the wheel centre in the site frame (DOMAIN.md §3).
-
-    Parameters
-    ----------
-    machine : Reclaimer
-    travel_m, slew_rad, luff_rad : float or array_like, broadcastable
-        Travel d1 (m), slew theta2 (rad, from +y toward +x), luff theta3 (rad).
-
-    Returns
-    -------
-    ndarray, shape (..., 3)
-        ``(x, y, z)`` in metres; shape ``(3,)`` for scalar joints.
-    """
-    d1, th2, th3 = np.broadcast_arrays(np.asarray(travel_m, dtype=np.float64),
-                                       np.asarray(slew_rad, dtype=np.float64),
-                                       np.asarray(luff_rad, dtype=np.float64))
-    rho = boom_radius_m(machine, th3)
-    out = np.empty(d1.shape + (3,), dtype=np.float64)
-    out[..., 0] = machine.rail_x_m + rho * np.sin(th2)
-    out[..., 1] = d1 + rho * np.cos(th2)
-    out[..., 2] = wheel_centre_z_m(machine, th3)
-    return out
 
 
 def in_slew_arc(azimuth_rad, slew_start_rad: float, slew_end_rad: float) -> np.ndarray:
@@ -207,7 +113,7 @@ def cut_floor(geometry: GridGeometry, machine: Reclaimer, travel_m: float, luff_
             raise ValueError(f"{name} must be finite, got {value!r}")
     d1 = float(travel_m)
     rho = float(boom_radius_m(machine, float(luff_rad)))
-    c_z = float(wheel_centre_z_m(machine, float(luff_rad)))
+    c_z = float(boom_height_m(machine, float(luff_rad)))
     half_width = machine.half_width_m
     floor = np.full(geometry.shape, np.inf, dtype=np.float64)
 

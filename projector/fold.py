@@ -59,10 +59,11 @@ from projector.completion import (accounted_ns, catch_up_rises, complete_unseen,
 from projector.config import FoldConfig
 from projector.cuts import (fit_buried_boundaries, fit_top_for_cut, predict_height,
                             slump_face, undo_digging_rises)
-from projector.envelope import Reclaimer, cut_floor
+from projector.envelope import cut_floor
 from projector.follow import follow_height
 from projector.grades import AssayRecord
 from projector.grid import GridGeometry
+from projector.kinematics import Reclaimer
 from projector.layers import DepositInfo, LayerStack
 from projector.scans import process_scans
 from projector.state import (CutRecord, PassRecord, PendingScan, PileInfo, ProjectorState,

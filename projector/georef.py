@@ -2,7 +2,7 @@
 
 Conventions
 -----------
-- Site frame: ENU metres (DOMAIN.md §2): x across the pile, y along the rail, z up.
+- Site frame: ENU metres (docs/domain.md §2): x across the pile, y along the rail, z up.
 - A pose of a child frame (the scanner) in a parent frame (the site) is a translation
   ``t`` (metres) and a unit quaternion ``q`` in Foxglove order ``(x, y, z, w)``; a point
   maps as ``p_parent = R(q) @ p_child + t``.  ``q`` and ``-q`` are the same rotation.
@@ -21,12 +21,11 @@ All functions are pure and vectorised over scans and beams; no I/O.
 from __future__ import annotations
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
-__all__ = ["interpolate_poses", "quaternion_to_matrix", "sensor_points", "georeference"]
+from projector.kinematics import quaternion_to_matrix
 
-#: below this angle between two quaternions (rad) slerp is replaced by a normalised lerp
-#: (the two agree to ~1e-17 there; sin(theta) would lose precision)
-_SLERP_LERP_THRESHOLD_RAD = 1e-6
+__all__ = ["interpolate_poses", "sensor_points", "georeference"]
 
 
 def _as_quaternions(q, name: str, n: int | None = None) -> np.ndarray:
@@ -37,15 +36,73 @@ def _as_quaternions(q, name: str, n: int | None = None) -> np.ndarray:
     return q
 
 
-def _normalised(q: np.ndarray, name: str, *, allow_nan: bool) -> np.ndarray:
+def _integer_times(t_ns, pose_t_ns) -> tuple[np.ndarray, np.ndarray]:
+    """Query and pose times as 1-D int64 arrays (ValueError otherwise, or without poses)."""
+    t = np.asarray(t_ns)
+    pt = np.asarray(pose_t_ns)
+    if t.ndim != 1 or pt.ndim != 1:
+        raise ValueError(f"t_ns and pose_t_ns must be 1-D, got {t.shape} and {pt.shape}")
+    if not (np.issubdtype(t.dtype, np.integer) or t.size == 0) \
+            or not (np.issubdtype(pt.dtype, np.integer) or pt.size == 0):
+        raise ValueError("t_ns and pose_t_ns must be integer nanoseconds (int64)")
+    if pt.shape[0] < 1:
+        raise ValueError("need at least one pose")
+    return t.astype(np.int64), pt.astype(np.int64)
+
+
+def _checked_poses(pt: np.ndarray, translations_m, quaternions_xyzw
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """Finite translations (M, 3) and unit quaternions (M, 4) of poses at sorted times ``pt``."""
+    m = pt.shape[0]
+    tr = np.asarray(translations_m, dtype=np.float64)
+    if tr.shape != (m, 3):
+        raise ValueError(f"translations_m must have shape ({m}, 3), got {tr.shape}")
+    if not np.isfinite(tr).all():
+        raise ValueError("translations_m must be finite")
+    q = _as_quaternions(quaternions_xyzw, "quaternions_xyzw", m)
     norm = np.linalg.norm(q, axis=-1)
-    finite = np.isfinite(norm)
-    if not allow_nan and not finite.all():
-        raise ValueError(f"{name} must be finite")
-    if np.any(finite & ~(norm > 1e-12)):
-        raise ValueError(f"{name} contains a zero quaternion")
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return q / norm[..., None]
+    if not np.isfinite(norm).all():
+        raise ValueError("quaternions_xyzw must be finite")
+    if np.any(~(norm > 1e-12)):
+        raise ValueError("quaternions_xyzw contains a zero quaternion")
+    if np.any(np.diff(pt) < 0):
+        raise ValueError("pose_t_ns must be sorted (non-decreasing)")
+    return tr, q / norm[:, None]
+
+
+def _brackets(t: np.ndarray, pt: np.ndarray, max_gap_ns: int):
+    """Where each query time falls among the pose times.
+
+    Returns ``exact`` (bool (N,): on a pose), ``at`` (that pose's index, one per exact
+    query), ``inner`` (bool (N,): strictly between two poses at most ``max_gap_ns``
+    apart), ``a``, ``b`` (the bracketing poses' indices, one per inner query) and ``s``
+    (the fraction of the bracket elapsed, float (n_inner, 1)).
+    """
+    m = pt.shape[0]
+    i1 = np.searchsorted(pt, t, side="left")          # first pose at or after t
+    i1c = np.minimum(i1, m - 1)
+    exact = (i1 < m) & (pt[i1c] == t)
+    i0 = i1 - 1
+    inner = ~exact & (i0 >= 0) & (i1 < m)
+    i0c = np.clip(i0, 0, m - 1)
+    gap = pt[i1c] - pt[i0c]                            # int64, no float rounding
+    inner &= gap <= max_gap_ns
+    a, b = i0c[inner], i1c[inner]
+    s = ((t[inner] - pt[a]).astype(np.float64) / gap[inner].astype(np.float64))[:, None]
+    return exact, i1c[exact], inner, a, b, s
+
+
+def _slerp(q0: np.ndarray, q1: np.ndarray, s: np.ndarray) -> np.ndarray:
+    """Slerp from unit quaternions ``q0`` to ``q1`` (rows) by fractions ``s`` (n, 1).
+
+    scipy's :class:`~scipy.spatial.transform.Slerp` formula,
+    ``r0 * exp(s * log(r0^-1 r1))``, pair by pair: the rotation vector of ``r0^-1 r1`` has
+    an angle of at most pi, so the interpolation takes the short way round whatever the
+    signs of ``q0`` and ``q1``.
+    """
+    r0 = Rotation.from_quat(q0)
+    rel = (r0.inv() * Rotation.from_quat(q1)).as_rotvec()
+    return (r0 * Rotation.from_rotvec(s * rel)).as_quat()
 
 
 def interpolate_poses(t_ns, pose_t_ns, translations_m, quaternions_xyzw, *,
@@ -76,9 +133,9 @@ def interpolate_poses(t_ns, pose_t_ns, translations_m, quaternions_xyzw, *,
 
     Notes
     -----
-    The rotation is the shortest-arc slerp: when the two bracketing quaternions have a
-    negative dot product the second is negated (``q`` and ``-q`` are the same rotation),
-    so the interpolation never takes the long way round.  Vectorised over all queries.
+    The rotation is the shortest-arc slerp (:func:`_slerp`, scipy's ``Slerp`` formula):
+    ``q`` and ``-q`` are the same rotation, and the interpolation never takes the long way
+    round.  Vectorised over all queries.
 
     Raises
     ------
@@ -86,95 +143,21 @@ def interpolate_poses(t_ns, pose_t_ns, translations_m, quaternions_xyzw, *,
         On mismatched shapes, unsorted pose times, non-finite poses, a zero quaternion or
         a negative ``max_gap_ns``.
     """
-    t = np.asarray(t_ns)
-    pt = np.asarray(pose_t_ns)
-    if t.ndim != 1 or pt.ndim != 1:
-        raise ValueError(f"t_ns and pose_t_ns must be 1-D, got {t.shape} and {pt.shape}")
-    if not (np.issubdtype(t.dtype, np.integer) or t.size == 0) \
-            or not (np.issubdtype(pt.dtype, np.integer) or pt.size == 0):
-        raise ValueError("t_ns and pose_t_ns must be integer nanoseconds (int64)")
-    t = t.astype(np.int64)
-    pt = pt.astype(np.int64)
-    m = pt.shape[0]
-    if m < 1:
-        raise ValueError("need at least one pose")
-    tr = np.asarray(translations_m, dtype=np.float64)
-    if tr.shape != (m, 3):
-        raise ValueError(f"translations_m must have shape ({m}, 3), got {tr.shape}")
-    if not np.isfinite(tr).all():
-        raise ValueError("translations_m must be finite")
-    q = _normalised(_as_quaternions(quaternions_xyzw, "quaternions_xyzw", m),
-                    "quaternions_xyzw", allow_nan=False)
-    if np.any(np.diff(pt) < 0):
-        raise ValueError("pose_t_ns must be sorted (non-decreasing)")
+    t, pt = _integer_times(t_ns, pose_t_ns)
+    tr, q = _checked_poses(pt, translations_m, quaternions_xyzw)
     if max_gap_ns < 0:
         raise ValueError(f"max_gap_ns must be >= 0, got {max_gap_ns}")
-
     n = t.shape[0]
     out_t = np.full((n, 3), np.nan)
     out_q = np.full((n, 4), np.nan)
     if n == 0:
         return out_t, out_q
-
-    i1 = np.searchsorted(pt, t, side="left")          # first pose at or after t
-    i1c = np.minimum(i1, m - 1)
-    exact = (i1 < m) & (pt[i1c] == t)
-    i0 = i1 - 1
-    inner = ~exact & (i0 >= 0) & (i1 < m)
-    i0c = np.clip(i0, 0, m - 1)
-    gap = pt[i1c] - pt[i0c]                            # int64, no float rounding
-    inner &= gap <= max_gap_ns
-
-    out_t[exact] = tr[i1c[exact]]
-    out_q[exact] = q[i1c[exact]]
-
-    a, b = i0c[inner], i1c[inner]
-    s = ((t[inner] - pt[a]).astype(np.float64) / gap[inner].astype(np.float64))[:, None]
+    exact, at, inner, a, b, s = _brackets(t, pt, max_gap_ns)
+    out_t[exact] = tr[at]
+    out_q[exact] = q[at]
     out_t[inner] = tr[a] + s * (tr[b] - tr[a])
-
-    q0, q1 = q[a], q[b]
-    dot = np.einsum("ij,ij->i", q0, q1)
-    flip = dot < 0.0
-    q1 = np.where(flip[:, None], -q1, q1)
-    dot = np.minimum(np.abs(dot), 1.0)
-    theta = np.arccos(dot)[:, None]
-    small = theta < _SLERP_LERP_THRESHOLD_RAD
-    sin_theta = np.where(small, 1.0, np.sin(theta))
-    w0 = np.where(small, 1.0 - s, np.sin((1.0 - s) * theta) / sin_theta)
-    w1 = np.where(small, s, np.sin(s * theta) / sin_theta)
-    qi = w0 * q0 + w1 * q1
-    out_q[inner] = qi / np.linalg.norm(qi, axis=1, keepdims=True)
+    out_q[inner] = _slerp(q[a], q[b], s)
     return out_t, out_q
-
-
-def quaternion_to_matrix(quaternions_xyzw) -> np.ndarray:
-    """Rotation matrices of quaternions (x, y, z, w), normalised first.
-
-    Parameters
-    ----------
-    quaternions_xyzw : array_like, shape (N, 4)
-        Non-zero quaternions; NaN rows give NaN matrices.
-
-    Returns
-    -------
-    ndarray, shape (N, 3, 3)
-        ``R`` with ``p_parent = R @ p_child + t``; its columns are the child's axes in the
-        parent frame.
-    """
-    q = _normalised(_as_quaternions(quaternions_xyzw, "quaternions_xyzw"),
-                    "quaternions_xyzw", allow_nan=True)
-    x, y, z, w = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
-    r = np.empty((q.shape[0], 3, 3))
-    r[:, 0, 0] = 1 - 2 * (y * y + z * z)
-    r[:, 0, 1] = 2 * (x * y - z * w)
-    r[:, 0, 2] = 2 * (x * z + y * w)
-    r[:, 1, 0] = 2 * (x * y + z * w)
-    r[:, 1, 1] = 1 - 2 * (x * x + z * z)
-    r[:, 1, 2] = 2 * (y * z - x * w)
-    r[:, 2, 0] = 2 * (x * z - y * w)
-    r[:, 2, 1] = 2 * (y * z + x * w)
-    r[:, 2, 2] = 1 - 2 * (x * x + y * y)
-    return r
 
 
 def _check_ranges(ranges_m) -> np.ndarray:

@@ -4,8 +4,8 @@ One process per reclaimer (``--machine-id``, default ``bwr1``).  It subscribes o
 ``stockpile/<site>/@v1/`` to ``site_declared``, ``machine_declared``, ``joint_reading``
 and ``location_fix`` with Zenoh advanced subscribers (history with late-publisher
 detection, so declarations published before it started come from the publishers'
-caches), runs :class:`services.ukf.LocalizerFilter` (a UKF over the joints, the
-encoder biases and the correlated GNSS error) and publishes, as source
+caches), runs :class:`services.localizer_filter.LocalizerFilter` (a UKF over the joints,
+the encoder biases and the correlated GNSS error) and publishes, as source
 ``<machine>.localizer``:
 
 - ``joint_estimate`` at each encoder reading (or at most every ``--estimate-period``
@@ -13,8 +13,9 @@ encoder biases and the correlated GNSS error) and publishes, as source
   centre's 3x3 covariance, at the reading's valid time;
 - two ``frame_transform`` events at the same time, parent frame ``site``:
   ``<machine>/wheel`` (the wheel centre; rotation: the level wheel frame, x along the
-  boom, z up, :func:`services.ukf.wheel_rotation`) and ``<machine>/scanner`` (the
-  wheel pose composed with ``MachineDeclared.scanner``; the simulator's scanner pose).
+  boom, z up, :func:`projector.kinematics.wheel_rotation`) and ``<machine>/scanner`` (the
+  wheel pose composed with ``MachineDeclared.scanner``; the simulator's scanner pose;
+  :mod:`services.localizer_messages`).
 
 Input handling
 --------------
@@ -63,25 +64,15 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+import zenoh.ext as zext
 
-from schemas import pb
-from schemas.events import (
-    Event,
-    Malformed,
-    event_from_sample,
-    is_valid_source,
-    make_event,
-    set_timestamp_ns,
-)
+from schemas.events import Event, Malformed, event_from_sample, is_valid_source, make_event
+from schemas.times import NS_PER_S
 from schemas.validate import InvalidEvent, check_event
-from services.ukf import (
-    FilterTuning,
-    LocalizerFilter,
-    MachineGeometry,
-    scanner_pose,
-    wheel_centre_m,
-    wheel_quaternion_xyzw,
-)
+from projector.kinematics import MachineGeometry
+from services.localizer_filter import LocalizerFilter
+from services.localizer_messages import estimate_messages, fix_covariance_m2, fix_enu_m
+from services.localizer_tuning import FilterTuning
 from services.service import (
     DEFAULT_SITE,
     DEFAULT_STATUS_PERIOD_S,
@@ -92,15 +83,12 @@ from services.service import (
 )
 
 SERVICE = "localizer"
-NS_PER_S = 1_000_000_000
 #: measurements the reorder buffer holds at most
 MAX_BUFFERED = 100_000
 #: samples taken from the queue before the buffer is released again
 MAX_BATCH = 500
 #: subscribed event types
 INPUT_TYPES = ("site_declared", "machine_declared", "joint_reading", "location_fix")
-#: vertical / horizontal sd of a fix that carries no covariance
-VERTICAL_FACTOR = 1.7
 _READING, _FIX = 0, 1
 
 
@@ -194,80 +182,6 @@ def config_from_args(args: argparse.Namespace) -> Config:
                   gnss_sd_m=args.gnss_sd, gate_probability=args.gate_probability,
                   drift_scale=args.drift_scale, antenna_along_boom_m=args.antenna_along_boom,
                   antenna_up_m=args.antenna_up)
-
-
-# -- pure helpers ---------------------------------------------------------------------------
-
-
-def fix_enu_m(fix, datum: tuple[float, float, float]) -> np.ndarray:
-    """A ``foxglove.LocationFix`` position in the site ENU frame (3,) (m)."""
-    import pymap3d
-
-    e, n, u = pymap3d.geodetic2enu(fix.latitude, fix.longitude, fix.altitude, *datum)
-    return np.array([float(e), float(n), float(u)])
-
-
-def fix_covariance_m2(fix, default_sd_m: float) -> np.ndarray:
-    """The fix's ENU covariance (3, 3) in m^2, or a default when it carries none.
-
-    ``position_covariance_type`` UNKNOWN (0), a covariance that is not 9 finite values,
-    or one with a non-positive diagonal gives ``diag(sd^2, sd^2, (1.7 sd)^2)``;
-    DIAGONAL_KNOWN keeps only the diagonal.
-    """
-    c = np.asarray(fix.position_covariance, float)
-    kind = int(fix.position_covariance_type)
-    if kind == 0 or c.size != 9 or not np.all(np.isfinite(c)):
-        return np.diag([default_sd_m ** 2, default_sd_m ** 2,
-                        (VERTICAL_FACTOR * default_sd_m) ** 2])
-    c = c.reshape(3, 3)
-    if not np.all(np.diag(c) > 0):
-        return np.diag([default_sd_m ** 2, default_sd_m ** 2,
-                        (VERTICAL_FACTOR * default_sd_m) ** 2])
-    if kind == 2:  # DIAGONAL_KNOWN
-        c = np.diag(np.diag(c))
-    return 0.5 * (c + c.T)
-
-
-def _timestamp(message, name: str, t_ns: int):
-    set_timestamp_ns(getattr(message, name), t_ns)
-    return message
-
-
-def estimate_messages(machine_id: str, geometry: MachineGeometry, t_ns: int, joints,
-                      joint_cov, position_cov_m2) -> list:
-    """The ``joint_estimate`` and the two ``frame_transform`` messages of one estimate.
-
-    Parameters
-    ----------
-    machine_id : str
-    geometry : MachineGeometry
-    t_ns : int
-        Valid time (UTC ns).
-    joints : array_like (3,)
-        (travel m, slew rad, luff rad).
-    joint_cov, position_cov_m2 : array_like (3, 3)
-        Joint covariance and wheel-centre covariance (m^2).
-    """
-    from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
-
-    j = np.asarray(joints, float)
-    est = pb.JointEstimate(machine_id=machine_id, travel_m=float(j[0]), slew_rad=float(j[1]),
-                           luff_rad=float(j[2]))
-    est.covariance.extend(float(v) for v in np.asarray(joint_cov, float).reshape(9))
-    est.position_covariance_m2.extend(float(v) for v in
-                                      np.asarray(position_cov_m2, float).reshape(9))
-    _timestamp(est, "time", t_ns)
-    out = [est]
-    centre = wheel_centre_m(geometry, j)
-    q_wheel = wheel_quaternion_xyzw(float(j[1]))
-    scanner_p, scanner_q = scanner_pose(geometry, j)
-    for child, p, q in ((f"{machine_id}/wheel", centre, q_wheel),
-                        (f"{machine_id}/scanner", scanner_p, scanner_q)):
-        ft = FrameTransform(parent_frame_id="site", child_frame_id=child)
-        ft.translation.x, ft.translation.y, ft.translation.z = (float(v) for v in p)
-        ft.rotation.x, ft.rotation.y, ft.rotation.z, ft.rotation.w = (float(v) for v in q)
-        out.append(_timestamp(ft, "timestamp", t_ns))
-    return out
 
 
 class _SeenSeqs:
@@ -493,8 +407,6 @@ class Localizer:
 
 def main(config: Config, *, stopper: Stopper | None = None) -> int:
     """Run the localizer until SIGINT/SIGTERM (or ``stopper``); return the exit code."""
-    import zenoh.ext as zext
-
     samples = Inbox()
 
     def on_sample(sample) -> None:

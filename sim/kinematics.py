@@ -1,8 +1,14 @@
-"""Bucket-wheel reclaimer kinematics and its cutting envelope (DOMAIN.md §3).
+"""The simulator's own reclaimer kinematics and cutting envelope (docs/domain.md §3).
 
 Joints: travel ``d1`` (m, along the rail = +y), slew ``theta2`` (rad, boom azimuth
 measured from +y toward +x), luff ``theta3`` (rad, boom elevation above horizontal).
 Site frame: ENU metres, x across the pile, y along the rail, z up.
+
+This is a second copy of the kinematics on purpose.  The product's copy,
+:mod:`projector.kinematics` (shared by the projector, the planner, the localizer and the
+dashboard), is what the accuracy figures measure; the simulator is the ground truth they
+are measured against, so it must not import it: a mistake in one copy then shows up as a
+difference instead of cancelling out.  Do not merge the two.
 
 All functions are pure and vectorised over numpy arrays.
 """
@@ -48,7 +54,7 @@ class Machine:
         return 0.9 * self.bucket_width_m
 
 
-#: The reference full-scale machine of DOMAIN.md §3 (thesis Table 3.1 / 5.5).
+#: The reference full-scale machine of docs/domain.md §3 (thesis Table 3.1 / 5.5).
 FULL_SCALE = Machine(rail_x_m=0.0, rail_z_m=0.0, l2_m=6.0, l3_m=5.0, l4_m=5.0, l5_m=50.0,
                      wheel_radius_m=7.0, cutting_radius_m=10.0,
                      wheel_tilt_rad=math.radians(5.0), bucket_width_m=1.2,

@@ -239,10 +239,10 @@ def test_machine_joints_from_the_localizers_scanner_pose_round_trip():
     """The reclaimer is drawn from its scanner pose: invert the localizer's own forward chain."""
     import numpy as np
 
-    from projector.envelope import Reclaimer
+    from projector.kinematics import Reclaimer
     from services.dashboard.pose import joints_from_wheel_pose, wheel_from_scanner
     from services.dashboard.pose import quat_matrix as _quat_matrix
-    from services.ukf import MachineGeometry, scanner_pose
+    from projector.kinematics import MachineGeometry, scanner_pose
 
     mount_q = (0.5, 0.5, 0.5, -0.5)   # the simulator's scanner-in-wheel rotation
     geometry = MachineGeometry(rail_x_m=-25.0, rail_z_m=0.5, l2_m=6.0, l3_m=5.0, l4_m=5.0,

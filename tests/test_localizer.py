@@ -25,8 +25,11 @@ from scipy.spatial.transform import Rotation
 from schemas import pb
 from schemas.events import Event, make_event, set_timestamp_ns
 from schemas.validate import check_event
-from services import ukf as fusion
-from services.ukf import FilterTuning, LocalizerFilter, MachineGeometry
+from projector import kinematics
+from projector.kinematics import MachineGeometry
+from services import localizer_batch, localizer_covariance, localizer_tuning
+from services.localizer_filter import LocalizerFilter
+from services.localizer_tuning import FilterTuning
 from services.localizer import Config, Localizer
 from sim.kinematics import FULL_SCALE, wheel_centre
 from sim.runner import SCANNER_IN_WHEEL, wheel_rotation
@@ -69,7 +72,7 @@ def sensor_data(seed: int, t_ns, joints):
     gnss = GnssModel(SITE.datum_lat_deg, SITE.datum_lon_deg, SITE.datum_alt_m,
                      rng=np.random.default_rng([seed, 2]))
     fixes = gnss.fix(t_ns, gnss.antenna_position(MACHINE, joints))
-    cov = np.array([fusion.gnss_covariance_m2(h, dgps=(q == 2)) if q > 0 else np.eye(3)
+    cov = np.array([localizer_tuning.gnss_covariance_m2(h, dgps=(q == 2)) if q > 0 else np.eye(3)
                     for q, h in zip(fixes.quality, fixes.hdop)])
     return readings, fixes, cov
 
@@ -179,8 +182,9 @@ def test_after_a_long_run_of_rejections_the_filter_recovers():
 def test_batch_helper_is_the_same_filter(hour_run):
     """``filter_sequence`` (the benchmark's path) gives exactly the step-by-step result."""
     r, n = hour_run, 600
-    out = fusion.filter_sequence(GEOMETRY, r["t_ns"][:n], r["readings"][:n], r["fixes"].t_ns[:n],
-                                 r["fixes"].enu_m[:n], r["cov"][:n])
+    out = localizer_batch.filter_sequence(GEOMETRY, r["t_ns"][:n], r["readings"][:n],
+                                          r["fixes"].t_ns[:n], r["fixes"].enu_m[:n],
+                                          r["cov"][:n])
     np.testing.assert_array_equal(out.wheel_centre_m, r["est"][:n])
     assert out.outcomes["gated"] == r["outcomes"][:n].count("gated")
 
@@ -204,22 +208,22 @@ def test_bad_shapes_and_values_raise_value_error():
     with pytest.raises(ValueError):
         f.predict_to(9 * NS)
     with pytest.raises(ValueError):
-        fusion.wheel_centre_m(GEOMETRY, np.zeros((4, 2)))
+        kinematics.wheel_centre_m(GEOMETRY, np.zeros((4, 2)))
     with pytest.raises(ValueError):
-        fusion.scanner_pose(GEOMETRY, np.zeros(4))
+        kinematics.scanner_pose(GEOMETRY, np.zeros(4))
     with pytest.raises(ValueError):
         replace(GEOMETRY, l5_m=math.nan)
     with pytest.raises(ValueError):
         FilterTuning(gate_probability=1.0)
     with pytest.raises(ValueError):
-        fusion.filter_sequence(GEOMETRY, [0, 1], np.zeros((3, 3)), [], np.zeros((0, 3)),
-                               np.zeros((0, 3, 3)))
+        localizer_batch.filter_sequence(GEOMETRY, [0, 1], np.zeros((3, 3)), [],
+                                        np.zeros((0, 3)), np.zeros((0, 3, 3)))
     # a broken covariance never makes the square root raise
-    u = fusion.robust_sqrt(np.array([[1.0, 2.0], [2.0, 1.0]]))
+    u = localizer_covariance.robust_sqrt(np.array([[1.0, 2.0], [2.0, 1.0]]))
     assert np.all(np.isfinite(u))
     # R = 0 is floored: a zero-covariance fix does not collapse P
     f.update_joints([0.0, 1.0, 0.1], t_ns=11 * NS)
-    centre = fusion.antenna_position_m(GEOMETRY, np.array([0.0, 1.0, 0.1]))
+    centre = kinematics.antenna_position_m(GEOMETRY, np.array([0.0, 1.0, 0.1]))
     f.update_gnss(centre, np.zeros((3, 3)), t_ns=11 * NS)
     assert np.linalg.eigvalsh(f.P)[0] > 0
 
@@ -230,13 +234,13 @@ def test_scanner_pose_equals_the_simulators():
     geometry = replace(GEOMETRY, scanner_translation_m=tuple(scenario.scanner_offset_m),
                        scanner_rotation_xyzw=tuple(float(v) for v in quat))
     for joints in ([3.0, 0.3, 0.1], [-7.0, 2.9, -0.2], [120.0, -3.1, 0.4]):
-        position, q = fusion.scanner_pose(geometry, np.array(joints))
+        position, q = kinematics.scanner_pose(geometry, np.array(joints))
         r_wheel = wheel_rotation(joints[1])
         want_p = wheel_centre(MACHINE, *joints) + r_wheel @ np.asarray(scenario.scanner_offset_m)
         want_r = r_wheel @ SCANNER_IN_WHEEL
         np.testing.assert_allclose(position, want_p, atol=1e-9)
         np.testing.assert_allclose(Rotation.from_quat(q).as_matrix(), want_r, atol=1e-9)
-        np.testing.assert_allclose(fusion.wheel_rotation(joints[1]), r_wheel, atol=1e-12)
+        np.testing.assert_allclose(kinematics.wheel_rotation(joints[1]), r_wheel, atol=1e-12)
 
 
 # -- the service's logic without Zenoh ------------------------------------------------------
@@ -335,7 +339,7 @@ def test_service_logic_orders_by_valid_time_and_counts_bad_input():
 def test_fix_covariance_from_the_message_or_the_default():
     from foxglove_schemas_protobuf.LocationFix_pb2 import LocationFix
 
-    from services.localizer import fix_covariance_m2
+    from services.localizer_messages import fix_covariance_m2
 
     fix = LocationFix(latitude=1.0, longitude=2.0)
     np.testing.assert_allclose(fix_covariance_m2(fix, 0.5), np.diag([0.25, 0.25, 0.7225]))

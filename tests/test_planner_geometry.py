@@ -15,12 +15,12 @@ import pytest
 
 from planner.bench import PlanParams, cell_set, cut_step, simulate_bench
 from planner.grades import check_bounds, predict_cuts
-from planner.kinematics import PlannerMachine, inverse_kinematics, pivot_position
 from planner.landing import landing_candidates, surface_normals
 from planner.settle import level_down, level_up, relax_region, settle_stack
 from projector.envelope import cut_floor
 from projector.grades import AssayRecord
 from projector.grid import GridGeometry, cell_centres
+from projector.kinematics import PlannerMachine, inverse_kinematics, pivot_position
 from projector.layers import DepositInfo, LayerStack
 from sim import kinematics as simk
 

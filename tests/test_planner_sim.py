@@ -29,7 +29,7 @@ import pytest
 from ledger import EventClock, open_ledger
 from ledger.cli import import_lines
 from planner.grades import predict_cuts
-from planner.kinematics import PlannerMachine
+from projector.kinematics import PlannerMachine
 from planner.plan import evaluate_landings, plan_bench_from, plan_reclaim
 from sim import kinematics as simk
 from sim.drive import drive_bench, lab_assays, stacked_world, truth_stack

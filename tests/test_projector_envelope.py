@@ -12,7 +12,8 @@ import math
 import numpy as np
 import pytest
 
-from projector.envelope import Reclaimer, cut_floor, in_slew_arc, wheel_centre
+from projector.envelope import cut_floor, in_slew_arc
+from projector.kinematics import Reclaimer, wheel_centre
 from projector.grid import GridGeometry, cell_centre
 from projector.layers import DepositInfo, LayerStack
 from projector_helpers import H, T0

@@ -13,8 +13,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation, Slerp
 
-from projector.georef import (
-    georeference, interpolate_poses, quaternion_to_matrix, sensor_points)
+from projector.georef import georeference, interpolate_poses, sensor_points
 from projector_helpers import LOOK_DOWN, NS, T0_NS, make_rng
 
 

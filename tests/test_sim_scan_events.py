@@ -23,7 +23,7 @@ from foxglove_schemas_protobuf.LaserScan_pb2 import LaserScan
 from ledger import open_ledger
 from schemas.events import decode_payload
 from schemas.jsonl import decode_line, encode_line
-from services.ukf import MachineGeometry, quaternion_to_matrix, scanner_pose
+from projector.kinematics import MachineGeometry, quaternion_to_matrix, scanner_pose
 from devices import lms200
 from services.scanner import scan_field, scan_message
 from sim import sensors
