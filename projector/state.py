@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from projector.config import FoldConfig
-from projector.envelope import Reclaimer
+from projector.kinematics import Reclaimer
 from projector.grades import AssayRecord
 from projector.grid import GridGeometry
 from projector.layers import LayerStack, Removal

@@ -1,18 +1,17 @@
 """The reclaimer geometry the dashboard draws: poses and joints, line strips, footprints.
 
-The one place of the dashboard's geometry, so it can be pointed at shared reclaimer
-kinematics without touching what is logged:
+The kinematics are the shared reclaimer kinematics of :mod:`projector.kinematics`
+(re-exported here for the dashboard's modules: :func:`wheel_from_scanner`,
+:func:`joints_from_wheel_pose`); this module draws with them:
 
-- :func:`quat_matrix`: rotation matrix of a quaternion
-- :func:`wheel_from_scanner`: the wheel frame's site pose from the scanner's and its mount
-- :func:`joints_from_wheel_pose`: (travel, slew, luff) from the wheel frame's pose
+- :func:`quat_matrix`: rotation matrix of a quaternion, the identity for an unset one
 - :func:`machine_strips`: line strips of the machine at given joints
 - :func:`cut_outline`: a cut's swept footprint at the bottom of its envelope
 - :func:`scanner_pose_at`, :func:`scan_points`: the scanner's pose at a scan's time
   (interpolated between the latest poses) and the scan georeferenced with it
 
 Frames and units as in docs/domain.md §2 and §3: site ENU, metres, radians, UTC ns;
-quaternions ``(x, y, z, w)``; a reclaimer is a :class:`projector.envelope.Reclaimer`.
+quaternions ``(x, y, z, w)``; a reclaimer is a :class:`projector.kinematics.Reclaimer`.
 """
 
 from __future__ import annotations
@@ -23,62 +22,25 @@ from typing import Sequence
 import numpy as np
 
 from projector import georef
+from projector.kinematics import (boom_height_m, boom_radius_m, joints_from_wheel_pose,
+                                  pivot_position, quaternion_to_matrix, wheel_centre,
+                                  wheel_from_scanner)
 from schemas.times import NS_PER_S
+
+__all__ = ["quat_matrix", "wheel_from_scanner", "joints_from_wheel_pose", "machine_strips",
+           "cut_outline", "scanner_pose_at", "scan_points", "MAX_POSE_GAP_NS"]
 
 #: a scanner pose of the ring interpolated only across gaps up to this, ns
 MAX_POSE_GAP_NS = 10 * NS_PER_S
 
 
 def quat_matrix(q) -> np.ndarray:
-    """Rotation matrix (3, 3) of a quaternion ``(x, y, z, w)`` (normalised first)."""
-    x, y, z, w = (float(v) for v in q)
-    n = math.sqrt(x * x + y * y + z * z + w * w) or 1.0
-    x, y, z, w = x / n, y / n, z / n, w / n
-    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
-
-
-def wheel_from_scanner(position, quaternion_xyzw, mount) -> tuple[np.ndarray, np.ndarray]:
-    """The wheel frame's pose (centre, rotation) from the scanner's site pose and the
-    declared mount ``(R_wheel_scanner, t_wheel_scanner)``: the inverse of
-    ``p_scanner = c + R_wheel t_mount``, ``R_scanner = R_wheel R_mount``.
-
-    Parameters
-    ----------
-    position : array_like, shape (3,)
-        The scanner's position in the site frame, m.
-    quaternion_xyzw : array_like, shape (4,)
-        The scanner's orientation in the site frame.
-    mount : tuple of ndarray
-        ``(R (3, 3), t (3,) m)``: the scanner in the wheel frame.
-
-    Returns
-    -------
-    centre : ndarray, shape (3,)
-        The wheel frame's origin in the site frame, m.
-    rotation : ndarray, shape (3, 3)
-        ``R_site_wheel``.
-    """
-    r_site_scanner = quat_matrix(quaternion_xyzw)
-    r_wheel_scanner, t_wheel_scanner = mount
-    r_site_wheel = r_site_scanner @ np.asarray(r_wheel_scanner).T
-    return np.asarray(position, float) - r_site_wheel @ np.asarray(t_wheel_scanner), r_site_wheel
-
-
-def joints_from_wheel_pose(machine, centre, rotation: np.ndarray) -> tuple[float, float, float]:
-    """(travel m, slew rad, luff rad) from the wheel frame's pose (docs/domain.md §3).
-
-    The wheel frame's x axis is the boom's horizontal direction ``(sin slew, cos slew, 0)``.
-    ``centre`` is the wheel frame's origin (3,) in m, ``rotation`` its ``R_site_wheel``.
-    """
-    c = np.asarray(centre, float)
-    s = (c[2] - machine.rail_z_m - machine.pivot_height_m) / machine.l5_m
-    luff = math.asin(min(1.0, max(-1.0, s)))
-    rho = machine.l4_m + machine.l5_m * math.cos(luff)
-    slew = math.atan2(rotation[0, 0], rotation[1, 0])
-    travel = c[1] - rho * math.cos(slew)
-    return travel, slew, luff
+    """Rotation matrix (3, 3) of a quaternion ``(x, y, z, w)``; the identity for an unset
+    (all-zero) quaternion, such as a machine declared without a scanner mount."""
+    q = np.asarray([float(v) for v in q])
+    if not np.any(q):
+        return np.eye(3)
+    return quaternion_to_matrix(q)
 
 
 def machine_strips(machine, travel_m: float, slew_rad: float, luff_rad: float,
@@ -91,8 +53,8 @@ def machine_strips(machine, travel_m: float, slew_rad: float, luff_rad: float,
     base = np.array([machine.rail_x_m, travel_m, machine.rail_z_m])
     top = base + [0.0, 0.0, machine.pivot_height_m]
     d = np.array([math.sin(slew_rad), math.cos(slew_rad), 0.0])
-    pivot = top + machine.l4_m * d
-    centre = pivot + machine.l5_m * (math.cos(luff_rad) * d + [0.0, 0.0, math.sin(luff_rad)])
+    pivot = pivot_position(machine, travel_m, slew_rad)
+    centre = wheel_centre(machine, travel_m, slew_rad, luff_rad)
     a = np.linspace(0.0, 2 * math.pi, 33)
     up = np.array([0.0, 0.0, 1.0])
     wheel = centre + wheel_radius_m * (np.cos(a)[:, None] * d + np.sin(a)[:, None] * up)
@@ -108,8 +70,8 @@ def cut_outline(machine, travel_m: float, luff_rad: float, slew_start_rad: float
     Returns the outline's points (2 n + 1, 3), m: the outer arc, the inner arc back, and
     the first point again.
     """
-    rho = machine.l4_m + machine.l5_m * math.cos(luff_rad)
-    c_z = machine.rail_z_m + machine.pivot_height_m + machine.l5_m * math.sin(luff_rad)
+    rho = float(boom_radius_m(machine, luff_rad))
+    c_z = float(boom_height_m(machine, luff_rad))
     hw = machine.half_width_m
     lo, hi = sorted((slew_start_rad, slew_end_rad))
     if hi - lo >= 2 * math.pi:

@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from projector.envelope import Reclaimer
+from projector.kinematics import Reclaimer
 from projector.grades import timestamp_ns
 from schemas.events import decode_payload
 from schemas.times import NS_PER_H
