@@ -32,7 +32,7 @@ counter                meaning                                                  
 .. [1] ``garbage_bytes`` is reported but not summed into the status line's ``errors``,
    which counts events: one corrupted telegram is one CRC error but hundreds of bytes.
 
-Scan geometry (matches :mod:`sim.sensors`, the Foxglove ``LaserScan`` / ROS
+Scan geometry (matches :mod:`sim.scanner`, the Foxglove ``LaserScan`` / ROS
 convention): beam ``k`` has bearing ``-fov/2 + k * step`` about the scanner's +z axis from
 +x, so ``start_angle = -fov/2`` and ``end_angle = -fov/2 + (n - 1) * step`` (= ``+fov/2``
 for every LMS200 field), radians.  The field of view and step come from the value count of
@@ -231,7 +231,7 @@ def scan_field(count: int, fov_deg: float | None = None,
     """The angles of a scan of ``count`` values.
 
     Beam ``k`` has bearing ``-fov/2 + k * step`` (the simulator's
-    :func:`sim.sensors.beam_angles_rad`, computed the same way so the angles
+    :func:`sim.scanner.beam_angles_rad`, computed the same way so the angles
     agree to the last bit).
 
     Parameters
