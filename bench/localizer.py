@@ -11,8 +11,8 @@ What it does (thesis §3.2-§3.3):
    (:func:`bench.sim_errors.bench_reclaim_trajectory`); truth is the simulator's forward
    kinematics (:func:`sim.kinematics.wheel_centre`) of the true joints.
 2. Per run and encoder set (1 and 2 of §3.3): the simulator's encoders
-   (:class:`sim.sensors.EncoderModel`) and its GNSS receiver
-   (:class:`sim.sensors.GnssModel`, default configuration: DGPS 31 km baseline
+   (:class:`sim.encoders.EncoderModel`) and its GNSS receiver
+   (:class:`sim.gnss.GnssModel`, default configuration: DGPS 31 km baseline
    with correction outages and the heavy-tailed yard noise, antenna at the wheel centre).
 3. Three wheel-centre estimates, scored by the RMSE of the 3-D distance error:
    encoders alone (forward kinematics of the readings), GNSS alone (the fix, as
@@ -60,8 +60,9 @@ from services.localizer_batch import filter_sequence  # noqa: E402
 from services.localizer_tuning import FilterTuning, gnss_covariance_m2  # noqa: E402
 from sim.kinematics import FULL_SCALE, Machine, wheel_centre  # noqa: E402
 from sim.scenario import DEFAULT_START_NS, Scenario  # noqa: E402
-from sim.sensors import (  # noqa: E402
-    ENCODER_SET_1, ENCODER_SET_2, EncoderModel, EncoderSpec, GnssConfig, GnssModel)
+from sim.encoders import (  # noqa: E402
+    ENCODER_SET_1, ENCODER_SET_2, EncoderModel, EncoderSpec)
+from sim.gnss import GnssConfig, GnssModel  # noqa: E402
 
 #: thesis Table 3.3, dataset 1 (encoder set 1, GPS configuration 1) and dataset 4 (set 2)
 THESIS = {"set 1": (0.6611, 1.47, 0.1560), "set 2": (1.2243, 4.02, 0.2664)}

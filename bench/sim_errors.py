@@ -11,10 +11,10 @@ What it does (thesis §3.2-§3.3):
    5, 50 m) sampled every 1 s: the boom raises from 0 to 10 deg, slews 90 deg through
    the bank (45 -> 135 deg, boom across the pile), the machine advances one cut depth
    (0.8 m), the boom slews back, and so on for ``--hours``.
-2. Encoders alone: reads the joints with :class:`sim.sensors.EncoderModel`
+2. Encoders alone: reads the joints with :class:`sim.encoders.EncoderModel`
    (encoder sets 1 and 2 of §3.3) and puts the readings through the forward kinematics;
    RMSE of the wheel-centre distance error against the true trajectory.
-3. GNSS alone: the antenna at the wheel centre, :class:`sim.sensors.GnssModel`
+3. GNSS alone: the antenna at the wheel centre, :class:`sim.gnss.GnssModel`
    in four configurations; RMSE of the distance error over epochs with a fix.
 4. Repeats ``--runs`` times with independent seeds (the thesis averaged 10 runs) and
    prints mean, min and max RMSE next to the thesis' values.
@@ -41,8 +41,8 @@ import numpy as np  # noqa: E402
 
 from sim.kinematics import FULL_SCALE, wheel_centre  # noqa: E402
 from sim.scenario import DEFAULT_START_NS, Scenario  # noqa: E402
-from sim.sensors import (  # noqa: E402
-    ENCODER_SET_1, ENCODER_SET_2, EncoderModel, GnssConfig, GnssModel)
+from sim.encoders import ENCODER_SET_1, ENCODER_SET_2, EncoderModel  # noqa: E402
+from sim.gnss import GnssConfig, GnssModel  # noqa: E402
 
 NS_PER_S = 1_000_000_000
 

@@ -7,7 +7,7 @@ Conventions
   ``t`` (metres) and a unit quaternion ``q`` in Foxglove order ``(x, y, z, w)``; a point
   maps as ``p_parent = R(q) @ p_child + t``.  ``q`` and ``-q`` are the same rotation.
 - Scans follow the Foxglove ``LaserScan`` / ROS convention (the one the simulator's
-  LMS200 uses, ``sim/sensors.py``): the scan plane is the sensor's x-y plane;
+  LMS200 uses, ``sim/scanner.py``): the scan plane is the sensor's x-y plane;
   beam ``b`` has bearing ``a_b = angle_min + b * angle_increment`` (radians, counter-
   clockwise about the sensor's +z axis, 0 = +x) and direction ``(cos a_b, sin a_b, 0)``.
   A downward-looking scanner sweeping across the pile has ``R = [[0, 1, 0], [0, 0, -1],

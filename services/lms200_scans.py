@@ -1,7 +1,7 @@
 """What the scanner service makes of an LMS200 telegram, without I/O: angles, time, message.
 
 :func:`scan_field` gives the angles of a scan of ``count`` values (:class:`ScanField`,
-the Foxglove ``LaserScan`` / ROS convention, as :mod:`sim.sensors` computes them);
+the Foxglove ``LaserScan`` / ROS convention, as :mod:`sim.scanner` computes them);
 :func:`transfer_time_ns`, :func:`telegram_end_offsets` and :func:`scan_valid_time_ns`
 date a scan by when its first byte went on the serial line; :func:`scan_message` builds
 the ``foxglove.LaserScan``.  :mod:`services.scanner` is the service that uses them.
@@ -50,7 +50,7 @@ def scan_field(count: int, fov_deg: float | None = None,
     """The angles of a scan of ``count`` values.
 
     Beam ``k`` has bearing ``-fov/2 + k * step`` (the simulator's
-    :func:`sim.sensors.beam_angles_rad`, computed the same way so the angles
+    :func:`sim.scanner.beam_angles_rad`, computed the same way so the angles
     agree to the last bit).
 
     Parameters

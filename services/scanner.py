@@ -32,7 +32,7 @@ counter                meaning                                                  
 .. [1] ``garbage_bytes`` is reported but not summed into the status line's ``errors``,
    which counts events: one corrupted telegram is one CRC error but hundreds of bytes.
 
-Scan geometry (matches :mod:`sim.sensors`, the Foxglove ``LaserScan`` / ROS
+Scan geometry (matches :mod:`sim.scanner`, the Foxglove ``LaserScan`` / ROS
 convention): beam ``k`` has bearing ``-fov/2 + k * step`` about the scanner's +z axis from
 +x, so ``start_angle = -fov/2`` and ``end_angle = -fov/2 + (n - 1) * step`` (= ``+fov/2``
 for every LMS200 field), radians.  The field of view and step come from the value count of

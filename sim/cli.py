@@ -6,15 +6,21 @@ import argparse
 import json
 import math
 import sys
+import threading
 from dataclasses import replace
 from pathlib import Path
 
+import zenoh
+
+from services.service import Stopper, log
+from services.zenoh_config import DEFAULT_LISTEN, add_zenoh_arguments, config_from_args
+from sim.publish import ZenohSink
+from sim.pty import PtyDevice
+from sim.runner import Simulation
 from sim.scenario import SCENARIOS, scenario_by_name
 
 
 def _wait_liveliness(session, key: str, timeout_s: float) -> bool:
-    import threading
-
     seen = threading.Event()
     sub = session.liveliness().declare_subscriber(key, lambda _s: seen.set(), history=True)
     try:
@@ -24,8 +30,6 @@ def _wait_liveliness(session, key: str, timeout_s: float) -> bool:
 
 
 def run_sim(args: argparse.Namespace) -> int:
-    from sim.runner import Simulation
-
     scenario = scenario_by_name(args.scenario)
     if args.assay_window is not None:
         if not (args.assay_window > 0 and math.isfinite(args.assay_window)):
@@ -36,17 +40,10 @@ def run_sim(args: argparse.Namespace) -> int:
     ptys: dict[str, object] = {}
     session = None
     if args.pty:
-        from sim.pty import PtyDevice
-
         ptys = {"scanner": PtyDevice(), "gnss": PtyDevice()}
         print(f"LMS200 scanner on {ptys['scanner'].path}", flush=True)
         print(f"GNSS receiver  on {ptys['gnss'].path}", flush=True)
     if args.zenoh:
-        import zenoh
-
-        from sim.publish import ZenohSink
-        from services.zenoh_config import config_from_args
-
         session = zenoh.open(config_from_args(args))
         sink = ZenohSink(session, scenario.site_id)
         sinks.append(sink)
@@ -73,15 +70,11 @@ def run_sim(args: argparse.Namespace) -> int:
         for pty in ptys.values():  # the devices go quiet: their readers see the end
             pty.close()
         if session is not None:
-            from services.service import log
-
             for producer in sim.producers.values():  # logged before the done line
                 log("sim", "published", source=producer.source, epoch=producer.epoch,
                     count=producer.seq)
         _print_summary(stats, out)
         if session is not None:
-            from services.service import Stopper
-
             if args.linger > 0:
                 # keep the publishers' caches up until told to stop, so a ledger that
                 # missed something can still recover it
@@ -118,8 +111,6 @@ def _print_summary(stats, out: Path) -> None:
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    from services.zenoh_config import DEFAULT_LISTEN, add_zenoh_arguments
-
     p = subparsers.add_parser("sim", help="run the yard simulator (ground truth + emulated hardware)",
                               description="Run a simulated stockyard: stacking, reclaiming, "
                               "the laboratory, and the LMS200 scanner, GNSS receiver and encoders "

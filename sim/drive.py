@@ -29,6 +29,9 @@ from pathlib import Path
 
 import numpy as np
 
+from projector.grades import AssayRecord
+from projector.grid import GridGeometry
+from projector.layers import DepositInfo, LayerStack
 from sim.kinematics import Machine, boom_radius_m, envelope_floor_z, wheel_centre
 from sim.runner import CUT_SUBSWEEPS, Simulation
 from sim.scenario import Scenario
@@ -239,9 +242,6 @@ def truth_stack(world: World, refine: int = 1):
     -------
     stack : LayerStack
     """
-    from projector.grid import GridGeometry
-    from projector.layers import DepositInfo, LayerStack
-
     if isinstance(refine, bool) or int(refine) < 1:
         raise ValueError(f"refine must be an integer >= 1, got {refine!r}")
     f = int(refine)
@@ -286,8 +286,6 @@ def lab_assays(sim: Simulation):
         Lot id -> planned grade (mass %).
     assays : list of AssayRecord
     """
-    from projector.grades import AssayRecord
-
     lots = {lot.lot_id: dict(lot.planned_grade()) for lot in sim.scenario.lots}
     assays = [AssayRecord(r.assay_id, r.lot_id, int(r.window_start_ns), int(r.window_end_ns),
                           dict(r.analytes_pct), float(r.bulk_density_t_m3), r.status,

@@ -15,11 +15,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from schemas.times import NS_PER_H, NS_PER_S
+
 #: Analytes, in the order of every grade vector in the simulator.
 ANALYTES: tuple[str, ...] = ("Fe", "SiO2", "Al2O3", "P", "LOI")
-
-NS_PER_S = 1_000_000_000
-NS_PER_H = 3600 * NS_PER_S
 
 
 @dataclass(frozen=True)

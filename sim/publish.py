@@ -12,13 +12,16 @@ sequence.  Sinks receive every event in emission order:
 
 from __future__ import annotations
 
+import threading
 from pathlib import Path
 from typing import Protocol
 
+import zenoh
 from google.protobuf.message import Message
 
 from schemas.events import Event, encode_attachment, key_expr, make_event
 from schemas.jsonl import encode_line
+from services.service import declare_ledger_publisher
 
 
 class Sink(Protocol):
@@ -81,16 +84,12 @@ class ZenohSink:
     """
 
     def __init__(self, session, site: str) -> None:
-        import zenoh
-
         self.session, self.site = session, site
         self._publishers: dict[tuple[str, str], object] = {}
         self._block = zenoh.CongestionControl.BLOCK
         self.count = 0
 
     def _publisher(self, type_name: str, source: str):
-        from services.service import declare_ledger_publisher
-
         key = (type_name, source)
         publisher = self._publishers.get(key)
         if publisher is None:
@@ -111,8 +110,6 @@ class ZenohSink:
         Lets a run start only once its consumer listens, so nothing is published into
         the void.  Returns whether one matched.
         """
-        import threading
-
         self._publisher(type_name, source)
         # an AdvancedPublisher has no matching listener: watch a plain one on the same key
         probe = self.session.declare_publisher(key_expr(self.site, type_name, source),

@@ -59,76 +59,38 @@ ledger would get both versions (the localizer's transforms have source
 
 from __future__ import annotations
 
-import heapq
-import json
-import math
 import time
-import zlib
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
-from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
-from scipy.spatial.transform import Rotation
 
-from schemas import pb
-from schemas.events import set_timestamp_ns
 from devices import lms200
 from devices.nmea import format_gga
+from schemas.times import NS_PER_H, NS_PER_S
 from services.scanner import default_frame_id, scan_field, scan_message
-from sim import sensors
-from sim.grades import ANALYTES, NS_PER_S, BeltGrade, LabModel, LabResult
-from sim.kinematics import FULL_SCALE, boom_radius_m, envelope_floor_z, wheel_centre
+from sim import messages
+from sim.encoders import EncoderModel
+from sim.gnss import GnssModel
+from sim.grades import ANALYTES, LabResult
+from sim.motion import (
+    Motion, bench_luff, landing_travel, move_speed_m_s, patrol_legs, patrol_pose, scanner_pose,
+    slew_range)
 from sim.publish import JsonlSink, Producer, Sink
+from sim.records import (
+    LAB_WINDOW_FE, cut_record, cut_totals, flow_grade, lab_schedule, lab_windows, write_truth)
+from sim.rng import named_rng
+from sim.scanner import BEAM_ERROR_CODE, ScannerModel
 from sim.scenario import Scenario
+from sim.timetable import CHUNK_S, Milestones, Queue, stacking_plan
 from sim.world import Grid, World
 
-#: Rotation of the scanner frame in the wheel frame: looking straight down, scan plane
-#: containing the boom (scanner x = down, y = along the boom, z = x cross y).
-SCANNER_IN_WHEEL = np.array([[0.0, 1.0, 0.0],
-                             [0.0, 0.0, -1.0],
-                             [-1.0, 0.0, 0.0]])
+__all__ = ["CUT_SUBSWEEPS", "SCAN_EVENTS", "RunStats", "Simulation"]
 
-#: The world's extra grade channel: the laboratory's Fe (mass %) of the assay window each
-#: piece of belt flow falls in (see Simulation.__init__); cut records give its mean as
-#: ``lab_window_fe_pct``.
-LAB_WINDOW_FE = "Fe@lab-window"
-CHUNK_S = 30.0           # stacking is released in chunks of this much site time
 CUT_SUBSWEEPS = 8        # a cut removes material in this many steps of its slew
-MOVE_SPEED_M_S = 0.5     # travel speed between cuts and while patrolling (full-scale machine)
-PATROL_LAG_S = 2 * CHUNK_S  # the scanner trails the stacker by this much while it stacks
-SLEW_STEP_RAD = math.radians(0.5)
 #: values of ``Simulation.scan_events`` / ``--scan-events`` (see the module docstring)
 SCAN_EVENTS = ("off", "truth", "encoders")
-
-
-def _rng(seed: int, name: str) -> np.random.Generator:
-    return np.random.default_rng([seed, zlib.crc32(name.encode())])
-
-
-def wheel_rotation(slew_rad: float) -> np.ndarray:
-    """Rotation of the wheel frame in the site frame: x along the boom (horizontal), z up."""
-    c, s = math.sin(slew_rad), math.cos(slew_rad)  # boom direction (sin slew, cos slew, 0)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-
-
-@dataclass
-class Motion:
-    """Linear joint motion between two times (travel m, slew rad, luff rad)."""
-
-    t0_ns: int
-    t1_ns: int
-    start: tuple[float, float, float]
-    end: tuple[float, float, float]
-
-    def at(self, t_ns: int) -> tuple[float, float, float]:
-        if self.t1_ns <= self.t0_ns:
-            return self.end
-        w = min(max((t_ns - self.t0_ns) / (self.t1_ns - self.t0_ns), 0.0), 1.0)
-        return tuple(a + (b - a) * w for a, b in zip(self.start, self.end))  # type: ignore[return-value]
-
-
 #: a paced event handled this much (real seconds) behind schedule counts as late
 LATE_S = 0.005
 #: a paced run that falls further behind than this (real seconds) gives the lost time up:
@@ -136,7 +98,6 @@ LATE_S = 0.005
 #: burst, in which telegrams and clock ticks arrive together and a service that maps
 #: arrival onto site time dates them seconds off
 REBASE_S = 0.05
-
 
 @dataclass
 class RunStats:
@@ -197,15 +158,7 @@ class Simulation:
         self.out_dir.mkdir(parents=True, exist_ok=True)
         self.jsonl = JsonlSink(self.out_dir / "events.jsonl")
         self._last_tick_ns = -1   # the newest clock event's site time
-        all_sinks = [self.jsonl, *self.sinks]
-        epoch = sc.start_ns // NS_PER_S
-        self.producers = {name: Producer(source, epoch, all_sinks) for name, source in (
-            ("config", "yard.config"), ("clock", "sim.clock"),
-            ("encoders", f"{sc.machine_id}.encoders"), ("stacker", f"{sc.stacker_id}.plc"),
-            ("reclaimer", f"{sc.machine_id}.plc"), ("lims", "lims"), ("lab", "lab1"))}
-        if self.scan_events != "off":
-            self.producers["scans"] = Producer(f"{sc.machine_id}.scanner", epoch, all_sinks)
-            self.producers["poses"] = Producer(f"{sc.machine_id}.poses", epoch, all_sinks)
+        self.producers = self._producers()
         margin = max(sc.pile_width_m * 0.25, 4 * sc.deposition_cell_m)
         self.grid = Grid.covering(sc.pile_origin_x_m - margin, sc.pile_origin_x_m + sc.pile_width_m + margin,
                                   sc.pile_origin_y_m - margin, sc.pile_origin_y_m + sc.pile_length_m + margin,
@@ -217,14 +170,13 @@ class Simulation:
         self.world = World(self.grid, sc.repose_deg, analytes=ANALYTES + (LAB_WINDOW_FE,))
         self.machine = sc.machine
         self.noise_seed = self.seed if self.noise_seed is None else int(self.noise_seed)
-        self.encoders = sensors.EncoderModel(rng=_rng(self.noise_seed, "encoders"))
-        self.gnss = sensors.GnssModel(sc.datum_lat_deg, sc.datum_lon_deg, sc.datum_alt_m,
-                                      rng=_rng(self.noise_seed, "gnss"))
+        self.encoders = EncoderModel(rng=named_rng(self.noise_seed, "encoders"))
+        self.gnss = GnssModel(sc.datum_lat_deg, sc.datum_lon_deg, sc.datum_alt_m,
+                              rng=named_rng(self.noise_seed, "gnss"))
         self.unit_mm = sc.pile_width_m < 5.0  # mm mode reaches 8 m: the laboratory pile
-        self.scanner = sensors.ScannerModel(fov_deg=sc.scan_fov_deg, step_deg=sc.scan_step_deg,
-                                            max_range_m=8.0 if self.unit_mm else 80.0,
-                                            unit_mm=self.unit_mm,
-                                            rng=_rng(self.noise_seed, "scanner"))
+        self.scanner = ScannerModel(fov_deg=sc.scan_fov_deg, step_deg=sc.scan_step_deg,
+                                    max_range_m=8.0 if self.unit_mm else 80.0,
+                                    unit_mm=self.unit_mm, rng=named_rng(self.noise_seed, "scanner"))
         if self.scan_events != "off":
             # the scanner service's defaults: frame from the source, field from the value
             # count (the scanner model only takes LMS200 fields, so they are the cast ones)
@@ -232,8 +184,8 @@ class Simulation:
             self.scan_field = scan_field(self.scanner.n_beams)
         #: the latest encoder reading: (t_ns, travel m, slew rad, luff rad) as published
         self.last_reading: tuple[int, float, float, float] | None = None
-        self.rng_belt = _rng(self.seed, "belt")
-        self.rng_stack = _rng(self.seed, "stacking")
+        self.rng_belt = named_rng(self.seed, "belt")
+        self.rng_stack = named_rng(self.seed, "stacking")
         self.lms_file = (self.out_dir / "lms200.bin").open("wb")
         self.gnss_file = (self.out_dir / "gnss.nmea").open("wb")
         self.stats = RunStats()
@@ -248,126 +200,66 @@ class Simulation:
         self.cast_scans: list[tuple[np.ndarray, np.ndarray]] = []
         self.motion = Motion(sc.start_ns, sc.start_ns, *([self._patrol_pose(sc.pile_origin_y_m)] * 2))
 
-    # -- geometry of the machines ---------------------------------------------------------
-
-    def _expected_crest_m(self) -> float:
+    def _producers(self) -> dict[str, Producer]:
+        """One producer per source of the yard, all writing to events.jsonl and the sinks."""
         sc = self.scenario
-        volume = sc.lot_count * sc.passes_per_lot * sc.tonnes_per_pass / sc.bulk_density_t_m3
-        tan = math.tan(math.radians(sc.repose_deg))
-        h = math.sqrt(volume / sc.pile_length_m * tan)
-        return sc.ground_z_m + min(h, sc.pile_width_m / 2 * tan)
+        all_sinks = [self.jsonl, *self.sinks]
+        epoch = sc.start_ns // NS_PER_S
+        producers = {name: Producer(source, epoch, all_sinks) for name, source in (
+            ("config", "yard.config"), ("clock", "sim.clock"),
+            ("encoders", f"{sc.machine_id}.encoders"), ("stacker", f"{sc.stacker_id}.plc"),
+            ("reclaimer", f"{sc.machine_id}.plc"), ("lims", "lims"), ("lab", "lab1"))}
+        if self.scan_events != "off":
+            producers["scans"] = Producer(f"{sc.machine_id}.scanner", epoch, all_sinks)
+            producers["poses"] = Producer(f"{sc.machine_id}.poses", epoch, all_sinks)
+        return producers
+
+    # -- geometry of the machines ---------------------------------------------------------
 
     @property
     def move_m_s(self) -> float:
-        """Travel speed between cuts and on the patrol's run-on (m/s): MOVE_SPEED_M_S for
-        the full-scale machine, scaled down with the boom for a smaller one (a laboratory
-        model crossing its 1.2 m pile in 2 s would scan its end slope once)."""
-        return MOVE_SPEED_M_S * min(1.0, self.machine.l5_m / FULL_SCALE.l5_m)
+        """Travel speed between cuts and on the patrol's run-on (m/s), see
+        :func:`sim.motion.move_speed_m_s`."""
+        return move_speed_m_s(self.machine)
 
     def _patrol_pose(self, travel_m: float) -> tuple[float, float, float]:
-        """Joints that hold the wheel above the pile's centre line, clear of the crest."""
-        sc, m = self.scenario, self.machine
-        clearance = max(0.5 * self._expected_crest_m(), 3 * m.cutting_radius_m)
-        z = self._expected_crest_m() + clearance
-        sin_luff = (z - m.rail_z_m - m.pivot_height_m) / m.l5_m
-        luff = math.asin(min(max(sin_luff, -0.95), 0.95))
-        rho = float(boom_radius_m(m, luff))
-        x_c = sc.pile_origin_x_m + sc.pile_width_m / 2
-        slew = math.asin(min(max((x_c - m.rail_x_m) / rho, -1.0), 1.0))
-        return (travel_m - rho * math.cos(slew), slew, luff)
+        return patrol_pose(self.scenario, self.machine, travel_m)
 
     def _scanner_pose(self, joints) -> tuple[np.ndarray, np.ndarray]:
-        centre = wheel_centre(self.machine, *joints)
-        r_wheel = wheel_rotation(joints[1])
-        position = centre + r_wheel @ np.asarray(self.scenario.scanner_offset_m)
-        return position, r_wheel @ SCANNER_IN_WHEEL
+        return scanner_pose(self.machine, self.scenario.scanner_offset_m, joints)
 
-    # -- declarations -----------------------------------------------------------------------
-
-    def _declare(self, t: int) -> None:
-        sc, m = self.scenario, self.machine
-        emit = self.producers["config"].emit
-        site = pb.SiteDeclared(site_id=sc.site_id, datum_lat_deg=sc.datum_lat_deg,
-                               datum_lon_deg=sc.datum_lon_deg, datum_alt_m=sc.datum_alt_m)
-        emit(_stamp(site, "time", t))
-        pile = pb.PileDeclared(pile_id=sc.pile_id, origin_x_m=sc.pile_origin_x_m,
-                               origin_y_m=sc.pile_origin_y_m, length_m=sc.pile_length_m,
-                               width_m=sc.pile_width_m, ground_z_m=sc.ground_z_m,
-                               cell_m=sc.surface_cell_m, voxel_m=sc.voxel_m,
-                               default_bulk_density_t_m3=sc.bulk_density_t_m3)
-        emit(_stamp(pile, "time", t))
-        quat = Rotation.from_matrix(SCANNER_IN_WHEEL).as_quat()  # x, y, z, w
-        for machine_id, kind in ((sc.machine_id, pb.BUCKET_WHEEL_RECLAIMER), (sc.stacker_id, pb.STACKER)):
-            msg = pb.MachineDeclared(
-                machine_id=machine_id, kind=kind, rail_x_m=m.rail_x_m, rail_z_m=m.rail_z_m,
-                l2_m=m.l2_m, l3_m=m.l3_m, l4_m=m.l4_m, l5_m=m.l5_m, wheel_radius_m=m.wheel_radius_m,
-                cutting_radius_m=m.cutting_radius_m, wheel_tilt_rad=m.wheel_tilt_rad,
-                bucket_width_m=m.bucket_width_m, fall_angle_rad=m.fall_angle_rad)
-            if machine_id == sc.machine_id:
-                msg.scanner.parent_frame_id = f"{machine_id}/wheel"
-                msg.scanner.child_frame_id = f"{machine_id}/scanner"
-                msg.scanner.translation.x, msg.scanner.translation.y, msg.scanner.translation.z = sc.scanner_offset_m
-                (msg.scanner.rotation.x, msg.scanner.rotation.y, msg.scanner.rotation.z,
-                 msg.scanner.rotation.w) = (float(v) for v in quat)
-            emit(_stamp(msg, "time", t))
-
-    # -- the timetable ----------------------------------------------------------------------
-
-    def _stacking_plan(self) -> list[dict]:
-        sc = self.scenario
-        t = sc.start_ns + 300 * NS_PER_S
-        plan = []
-        n = 0
-        for lot_index, lot in enumerate(sc.lots):
-            for p in range(sc.passes_per_lot):
-                t0, t1 = t, t + int(sc.pass_duration_s * NS_PER_S)
-                forward = n % 2 == 0
-                plan.append({"pass_id": f"{lot.lot_id}-P{p + 1}", "lot": lot, "lot_index": lot_index,
-                             "t0": t0, "t1": t1, "deposit": n,
-                             "y0": sc.pile_origin_y_m + (0.1 if forward else 0.9) * sc.pile_length_m,
-                             "y1": sc.pile_origin_y_m + (0.9 if forward else 0.1) * sc.pile_length_m})
-                t = t1 + int(sc.pass_gap_s * NS_PER_S)
-                n += 1
-        return plan
+    # -- the run ----------------------------------------------------------------------------
 
     def run(self, *, duration_h: float | None = None, speed: float = 0.0,
             idle_speed: float = 0.0) -> RunStats:
+        """Run the scenario until ``duration_h`` site hours (default: a minute after the
+        last assay), paced at ``speed`` site seconds per wall second (0: as fast as
+        possible; ``idle_speed`` while no machine moves); writes every output."""
         sc = self.scenario
         wall0 = time.monotonic()
         t0 = sc.start_ns
-        self._declare(t0)
-        plan = self._stacking_plan()
-        belts = {}
-        counter = [0]
-        lab = LabModel(window_s=sc.assay_window_s, delay_h=sc.assay_delay_h)
-        for lot_index, lot in enumerate(sc.lots):
-            spans = [p for p in plan if p["lot_index"] == lot_index]
-            belt = BeltGrade(lot, spans[0]["t0"], spans[-1]["t1"], self.rng_belt)
-            belts[lot.lot_id] = belt
-            for p in spans:
-                self.lab_results += lab.assays(belt, p["t0"], p["t1"], self.rng_belt, counter)
-        self.lab_results.sort(key=lambda r: (r.reported_ns, r.assay_id))
-        # the scanner runs on over the last pass's far end after the stacker stops, then
-        # surveys the finished pile end to end (a scan line per surface cell, at most at
-        # the travel speed) before the first cut
-        run_on_end = plan[-1]["t1"] + int((PATROL_LAG_S + sc.pile_length_m / self.move_m_s)
-                                          * NS_PER_S)
-        survey_m_s = min(self.move_m_s, sc.surface_cell_m * sc.scan_hz)
-        survey_end = run_on_end + int(sc.pile_length_m / survey_m_s * NS_PER_S)
-        reclaim_start = max(plan[-1]["t1"] + int(600 * NS_PER_S), survey_end + int(30 * NS_PER_S))
-        end_ns = (max(r.reported_ns for r in self.lab_results) if self.lab_results else reclaim_start)
-        end_ns += 60 * NS_PER_S
-        if duration_h is not None:
-            end_ns = t0 + int(duration_h * 3600 * NS_PER_S)
+        for msg in messages.declarations(sc, self.machine, t0):
+            self.producers["config"].emit(msg)
+        plan = stacking_plan(sc)
+        self.belts, self.lab_results = lab_schedule(sc, plan, self.rng_belt)
+        ms = Milestones.of(sc, plan, self.move_m_s, self.lab_results, duration_h)
+        queue = self._schedule(plan, ms)
+        self.stacking_until = ms.survey_end
+        self.reclaiming = False
+        self.lab_windows = lab_windows(self.lab_results, "Fe")
+        self._work_through(queue, ms.end_ns, speed, idle_speed, wall0)
+        self.stats.site_s = (ms.end_ns - t0) / NS_PER_S
+        self.stats.wall_s = time.monotonic() - wall0
+        self._finish()
+        return self.stats
 
-        # the queue of things to do, in site time: (t_ns, order, kind, payload)
-        queue: list[tuple[int, int, str, object]] = []
-        order = [0]
-
-        def at(t_ns: int, kind: str, payload: object = None) -> None:
-            order[0] += 1
-            heapq.heappush(queue, (int(t_ns), order[0], kind, payload))
-
+    def _schedule(self, plan: list[dict], ms: Milestones) -> Queue:
+        """The queue at the start: lots, passes in chunks, assays, the first cut, the
+        clock and sensors, and the survey after the last pass."""
+        sc = self.scenario
+        t0 = sc.start_ns
+        queue = Queue()
+        at = queue.at
         for p in plan:
             first_of_lot = p is next(q for q in plan if q["lot_index"] == p["lot_index"])
             if first_of_lot:
@@ -379,32 +271,34 @@ class Simulation:
             at(p["t1"], "pass_end", p)
         for r in self.lab_results:
             at(r.reported_ns, "assay", r)
-        at(reclaim_start, "reclaim", (0, 0, None))
+        at(ms.reclaim_start, "reclaim", (0, 0, None))
         at(t0, "clock", int(sc.clock_period_s * NS_PER_S))
         at(t0, "encoder", None)
         at(t0, "gnss", None)
         at(t0, "scan", None)
         last_forward = plan[-1]["y1"] >= plan[-1]["y0"]
         survey_to = sc.pile_origin_y_m + (0.0 if last_forward else sc.pile_length_m)
-        at(run_on_end, "patrol", (survey_end, survey_to))
-        self.stacking_until = survey_end
-        self.reclaiming = False
-        self.belts = belts
-        self.lab_windows = _lab_windows(self.lab_results, "Fe")
+        at(ms.run_on_end, "patrol", (ms.survey_end, survey_to))
+        return queue
 
+    def _work_through(self, queue: Queue, end_ns: int, speed: float, idle_speed: float,
+                      wall0: float) -> None:
+        """Handle the queue's events up to ``end_ns``, paced at ``speed`` (see :meth:`run`)."""
+        t0 = self.scenario.start_ns
         next_report = time.monotonic() + 10.0
         t_prev, wall_due, schedule0, busy = t0, 0.0, wall0, None
         while queue:
-            t, _, kind, payload = heapq.heappop(queue)
+            t, _, kind, payload = queue.pop()
             if t > end_ns:
                 # telegrams of scans taken before the end are still on the wire: send them
-                for t_late, _o, kind_late, data in sorted(queue + [(t, _, kind, payload)]):
+                for t_late, _o, kind_late, data in sorted(queue.items + [(t, _, kind, payload)]):
                     if kind_late == "telegram":
-                        self._on_telegram(t_late, data, at)
+                        self._on_telegram(t_late, data, queue.at)
                 break
             if self.progress is not None and time.monotonic() >= next_report:
                 next_report = time.monotonic() + 10.0
-                self.progress(f"site time {(t - t0) / 3.6e12:6.2f} of {(end_ns - t0) / 3.6e12:.2f} h: "
+                self.progress(f"site time {(t - t0) / NS_PER_H:6.2f} of "
+                              f"{(end_ns - t0) / NS_PER_H:.2f} h: "
                               f"{self.jsonl.count:,} events, {self.stats.scans:,} scans, "
                               f"{self.stats.passes} passes, {self.stats.cuts} cuts")
             was_busy, busy = busy, self._busy(t_prev)
@@ -418,22 +312,24 @@ class Simulation:
                 # moves, only late assays to wait for) run at idle_speed
                 rate = idle_speed if (idle_speed and not busy) else speed
                 wall_due += (t - t_prev) / NS_PER_S / rate
-                lag = wall_due - (time.monotonic() - schedule0)
-                if lag > 0:
-                    time.sleep(lag)
-                elif -lag > LATE_S:
-                    self.stats.late_events += 1
-                    self.stats.max_lag_s = max(self.stats.max_lag_s, -lag)
-                    if -lag > REBASE_S:
-                        schedule0 -= lag          # lag < 0: the schedule moves on by it
-                        self.stats.rebases += 1
-                        self.stats.given_up_s -= lag
+                schedule0 = self._pace(wall_due, schedule0)
             t_prev = t
-            getattr(self, f"_on_{kind}")(t, payload, at)
-        self.stats.site_s = (end_ns - t0) / NS_PER_S
-        self.stats.wall_s = time.monotonic() - wall0
-        self._finish()
-        return self.stats
+            getattr(self, f"_on_{kind}")(t, payload, queue.at)
+
+    def _pace(self, wall_due: float, schedule0: float) -> float:
+        """Sleep until ``wall_due`` seconds after ``schedule0`` (wall clock); a run further
+        behind than REBASE_S moves its schedule on. Returns the schedule's start."""
+        lag = wall_due - (time.monotonic() - schedule0)
+        if lag > 0:
+            time.sleep(lag)
+        elif -lag > LATE_S:
+            self.stats.late_events += 1
+            self.stats.max_lag_s = max(self.stats.max_lag_s, -lag)
+            if -lag > REBASE_S:
+                schedule0 -= lag          # lag < 0: the schedule moves on by it
+                self.stats.rebases += 1
+                self.stats.given_up_s -= lag
+        return schedule0
 
     # -- handlers -------------------------------------------------------------------------------
 
@@ -449,7 +345,7 @@ class Simulation:
         """One ``clock`` event at site time ``t`` (never two at one time, never back)."""
         if t > self._last_tick_ns:
             self._last_tick_ns = t
-            self.producers["clock"].emit(_stamp(pb.Clock(), "time", t))
+            self.producers["clock"].emit(messages.clock(t))
 
     def _busy(self, t: int) -> bool:
         """Whether a machine works (full sensor rates) or the yard waits for assays."""
@@ -462,9 +358,8 @@ class Simulation:
         joints = self._joints(t)
         self.truth_joints.append((t, *joints))
         travel, slew, luff = self.encoders.read(t, *joints)
-        msg = pb.JointReading(machine_id=self.scenario.machine_id, travel_m=float(travel),
-                              slew_rad=float(slew), luff_rad=float(luff))
-        self.producers["encoders"].emit(_stamp(msg, "time", t))
+        msg = messages.joint_reading(self.scenario.machine_id, travel, slew, luff, t)
+        self.producers["encoders"].emit(msg)
         self.last_reading = (t, msg.travel_m, msg.slew_rad, msg.luff_rad)
         at(t + self._period_ns(t, self.scenario.encoder_hz), "encoder", None)
 
@@ -492,7 +387,7 @@ class Simulation:
         if self.record_scans:
             self.cast_scans.append((ranges.copy(), status.copy()))
         values = lms200.ranges_to_values(ranges, unit_mm=self.unit_mm)
-        values[status == sensors.BEAM_ERROR_CODE] = lms200.DAZZLE
+        values[status == BEAM_ERROR_CODE] = lms200.DAZZLE
         data = lms200.encode_measurement(values, unit_mm=self.unit_mm)
         # the telegram's last byte leaves the scanner its serial transfer time later
         transfer_ns = len(data) * 10 * NS_PER_S // sc.scanner_baud
@@ -513,51 +408,26 @@ class Simulation:
             if self.last_reading is None:  # cannot happen: the encoders read first at t0
                 raise RuntimeError("a scan before the first encoder reading")
             position, rotation = self._scanner_pose(self.last_reading[1:])
-        quat = Rotation.from_matrix(rotation).as_quat()  # x, y, z, w
-        if quat[3] < 0:
-            quat = -quat
-        ft = FrameTransform(parent_frame_id="site",
-                            child_frame_id=f"{self.scenario.machine_id}/scanner")
-        ft.translation.x, ft.translation.y, ft.translation.z = (float(v) for v in position)
-        ft.rotation.x, ft.rotation.y, ft.rotation.z, ft.rotation.w = (float(v) for v in quat)
-        self.producers["poses"].emit(_stamp(ft, "timestamp", t))
+        self.producers["poses"].emit(
+            messages.scanner_transform(self.scenario.machine_id, position, rotation, t))
         ranges = lms200.decode_measurement(data).ranges_m
         self.producers["scans"].emit(scan_message(ranges, t, self.scan_frame_id, self.scan_field))
 
     def _on_telegram(self, t: int, data: bytes, at) -> None:
         if self.scanner_pty is not None and self._busy(t):
             # the clock ticks right before the telegram leaves: the scanner dates it
-            # between the ticks around it, and casting the scan (about 4 ms, most of a
-            # working site second's compute) would otherwise sit between the tick and the
-            # telegram: 0.16 s of site time late at the demo's 40x
+            # between the ticks around it, and casting the scan (most of a working site
+            # second's compute) would otherwise sit between the tick and the telegram
             self._tick(t)
         self._write(self.lms_file, self.scanner_pty, data)
 
     def _on_lot(self, t: int, lot, at) -> None:
-        msg = pb.LotDeclared(lot_id=lot.lot_id, origin=lot.origin,
-                             planned_tonnes=self.scenario.passes_per_lot * self.scenario.tonnes_per_pass)
-        msg.planned_grade.update(lot.planned_grade())
-        self.producers["lims"].emit(_stamp(msg, "time", t))
+        self.producers["lims"].emit(messages.lot_declared(self.scenario, lot, t))
 
     def _on_pass_start(self, t: int, p: dict, at) -> None:
-        sc = self.scenario
-        msg = pb.StackStarted(pile_id=sc.pile_id, pass_id=p["pass_id"], lot_id=p["lot"].lot_id,
-                              machine_id=sc.stacker_id, pattern=getattr(pb, sc.pattern),
-                              start_y_m=p["y0"], end_y_m=p["y1"])
-        self.producers["stacker"].emit(_stamp(msg, "time", t))
-        # The reclaimer patrols along the pile with the scanner, trailing the stacker by
-        # up to PATROL_LAG_S so that it sees every stretch after the pass laid its layer there
-        # (a scanner that met the stacker half way would see half the pile before each
-        # pass and could not tell two passes' layers apart there): it waits at the end
-        # the pass starts from, follows the stacker to the pass's last position, then
-        # runs on over the far end's slope.
-        forward = p["y1"] >= p["y0"]
-        y_lo, y_hi = sc.pile_origin_y_m, sc.pile_origin_y_m + sc.pile_length_m
-        start_end, far_end = (y_lo, y_hi) if forward else (y_hi, y_lo)
-        # the run over the far end's slope ends before the next pass starts pouring
-        run_on_s = abs(far_end - p["y1"]) / self.move_m_s
-        lag_s = max(min(PATROL_LAG_S, sc.pass_gap_s - run_on_s - 10.0), CHUNK_S + 5.0)
-        lag, run_on = int(lag_s * NS_PER_S), int(run_on_s * NS_PER_S)
+        self.producers["stacker"].emit(messages.stack_started(self.scenario, p, t))
+        # the reclaimer's scanner trails the stacker (sim.motion.patrol_legs)
+        lag, run_on, start_end, far_end = patrol_legs(self.scenario, self.move_m_s, p)
         self.motion = Motion(t, t + lag, self.motion.at(t), self._patrol_pose(start_end))
         at(t + lag, "patrol", (p["t1"] + lag, p["y1"]))
         at(p["t1"] + lag, "patrol", (p["t1"] + lag + run_on, far_end))
@@ -579,10 +449,7 @@ class Simulation:
         belt = self.belts[p["lot"].lot_id]
         windows = self.lab_windows.get(p["lot"].lot_id)
         planned_fe = p["lot"].mean_pct[ANALYTES.index("Fe")]   # a lot the lab never sampled
-
-        def grade(tt: int) -> np.ndarray:
-            return np.append(belt.at(tt), _window_value(windows, tt) if windows else planned_fe)
-
+        grade = flow_grade(belt, windows, planned_fe)
         self.world.stack_pass(sc.pattern.lower(), y_a, y_b, x_c, sc.tonnes_per_pass / n, int(t_a), int(t),
                               p["deposit"], p["lot"].lot_id, grade,
                               sc.bulk_density_t_m3, rng=self.rng_stack,
@@ -591,49 +458,17 @@ class Simulation:
     def _on_pass_end(self, t: int, p: dict, at) -> None:
         sc = self.scenario
         belt_tonnes = sc.tonnes_per_pass * (1.0 + self.rng_belt.normal(0.0, sc.belt_scale_error_frac))
-        msg = pb.StackEnded(pile_id=sc.pile_id, pass_id=p["pass_id"], tonnes=round(belt_tonnes, 1))
-        self.producers["stacker"].emit(_stamp(msg, "time", t))
+        self.producers["stacker"].emit(messages.stack_ended(sc, p["pass_id"], belt_tonnes, t))
         self.passes.append({"pass_id": p["pass_id"], "lot_id": p["lot"].lot_id, "t0_ns": p["t0"],
                             "t1_ns": p["t1"], "true_tonnes": sc.tonnes_per_pass,
                             "belt_tonnes": belt_tonnes, "deposit": p["deposit"]})
         self.stats.passes += 1
 
     def _on_assay(self, t: int, r: LabResult, at) -> None:
-        msg = pb.Assay(assay_id=r.assay_id, lot_id=r.lot_id, moisture_pct=r.moisture_pct,
-                       bulk_density_t_m3=r.bulk_density_t_m3, status=getattr(pb, r.status),
-                       supersedes=r.supersedes, lab_id=r.lab_id)
-        msg.analytes.update(r.analytes_pct)
-        _stamp(msg, "window_start", r.window_start_ns)
-        _stamp(msg, "window_end", r.window_end_ns)
-        _stamp(msg, "reported_time", r.reported_ns)
-        self.producers["lab"].emit(msg)
+        self.producers["lab"].emit(messages.assay(r))
         self.stats.assays += 1
 
     # -- reclaiming -----------------------------------------------------------------------------
-
-    def _bench_luff(self, bench: int) -> float:
-        sc, m = self.scenario, self.machine
-        crest = float(np.max(self.world.surface_z()))
-        z = crest - sc.first_bench_below_crest_m - bench * sc.bench_step_m
-        if sc.bench_heights_m is not None:
-            z = sc.ground_z_m + sc.bench_heights_m[bench]
-        z = max(z, sc.ground_z_m + m.cutting_radius_m * 0.98)
-        return math.asin((z - m.rail_z_m - m.pivot_height_m) / m.l5_m)
-
-    def _slew_range(self, travel: float, luff: float) -> tuple[float, float] | None:
-        """Slew angles (0.5 deg steps) where the envelope meets material at this travel."""
-        m, g = self.machine, self.grid
-        x, y = np.meshgrid(g.x_centres, g.y_centres)
-        floor = envelope_floor_z(m, x, y, travel, luff, 0.0, math.pi)
-        surface = self.world.surface_z()
-        material = self.world.thickness() > 0.01 * m.cutting_radius_m  # not bare ground
-        hit = material & np.isfinite(floor) & (surface > floor + 0.01 * m.cutting_radius_m)
-        if not hit.any():
-            return None
-        theta = np.arctan2(x[hit] - m.rail_x_m, y[hit] - travel)
-        lo = math.floor(theta.min() / SLEW_STEP_RAD) * SLEW_STEP_RAD
-        hi = math.ceil(theta.max() / SLEW_STEP_RAD) * SLEW_STEP_RAD
-        return lo, hi
 
     def _on_reclaim(self, t: int, state, at) -> None:
         """Plan and start the next cut (state = bench, cut index, travel of the last cut)."""
@@ -643,21 +478,12 @@ class Simulation:
             self.reclaiming = False
             return
         self.reclaiming = True
-        luff = self._bench_luff(bench)
-        rho = float(boom_radius_m(m, luff))
+        luff = bench_luff(sc, m, self.world, bench)
         if travel is None:  # landing: approach from the low-y end until the wheel meets the pile
-            travel = sc.pile_origin_y_m - rho - m.cutting_radius_m
-            limit = sc.pile_origin_y_m + sc.pile_length_m
-            min_face = math.radians(sc.landing_min_slew_deg)
-            while travel < limit:
-                slews = self._slew_range(travel, luff)
-                if slews is not None and slews[1] - slews[0] >= min_face:
-                    break
-                travel += m.cut_depth_m
-            travel += 0.5 * m.cutting_radius_m  # land into the bank, not on its toe
+            travel = landing_travel(sc, m, self.grid, self.world, luff)
         else:
             travel += m.cut_depth_m
-        slews = self._slew_range(travel, luff)
+        slews = slew_range(m, self.grid, self.world, travel, luff)
         if slews is None or cut >= sc.cuts_per_bench[bench]:
             at(t + int(120 * NS_PER_S), "reclaim", (bench + 1, 0, None))
             return
@@ -698,36 +524,12 @@ class Simulation:
 
     def _finish_cut(self, t: int, c: dict, at) -> None:
         sc = self.scenario
-        tonnes = sum(p.tonnes for p in c["parts"])
-        grade = {}
-        for a in self.world.analytes:   # the analytes and the lab's channel
-            mass = sum(p.tonnes * p.grade[a] for p in c["parts"] if p.tonnes > 0)
-            grade[a] = mass / tonnes if tonnes > 0 else float("nan")
-        lab_fe = grade.pop(LAB_WINDOW_FE)
-        by_lot: dict[str, float] = {}
-        for p in c["parts"]:
-            for lot, tn in p.tonnes_by_lot.items():
-                by_lot[str(lot)] = by_lot.get(str(lot), 0.0) + tn
-        by_deposit: dict[str, float] = {}
-        for p in c["parts"]:
-            for dep, tn in p.tonnes_by_deposit.items():
-                by_deposit[str(dep)] = by_deposit.get(str(dep), 0.0) + tn
+        totals = cut_totals(c["parts"], self.world.analytes)
+        tonnes = totals["true_tonnes"]
         belt = tonnes * (1.0 + self.rng_belt.normal(0.0, sc.belt_scale_error_frac)) if tonnes > 0 else 0.0
         cut_id = f"B{c['bench'] + 1}-C{c['cut'] + 1:02d}"
-        msg = pb.ReclaimCut(pile_id=sc.pile_id, cut_id=cut_id, bench_id=f"B{c['bench'] + 1}",
-                            machine_id=sc.machine_id, travel_m=c["travel"], luff_rad=c["luff"],
-                            slew_start_rad=c["slew_start"], slew_end_rad=c["slew_end"],
-                            tonnes=round(belt, 1))
-        _stamp(msg, "start_time", c["t0"])
-        _stamp(msg, "end_time", c["t1"])
-        self.producers["reclaimer"].emit(msg)
-        self.cuts.append({"cut_id": cut_id, "t0_ns": c["t0"], "t1_ns": c["t1"], "travel_m": c["travel"],
-                          "luff_rad": c["luff"], "slew_start_rad": c["slew_start"],
-                          "slew_end_rad": c["slew_end"], "true_tonnes": tonnes,
-                          "true_volume_m3": sum(p.volume_m3 for p in c["parts"]), "belt_tonnes": belt,
-                          "slump_m3": sum(p.slump_m3 for p in c["parts"]),
-                          "grade": grade, "lab_window_fe_pct": lab_fe, "tonnes_by_lot": by_lot,
-                          "tonnes_by_deposit": by_deposit})
+        self.producers["reclaimer"].emit(messages.reclaim_cut(sc, c, cut_id, belt))
+        self.cuts.append(cut_record(c, cut_id, totals, belt))
         self.stats.cuts += 1
         at(t + int(30 * NS_PER_S), "reclaim", (c["bench"], c["cut"] + 1, c["travel"]))
 
@@ -748,72 +550,4 @@ class Simulation:
             if pty is not None:
                 self.stats.dropped_pty_bytes += getattr(pty, "dropped_bytes", 0)
         self.stats.events = self.jsonl.count
-        world = self.world
-        truth = {
-            "scenario": {k: (v if isinstance(v, (int, float, str, bool, type(None))) else str(v))
-                         for k, v in asdict(self.scenario).items() if k not in ("lots", "machine")},
-            "machine": asdict(self.machine),
-            "seed": self.seed,
-            "noise_seed": self.noise_seed,
-            "stats": asdict(self.stats),
-            "passes": self.passes,
-            "cuts": self.cuts,
-            "assays": [asdict(r) for r in self.lab_results],
-            "world": world.summary(),
-        }
-        truth["world"].pop("cuts", None)  # per sub-sweep; the per-cut totals are in "cuts"
-        (self.out_dir / "truth.json").write_text(json.dumps(_clean(truth), indent=1, sort_keys=True))
-        arrays = {"surface_z": world.surface_z(), "layer_tops": world.layer_surfaces(),
-                  "x_centres": world.grid.x_centres, "y_centres": world.grid.y_centres,
-                  "joints": np.asarray(self.truth_joints, dtype=np.float64).reshape(-1, 4),
-                  "scanner_poses": np.asarray(self.truth_scans, dtype=np.float64).reshape(-1, 13),
-                  "antenna_enu": np.asarray(self.truth_antenna, dtype=np.float64).reshape(-1, 4)}
-        if self.cut_surfaces:
-            # a run stopped mid-cut has a surface for a cut it did not finish: not kept
-            arrays["cut_surface_z"] = np.asarray(self.truth_cut_surfaces[:len(self.cuts)],
-                                                 np.float32).reshape(-1, *arrays["surface_z"].shape)
-            arrays.update(self.truth_first_cut_parcels)
-        parcels = world.parcels()
-        arrays.update(thickness=parcels["thickness"], time_ns=parcels["time_ns"],
-                      grade=parcels["grade"], density_t_m3=parcels["density_t_m3"])
-        np.savez_compressed(self.out_dir / "truth.npz", **arrays)
-
-
-def _lab_windows(results: list[LabResult], analyte: str) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """Per lot, the laboratory's final value of ``analyte`` (mass %) per sampling window:
-    (window starts in UTC ns, values), in time order (a FINAL replaces the PROVISIONAL
-    result of its window)."""
-    final = {(r.lot_id, r.window_start_ns): r.analytes_pct[analyte]
-             for r in results if r.status == "FINAL"}
-    by_lot: dict[str, list[tuple[int, float]]] = {}
-    for (lot, start_ns), value in sorted(final.items()):
-        by_lot.setdefault(lot, []).append((start_ns, value))
-    return {lot: (np.array([t for t, _ in rows], np.int64), np.array([v for _, v in rows]))
-            for lot, rows in by_lot.items()}
-
-
-def _window_value(windows: tuple[np.ndarray, np.ndarray], time_ns: int) -> float:
-    """The value of the window that holds ``time_ns`` (the first or last beyond the ends)."""
-    starts, values = windows
-    i = int(np.searchsorted(starts, time_ns, side="right")) - 1
-    return float(values[min(max(i, 0), len(values) - 1)])
-
-
-def _stamp(message, field_name: str, t_ns: int):
-    set_timestamp_ns(getattr(message, field_name), int(t_ns))
-    return message
-
-
-def _clean(value):
-    """NaN/inf -> None, numpy scalars -> Python, recursively (strict JSON)."""
-    if isinstance(value, dict):
-        return {str(k): _clean(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_clean(v) for v in value]
-    if isinstance(value, (np.floating, float)):
-        return float(value) if math.isfinite(value) else None
-    if isinstance(value, np.integer):
-        return int(value)
-    if isinstance(value, np.ndarray):
-        return _clean(value.tolist())
-    return value
+        write_truth(self)

@@ -1,8 +1,8 @@
 """The UKF localizer: the filter against the simulator's truth, and the service as a process.
 
 Truth always comes from the simulator (:mod:`sim.kinematics`, the encoder and
-GNSS models of :mod:`sim.sensors`, the scanner pose of
-:mod:`sim.runner`), never from the filter's own kinematics.
+GNSS models of :mod:`sim.encoders` and :mod:`sim.gnss`, the scanner pose of
+:mod:`sim.motion`), never from the filter's own kinematics.
 """
 
 from __future__ import annotations
@@ -31,10 +31,11 @@ from services import localizer_batch, localizer_covariance, localizer_tuning
 from services.localizer_filter import LocalizerFilter
 from services.localizer_tuning import FilterTuning
 from services.localizer import Config, Localizer
+from sim.encoders import ENCODER_SET_1, EncoderModel
+from sim.gnss import GnssModel
 from sim.kinematics import FULL_SCALE, wheel_centre
-from sim.runner import SCANNER_IN_WHEEL, wheel_rotation
+from sim.motion import SCANNER_IN_WHEEL, wheel_rotation
 from sim.scenario import DEFAULT_START_NS, Scenario
-from sim.sensors import ENCODER_SET_1, EncoderModel, GnssModel
 
 NS = 1_000_000_000
 SEED = 20261122

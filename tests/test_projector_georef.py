@@ -119,8 +119,8 @@ def test_sensor_points_laserscan_convention():
 
 
 def test_georeference_matches_the_simulator_scan_geometry():
-    """Same points as sim.sensors: position + R @ (range * direction)."""
-    from sim.sensors import beam_angles_rad, beam_directions_scanner_frame, rotation_matrix
+    """Same points as sim.scanner: position + R @ (range * direction)."""
+    from sim.scanner import beam_angles_rad, beam_directions_scanner_frame, rotation_matrix
 
     rng = make_rng(2)
     fov, step = 100.0, 0.5

@@ -31,7 +31,7 @@ from services import scanner as S
 from devices import lms200 as L
 from services.service import SiteTime, parse_logfmt
 from sim.pty import PtyDevice
-from sim.sensors import beam_angles_rad
+from sim.scanner import beam_angles_rad
 from tests.zenoh_helpers import (
     EventSink,
     SiteClock,

@@ -6,7 +6,8 @@ import random
 
 import numpy as np
 
-from sim.grades import ANALYTES, NS_PER_H, NS_PER_S, BeltGrade, LabModel, table_5_4_lots
+from schemas.times import NS_PER_H, NS_PER_S
+from sim.grades import ANALYTES, BeltGrade, LabModel, table_5_4_lots
 
 
 def _seed() -> int:

@@ -18,7 +18,8 @@ from schemas.validate import check_event
 from devices import lms200
 from devices.nmea import NmeaReader, parse_gga
 from sim.pty import PtyDevice
-from sim.runner import LAB_WINDOW_FE, Simulation
+from sim.records import LAB_WINDOW_FE
+from sim.runner import Simulation
 from sim.scenario import demo
 
 STOCKPILE = str(Path(sys.executable).with_name("stockpile"))

@@ -26,9 +26,9 @@ from schemas.jsonl import decode_line, encode_line
 from projector.kinematics import MachineGeometry, quaternion_to_matrix, scanner_pose
 from devices import lms200
 from services.scanner import scan_field, scan_message
-from sim import sensors
 from sim.publish import MemorySink
 from sim.runner import Simulation
+from sim.scanner import beam_angles_rad
 from sim.scenario import demo
 
 STOCKPILE = str(Path(sys.executable).with_name("stockpile"))
@@ -132,7 +132,7 @@ def test_truth_mode_imports_cleanly_and_matches_the_truth_and_the_telegrams(runs
     expected, counts_per_scan = _telegram_ranges(out / "lms200.bin")
     assert len(expected) == n
     sc = demo()
-    angles = sensors.beam_angles_rad(sc.scan_fov_deg, sc.scan_step_deg)
+    angles = beam_angles_rad(sc.scan_fov_deg, sc.scan_step_deg)
     n_nan = n_finite = 0
     for event, ranges, count in zip(scans, expected, counts_per_scan):
         scan = decode_payload("scan", event.payload)

@@ -17,11 +17,12 @@ import pytest
 from scipy import stats
 
 from sim.kinematics import FULL_SCALE, wheel_centre
-from sim.sensors import (
-    BEAM_DROPOUT, BEAM_ERROR_CODE, BEAM_MIXED, BEAM_NO_HIT, BEAM_OK, ENCODER_SET_1,
-    ENCODER_SET_2, EncoderModel, GnssConfig, GnssModel, ScannerModel, antenna_position,
-    beam_angles_rad, beam_directions_scanner_frame, quantise_down, raycast_heightmap,
-    rotation_matrix, scan_count)
+from sim.encoders import ENCODER_SET_1, ENCODER_SET_2, EncoderModel, quantise_down
+from sim.gnss import GnssConfig, GnssModel, antenna_position
+from sim.raycast import raycast_heightmap
+from sim.scanner import (
+    BEAM_DROPOUT, BEAM_ERROR_CODE, BEAM_MIXED, BEAM_NO_HIT, BEAM_OK, ScannerModel,
+    beam_angles_rad, beam_directions_scanner_frame, rotation_matrix, scan_count)
 
 BASE_SEED = int(os.environ.get("SIM_SENSORS_SEED", "20261101"))
 T0_NS = 1_793_491_200_000_000_000
