@@ -1,21 +1,32 @@
 """The yard simulator: a ground-truth stockyard that speaks the real hardware protocols.
 
-It keeps its own machine kinematics and pile geometry on purpose, independent of the
-projector's, the planner's and the localizer's: it is the ground truth every accuracy
-figure of the product is measured against, and a seed reproduces a run byte for byte.
+It is the truth every accuracy figure is measured against, so it keeps its own models on
+purpose (its own kinematics, deposition and cuts), never the projector's code.
 
-- :mod:`sim.kinematics`: bucket-wheel reclaimer kinematics and the cutting envelope
-- :mod:`sim.grid`, :mod:`sim.parcels`, :mod:`sim.world`: the pile on a fine deposition grid
-  (parcels per deposit; stacking, reclaiming, slumping, exact mass accounting), with
-  :mod:`sim.deposition`, :mod:`sim.stacking`, :mod:`sim.reclaiming`, :mod:`sim.relaxation`
-  and :mod:`sim.truth`
-- :mod:`sim.encoders`, :mod:`sim.gnss`, :mod:`sim.scanner` (:mod:`sim.raycast`): the
-  sensors with their errors
+The world:
+
+- :mod:`sim.scenario`: scenarios as data (``demo``, ``full-scale``, ``bench-scale``, ``load``)
+- :mod:`sim.grid`: the deposition grid and stacking patterns
+- :mod:`sim.world`: the pile (stacking, cuts, settling, mass and grade accounts), on
+  :mod:`sim.parcels` (per-column parcel stacks)
+- :mod:`sim.deposition`, :mod:`sim.stacking`, :mod:`sim.reclaiming`,
+  :mod:`sim.relaxation`: where released material rests, how a pass is released, what a
+  cut takes, how faces fail
+- :mod:`sim.kinematics`: the simulator's own reclaimer kinematics and cutting envelope
 - :mod:`sim.grades`: belt grades and the laboratory
-- :mod:`sim.scenario`: the scenarios
-- :mod:`sim.runner`: a run in site time (:mod:`sim.timetable`, :mod:`sim.motion`,
-  :mod:`sim.messages`, :mod:`sim.records`), :mod:`sim.publish` where its events go
+- :mod:`sim.truth`, :mod:`sim.records`: truth records, ``truth.json`` / ``truth.npz``
+
+The hardware, emulated:
+
+- :mod:`sim.encoders`, :mod:`sim.gnss`, :mod:`sim.scanner` (+ :mod:`sim.raycast`): the
+  sensors with their errors
 - :mod:`sim.pty`: pseudo-terminals the emulated serial devices write to
-- :mod:`sim.drive`: planned cuts on the true pile, checked in the simulator's geometry
+
+The run:
+
+- :mod:`sim.runner`: ``Simulation``, the event-driven run in site time, on
+  :mod:`sim.timetable`, :mod:`sim.motion`, :mod:`sim.messages` and :mod:`sim.rng`
+- :mod:`sim.publish`: producers and sinks (JSON lines, Zenoh)
+- :mod:`sim.drive`: planned cuts driven into the true pile, checked in its own geometry
 - :mod:`sim.cli`: ``stockpile sim``
 """

@@ -52,7 +52,7 @@ def test_wheel_centre_matches_the_domain_formula():
         c = wheel_centre(m, d1, th2, th3)
         assert c.shape == (3,)
         assert c == pytest.approx(expected, abs=1e-12)
-        # inverse kinematics (DOMAIN.md §3) recovers the joints
+        # inverse kinematics (docs/domain.md §3) recovers the joints
         assert math.asin((c[2] - m.rail_z_m - m.l2_m - m.l3_m) / m.l5_m) == pytest.approx(th3)
         slew = math.atan2(c[0] - m.rail_x_m, c[1] - d1)
         assert math.remainder(slew - th2, 2 * math.pi) == pytest.approx(0.0, abs=1e-12)
