@@ -20,7 +20,7 @@ What it does (thesis §3.2-§3.3):
    fusing both.  The filter sees only the readings and the fixes (with a covariance
    from their fix quality and HDOP, :func:`services.ukf.gnss_covariance_m2`) and the
    encoder set's datasheet drift figures; never the truth.
-4. Target (the issue's acceptance figure): UKF RMSE <= 1/3 of GNSS alone and <= 1/3 of
+4. Target: UKF RMSE <= 1/3 of GNSS alone and <= 1/3 of
    encoders alone, on the mean over runs.
 
 Two GNSS error models, side by side (``--gnss``):
@@ -54,7 +54,10 @@ for p in (ROOT, ROOT / "bench"):
 import numpy as np  # noqa: E402
 from scipy.linalg import solve_discrete_are  # noqa: E402
 
-from sim_errors import NS_PER_S, bench_reclaim_trajectory, rmse_m  # noqa: E402
+from sim_errors import bench_reclaim_trajectory, rmse_m  # noqa: E402
+from schemas.times import NS_PER_S  # noqa: E402
+from services.gnss import (  # noqa: E402
+    DEFAULT_AUTONOMOUS_UERE_M, DEFAULT_UERE_M, position_covariance_m2, uere_for_quality)
 from services.ukf import (  # noqa: E402
     FilterTuning, MachineGeometry, filter_sequence, gnss_covariance_m2)
 from sim.kinematics import FULL_SCALE, Machine, wheel_centre  # noqa: E402
@@ -108,9 +111,6 @@ def fix_covariances(quality, hdop, model: str = "quality") -> np.ndarray:
     """
     out = np.empty((len(quality), 3, 3))
     if model == "hdop":
-        from services.gnss import (DEFAULT_AUTONOMOUS_UERE_M, DEFAULT_UERE_M,
-                                   position_covariance_m2, uere_for_quality)
-
         for k, (q, h) in enumerate(zip(quality, hdop)):
             uere = uere_for_quality(int(q), DEFAULT_UERE_M, DEFAULT_AUTONOMOUS_UERE_M)
             out[k] = np.asarray(position_covariance_m2(float(h), uere)).reshape(3, 3)

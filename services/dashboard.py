@@ -560,12 +560,12 @@ class Dashboard:
                 r[0], r[1] = min(r[0], v), max(r[1], v)
 
     def _on_assay(self, record, msg) -> None:
-        from projector.grades import timestamp_ns
+        from projector.grades import coerce_time_ns
 
         self.assay_version += 1
         self.reasons.add("assay")
         self._widen_range(dict(msg.analytes))
-        late_h = (record.recorded_time_ns - timestamp_ns(msg.window_end)) / (3600 * S)
+        late_h = (record.recorded_time_ns - coerce_time_ns(msg.window_end)) / (3600 * S)
         status = {1: "PROVISIONAL", 2: "FINAL"}.get(int(msg.status), str(msg.status))
         unknown = "unknown_lot" in (getattr(record, "flags", ()) or ())
         self.log_text(
@@ -599,12 +599,12 @@ class Dashboard:
                                                  float(msg.wheel_radius_m) or 0.0, mount)
 
     def _on_pose(self, record, msg) -> None:
-        from projector.grades import timestamp_ns
+        from projector.grades import coerce_time_ns
 
         if msg.parent_frame_id != "site" or "/" not in msg.child_frame_id:
             return
         machine_id, frame = msg.child_frame_id.split("/", 1)
-        t = timestamp_ns(msg.timestamp)
+        t = coerce_time_ns(msg.timestamp)
         p = np.array([msg.translation.x, msg.translation.y, msg.translation.z])
         q = (msg.rotation.x, msg.rotation.y, msg.rotation.z, msg.rotation.w)
         if frame == "scanner":
@@ -1061,7 +1061,7 @@ class Dashboard:
 
     def _log_scan(self) -> None:
         from projector import georef
-        from projector.grades import timestamp_ns
+        from projector.grades import coerce_time_ns
 
         if self.latest_scan is None:
             return
@@ -1076,7 +1076,7 @@ class Dashboard:
         ranges = np.asarray(msg.ranges, np.float64)
         if not poses or ranges.size < 2:
             return
-        t = timestamp_ns(msg.timestamp)
+        t = coerce_time_ns(msg.timestamp)
         pt = np.array([p[0] for p in poses], np.int64)
         order = np.argsort(pt, kind="stable")
         pt = pt[order]
