@@ -16,11 +16,15 @@ import time
 from pathlib import Path
 from typing import Any, Sequence
 
-from schemas.times import format_time_ns, parse_time_ns
 from schemas.jsonl import json_safe
+from schemas.times import (NS_PER_DAY, NS_PER_H, NS_PER_MIN, NS_PER_S, format_time_ns,
+                           parse_time_ns)
 
-NS = 1_000_000_000
-_UNITS = {"s": NS, "sec": NS, "m": 60 * NS, "min": 60 * NS, "h": 3600 * NS, "d": 86400 * NS}
+from ledger import open_ledger
+from audit.report import audit_assays, audit_cuts, audit_history
+
+_UNITS = {"s": NS_PER_S, "sec": NS_PER_S, "m": NS_PER_MIN, "min": NS_PER_MIN, "h": NS_PER_H,
+          "d": NS_PER_DAY}
 
 
 def parse_duration_ns(text: str) -> int:
@@ -40,8 +44,6 @@ def parse_duration_ns(text: str) -> int:
 # -- output helpers -------------------------------------------------------------------------
 
 
-
-
 def _dump(obj: dict[str, Any]) -> None:
     json.dump(json_safe(obj), sys.stdout, indent=1, allow_nan=False)
     print()
@@ -57,7 +59,7 @@ def _when(ns: int | None) -> str:
     """UTC time for tables: ``2026-11-01 01:13:17`` (seconds, no zone)."""
     if ns is None:
         return "-"
-    return format_time_ns(ns // NS * NS).replace("T", " ").rstrip("Z")
+    return format_time_ns(ns // NS_PER_S * NS_PER_S).replace("T", " ").rstrip("Z")
 
 
 def table(headers: Sequence[str], rows: Sequence[Sequence[str]], *, right: Sequence[bool] | None = None,
@@ -118,8 +120,6 @@ class ProgressLine:
 
 
 def _open(path: str):
-    from ledger import open_ledger
-
     if not Path(path).exists():
         raise ValueError(f"no ledger at {path}")
     return open_ledger(path, read_only=True)
@@ -157,9 +157,94 @@ def load_truth_cuts(path: str) -> dict[str, dict[str, Any]]:
 # -- commands -------------------------------------------------------------------------------
 
 
-def cmd_cuts(args: argparse.Namespace) -> int:
-    from audit.report import audit_cuts
+def _cut_row(c, truth: dict[str, dict[str, Any]] | None, analyte: str,
+             threshold_pp: float) -> dict[str, Any]:
+    """One cut of an :func:`audit.report.audit_cuts` report as a JSON-ready row (with the
+    simulator's truth beside it when ``truth`` is given)."""
+    row = {
+        "cut_id": c.cut_id, "bench_id": c.bench_id,
+        "start_time": format_time_ns(c.start_time_ns), "end_time": format_time_ns(c.end_time_ns),
+        "start_time_ns": c.start_time_ns, "end_time_ns": c.end_time_ns,
+        "estimated_known_time": format_time_ns(c.estimated_known_ns),
+        "estimated_known_time_ns": c.estimated_known_ns,
+        "tonnes_at_end_t": c.tonnes_at_end_t, "tonnes_t": c.tonnes_t,
+        "tonnes_scale_t": c.tonnes_scale_t,
+        "grade_at_end_pct": c.grade_at_end_pct, "grade_pct": c.grade_pct,
+        "delta_pp": c.delta_pp, "assayed_fraction_at_end": c.assayed_fraction_at_end,
+        "assayed_fraction": c.assayed_fraction, "lots_t": c.lots_t,
+        "residual_m3": c.residual_m3, "changed": c.changed(threshold_pp),
+        "reprojected": c.reprojected,
+    }
+    if truth is not None:
+        t = truth.get(c.cut_id)
+        row["truth_grade_pct"] = t["grade"] if t else None
+        row["truth_tonnes_t"] = t["tonnes"] if t else None
+        row["truth_lots_t"] = t["lots"] if t else None
+        if t and analyte in t["grade"]:
+            err_then = abs(c.grade_at_end_pct.get(analyte, math.nan) - t["grade"][analyte])
+            err_now = abs(c.grade_pct.get(analyte, math.nan) - t["grade"][analyte])
+            row["closer_to_truth"] = (bool(err_now < err_then)
+                                      if math.isfinite(err_now) and math.isfinite(err_then)
+                                      else None)
+    return row
 
+
+def _cuts_table(report, rows: list[dict[str, Any]], with_truth: bool, a: str) -> str:
+    """The cuts report as a text table for analyte ``a`` (truth columns when ``with_truth``)."""
+    headers = ["cut", "ended (UTC)", "geom t", "belt t", f"{a} then %", f"{a} at K %", "d pp",
+               "assayed then/K"]
+    right = [False, False, True, True, True, True, True, False]
+    if with_truth:
+        headers += [f"{a} truth %", "closer"]
+        right += [True, False]
+    headers.append("lots (t)")
+    right.append(False)
+    if with_truth:
+        headers.append("truth lots (t)")
+        right.append(False)
+    body = []
+    for c, row in zip(report.cuts, rows):
+        cells = [c.cut_id, _when(c.end_time_ns), _num(c.tonnes_t), _num(c.tonnes_scale_t),
+                 _num(c.grade_at_end_pct.get(a), ".2f"), _num(c.grade_pct.get(a), ".2f"),
+                 _num(c.delta_pp.get(a), "+.2f"),
+                 f"{c.assayed_fraction_at_end:.2f} / {c.assayed_fraction:.2f}"]
+        if with_truth:
+            tg = (row.get("truth_grade_pct") or {}).get(a)
+            closer = row.get("closer_to_truth")
+            cells += [_num(tg, ".2f"), "-" if closer is None else ("yes" if closer else "no")]
+        cells.append(", ".join(f"{lot} {t:,.0f}" for lot, t in c.lots_t.items()) or "-")
+        if with_truth:
+            cells.append(", ".join(f"{lot} {t:,.0f}" for lot, t in
+                                   (row.get("truth_lots_t") or {}).items()) or "-")
+        body.append(cells)
+    return table(headers, body, right=right)
+
+
+def _print_cuts(report, rows: list[dict[str, Any]], with_truth: bool, a: str,
+                threshold_pp: float) -> None:
+    """The cuts report for people: a heading, the table and what changed."""
+    print(f"pile {report.pile_id}: {len(rows)} reclaim cuts; grade as estimated when each cut "
+          f"ended vs as known at {format_time_ns(report.known_time_ns)} ({a}; --analyte to "
+          f"change)")
+    if not rows:
+        print("  no reclaim cuts in the ledger for this pile")
+        return
+    print(_cuts_table(report, rows, with_truth, a))
+    changed = [r["cut_id"] for r in rows if r["changed"]]
+    print(f"\n  {len(changed)} of {len(rows)} cuts changed grade after the cut ended by more than "
+          f"{threshold_pp:g} pp (late or superseding assays)"
+          + (f": {', '.join(changed)}" if changed else ""))
+    if with_truth:
+        closer = [r for r in rows if r.get("closer_to_truth")]
+        print(f"  {len(closer)} of {len(rows)} cuts are closer to the simulator's truth as known "
+              f"at K than as estimated at the time ({a}); the lots columns show how much of "
+              f"the rest is the cuts' modelled lot mix")
+    reproj = [r["cut_id"] for r in rows if r["reprojected"]]
+    if reproj:
+        print(f"  re-projected on their own (a geometry event arrived late): {', '.join(reproj)}")
+
+
+def cmd_cuts(args: argparse.Namespace) -> int:
     truth = load_truth_cuts(args.truth) if args.truth else None
     progress = ProgressLine("audit cuts", enabled=False if args.no_progress else None,
                             force=args.progress)
@@ -170,92 +255,18 @@ def cmd_cuts(args: argparse.Namespace) -> int:
     if report.analytes and analyte not in report.analytes:
         raise ValueError(f"analyte {analyte!r} is not in this ledger (it has "
                          f"{', '.join(report.analytes)})")
-    rows = []
-    for c in report.cuts:
-        row = {
-            "cut_id": c.cut_id, "bench_id": c.bench_id,
-            "start_time": format_time_ns(c.start_time_ns), "end_time": format_time_ns(c.end_time_ns),
-            "start_time_ns": c.start_time_ns, "end_time_ns": c.end_time_ns,
-            "estimated_known_time": format_time_ns(c.estimated_known_ns),
-            "estimated_known_time_ns": c.estimated_known_ns,
-            "tonnes_at_end_t": c.tonnes_at_end_t, "tonnes_t": c.tonnes_t,
-            "tonnes_scale_t": c.tonnes_scale_t,
-            "grade_at_end_pct": c.grade_at_end_pct, "grade_pct": c.grade_pct,
-            "delta_pp": c.delta_pp, "assayed_fraction_at_end": c.assayed_fraction_at_end,
-            "assayed_fraction": c.assayed_fraction, "lots_t": c.lots_t,
-            "residual_m3": c.residual_m3, "changed": c.changed(args.threshold_pp),
-            "reprojected": c.reprojected,
-        }
-        if truth is not None:
-            t = truth.get(c.cut_id)
-            row["truth_grade_pct"] = t["grade"] if t else None
-            row["truth_tonnes_t"] = t["tonnes"] if t else None
-            row["truth_lots_t"] = t["lots"] if t else None
-            if t and analyte in t["grade"]:
-                err_then = abs(c.grade_at_end_pct.get(analyte, math.nan) - t["grade"][analyte])
-                err_now = abs(c.grade_pct.get(analyte, math.nan) - t["grade"][analyte])
-                row["closer_to_truth"] = (bool(err_now < err_then)
-                                          if math.isfinite(err_now) and math.isfinite(err_then)
-                                          else None)
-        rows.append(row)
+    rows = [_cut_row(c, truth, analyte, args.threshold_pp) for c in report.cuts]
     if args.json:
         _dump({"pile_id": report.pile_id, "known_time": format_time_ns(report.known_time_ns),
                "known_time_ns": report.known_time_ns, "analytes": list(report.analytes),
                "pile_tonnes_t": report.pile_tonnes_t, "threshold_pp": args.threshold_pp,
                "cuts": rows})
         return 0
-    a = analyte
-    print(f"pile {report.pile_id}: {len(rows)} reclaim cuts; grade as estimated when each cut "
-          f"ended vs as known at {format_time_ns(report.known_time_ns)} ({a}; --analyte to "
-          f"change)")
-    if not rows:
-        print("  no reclaim cuts in the ledger for this pile")
-        return 0
-    headers = ["cut", "ended (UTC)", "geom t", "belt t", f"{a} then %", f"{a} at K %", "d pp",
-               "assayed then/K"]
-    right = [False, False, True, True, True, True, True, False]
-    if truth is not None:
-        headers += [f"{a} truth %", "closer"]
-        right += [True, False]
-    headers.append("lots (t)")
-    right.append(False)
-    if truth is not None:
-        headers.append("truth lots (t)")
-        right.append(False)
-    body = []
-    for c, row in zip(report.cuts, rows):
-        cells = [c.cut_id, _when(c.end_time_ns), _num(c.tonnes_t), _num(c.tonnes_scale_t),
-                 _num(c.grade_at_end_pct.get(a), ".2f"), _num(c.grade_pct.get(a), ".2f"),
-                 _num(c.delta_pp.get(a), "+.2f"),
-                 f"{c.assayed_fraction_at_end:.2f} / {c.assayed_fraction:.2f}"]
-        if truth is not None:
-            tg = (row.get("truth_grade_pct") or {}).get(a)
-            closer = row.get("closer_to_truth")
-            cells += [_num(tg, ".2f"), "-" if closer is None else ("yes" if closer else "no")]
-        cells.append(", ".join(f"{lot} {t:,.0f}" for lot, t in c.lots_t.items()) or "-")
-        if truth is not None:
-            cells.append(", ".join(f"{lot} {t:,.0f}" for lot, t in
-                                   (row.get("truth_lots_t") or {}).items()) or "-")
-        body.append(cells)
-    print(table(headers, body, right=right))
-    changed = [r["cut_id"] for r in rows if r["changed"]]
-    print(f"\n  {len(changed)} of {len(rows)} cuts changed grade after the cut ended by more than "
-          f"{args.threshold_pp:g} pp (late or superseding assays)"
-          + (f": {', '.join(changed)}" if changed else ""))
-    if truth is not None:
-        closer = [r for r in rows if r.get("closer_to_truth")]
-        print(f"  {len(closer)} of {len(rows)} cuts are closer to the simulator's truth as known "
-              f"at K than as estimated at the time ({a}); the lots columns show how much of "
-              f"the rest is the cuts' modelled lot mix")
-    reproj = [r["cut_id"] for r in rows if r["reprojected"]]
-    if reproj:
-        print(f"  re-projected on their own (a geometry event arrived late): {', '.join(reproj)}")
+    _print_cuts(report, rows, truth is not None, analyte, args.threshold_pp)
     return 0
 
 
 def cmd_history(args: argparse.Namespace) -> int:
-    from audit.report import audit_history
-
     every = parse_duration_ns(args.every)
     start = parse_time_ns(args.start) if args.start else None
     end = parse_time_ns(args.end) if args.end else None
@@ -298,8 +309,6 @@ def cmd_history(args: argparse.Namespace) -> int:
 
 
 def cmd_assays(args: argparse.Namespace) -> int:
-    from audit.report import audit_assays
-
     with _open(args.ledger) as store:
         report = audit_assays(store, _known(args))
     if args.json:

@@ -40,16 +40,15 @@ from dataclasses import dataclass
 from typing import Any, Callable, Iterator, Sequence
 
 from schemas.events import decode_payload
+from schemas.times import NS_PER_H
 
 from projector import fold as F
-from projector.grades import AssayRecord, effective_assays, timestamp_ns
+from projector.grades import AssayRecord, coerce_time_ns, effective_assays
 from projector.query import FAR_FUTURE_NS, PileState, project, summarise
 
 __all__ = ["CutAudit", "CutsReport", "HistoryPoint", "HistoryReport", "LabLateness",
            "AssayReport", "audit_cuts", "audit_history", "audit_assays", "resolve_known_ns",
            "LATENESS_BINS_H", "Progress"]
-
-NS_PER_H = 3_600_000_000_000
 
 #: edges of the lateness histogram, hours: [0, 1), [1, 2), [2, 4), [4, 6), [6, 12), [12, inf)
 LATENESS_BINS_H: tuple[float, ...] = (0.0, 1.0, 2.0, 4.0, 6.0, 12.0)
@@ -354,7 +353,7 @@ def audit_cuts(store, pile_id: str, known_time_ns: int | None = None, *,
         if msg.pile_id != pile_id:
             continue
         end = event.valid_time_ns
-        cuts.append((msg.cut_id, msg.bench_id, timestamp_ns(msg.start_time), end,
+        cuts.append((msg.cut_id, msg.bench_id, coerce_time_ns(msg.start_time), end,
                      max(end, event.recorded_time_ns), float(msg.tonnes)))
     grades = _Grades(store, known)
     marks = [(c[3], c[4]) for c in cuts] + [(FAR_FUTURE_NS, known)]

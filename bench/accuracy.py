@@ -77,10 +77,10 @@ from projector.grid import GridGeometry  # noqa: E402
 from projector.heightmap import HeightMap, fuse, rasterize  # noqa: E402
 from projector.fold import FoldConfig  # noqa: E402
 from projector.profile import clean_profile  # noqa: E402
+from schemas.times import NS_PER_S  # noqa: E402
 
 FIT_BEAMS = FoldConfig.profile_fit_beams    # the fold's line fit of each profile
 
-NS_PER_S = 1_000_000_000
 T0_NS = 1_793_491_200_000_000_000
 
 #: scanner x -> site -z, y -> site +x, z -> site -y: looks down, scan plane = site x-z

@@ -14,7 +14,7 @@ as child processes.  Prints three tables:
 3. Bare Zenoh put -> callback throughput of the same payload (a plain publisher
    process, a counting callback here), and our sustained rate as a ratio of it.
 
-Targets (issue 4): >= 5,000 scans/s sustained; p99 <= 250 ms at 1,000 events/s.
+Targets: >= 5,000 scans/s sustained; p99 <= 250 ms at 1,000 events/s.
 """
 
 from __future__ import annotations

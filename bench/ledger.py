@@ -60,6 +60,8 @@ inputs (``gc.freeze``) so that collecting them is not timed on either side.
 
 Flags: ``--quick`` (small counts), ``--events-1m N`` (size of the as-of ledger),
 ``--seed S`` (payload randomness), ``--tmpdir DIR`` (where the scratch files go).
+
+The workloads and the calls into both systems are in ``bench/_ledger_systems.py``.
 """
 
 from __future__ import annotations
@@ -68,16 +70,13 @@ import argparse
 import gc
 import importlib.metadata
 import itertools
-import math
 import os
 import platform
 import sqlite3
 import sys
 import tempfile
 import time
-import uuid
-from dataclasses import dataclass
-from typing import Callable, Iterator, Sequence
+from typing import Callable, Sequence
 
 # This file is called ``ledger.py``: when run as a script its folder comes first on
 # sys.path and ``import ledger`` would import this file.  Put the project root first.
@@ -88,21 +87,24 @@ if _ROOT not in sys.path:
     sys.path.insert(0, _ROOT)
 
 import numpy as np  # noqa: E402
-from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform  # noqa: E402
-from foxglove_schemas_protobuf.LaserScan_pb2 import LaserScan  # noqa: E402
 
+from bench._ledger_systems import (  # noqa: E402
+    LATENCY_NS,
+    T0_NS,
+    Workload,
+    YardStream,
+    batches,
+    es_append,
+    es_read_events,
+    es_read_notifications,
+    es_recorder,
+    es_stored,
+    ours_append,
+    ours_read,
+    scan_workload,
+)
 from ledger import ManualClock, open_ledger  # noqa: E402
-from schemas import Event, make_event, pb, set_timestamp_ns  # noqa: E402
-
-NS_PER_S = 1_000_000_000
-NS_PER_MS = 1_000_000
-NS_PER_H = 3600 * NS_PER_S
-
-#: Start of the simulated yard stream (2026-03-01T00:00:00Z).
-T0_NS = 1_772_323_200 * NS_PER_S
-
-#: Ledger's recorded time = arrival time + this (transport latency).
-LATENCY_NS = 20 * NS_PER_MS
+from schemas.times import NS_PER_H, NS_PER_S  # noqa: E402
 
 TARGET_APPEND_EV_S = 50_000
 TARGET_READ_EV_S = 500_000
@@ -117,281 +119,6 @@ READ_BACK_EVENTS = (200_000, 20_000)
 
 EVENTS_1M = 1_000_000
 EVENTS_1M_QUICK = 50_000
-
-SCAN_RANGES = 401
-SCAN_START_RAD = math.radians(-50.0)
-SCAN_END_RAD = math.radians(50.0)
-
-ES_NAMESPACE = uuid.UUID("6f1c1e8e-2a53-4a4e-9a57-0b2f3c3d9e10")
-ES_PAGE = 10_000
-
-
-# --- building the events (never timed) ---------------------------------------------------
-
-
-@dataclass
-class Workload:
-    """Pre-built events in arrival order, with when each reached the ledger (ns)."""
-
-    name: str
-    events: list[Event]
-    arrival_ns: list[int]
-
-    def __len__(self) -> int:
-        return len(self.events)
-
-    def head(self, n: int) -> Workload:
-        return Workload(self.name, self.events[:n], self.arrival_ns[:n])
-
-    @property
-    def payload_mb(self) -> float:
-        return sum(len(e.payload) for e in self.events) / 1e6
-
-
-class YardStream:
-    """A deterministic yard stream: one 100 ms tick at a time, in arrival order.
-
-    Per tick: 1 scan (if ``scans``), 2 joint readings, 2 transforms of each of 2
-    frames.  A lot is declared at the start; an assay of the lot arrives every
-    ``assay_every_s`` of yard time, its window ending 4 h before it arrives.
-    """
-
-    TICK_NS = 100 * NS_PER_MS
-
-    def __init__(self, rng: np.random.Generator, *, scans: bool, assay_every_s: int = 30) -> None:
-        self.rng = rng
-        self.scans = scans
-        self.assay_every_ticks = assay_every_s * NS_PER_S // self.TICK_NS
-        self.seq: dict[str, int] = {}
-        self.profile = ScanProfile(rng)
-
-    def _next_seq(self, source: str) -> int:
-        s = self.seq.get(source, 0)
-        self.seq[source] = s + 1
-        return s
-
-    def _event(self, message, source: str, arrival: int) -> tuple[Event, int]:
-        return make_event(message, source=source, epoch=1, seq=self._next_seq(source)), arrival
-
-    def __iter__(self) -> Iterator[tuple[Event, int]]:
-        rng = self.rng
-        lot = pb.LotDeclared(lot_id="L2026-0301-A", origin="pit3", planned_tonnes=250_000.0)
-        set_timestamp_ns(lot.time, T0_NS)
-        lot.planned_grade.update({"Fe": 62.0, "SiO2": 4.0, "Al2O3": 2.3, "P": 0.08, "LOI": 5.0})
-        yield self._event(lot, "lims.lots", T0_NS)
-        travel, slew, luff = 120.0, 0.3, 0.05
-        for tick in itertools.count():
-            base = T0_NS + tick * self.TICK_NS
-            if self.scans:
-                t = base + 3 * NS_PER_MS
-                yield self._event(self.profile.scan(t), "bwr1.scanner", t)
-            for k in range(2):
-                t = base + k * 50 * NS_PER_MS + 7 * NS_PER_MS
-                travel += 0.001 * rng.standard_normal()
-                slew += 0.0005
-                luff += 0.0001 * rng.standard_normal()
-                jr = pb.JointReading(machine_id="bwr1", travel_m=travel, slew_rad=slew, luff_rad=luff)
-                set_timestamp_ns(jr.time, t)
-                yield self._event(jr, "bwr1.joints", t)
-                for child, dz in (("bwr1/base", 0.0), ("bwr1/wheel", 12.5)):
-                    ft = FrameTransform(parent_frame_id="site", child_frame_id=child)
-                    set_timestamp_ns(ft.timestamp, t + 1_000)
-                    ft.translation.x = travel
-                    ft.translation.y = 35.0 * math.sin(slew) if dz else 0.0
-                    ft.translation.z = 8.0 + dz * math.sin(luff)
-                    ft.rotation.z = math.sin(slew / 2)
-                    ft.rotation.w = math.cos(slew / 2)
-                    yield self._event(ft, "bwr1.tf", t + 1_000)
-            if tick % self.assay_every_ticks == self.assay_every_ticks - 1:
-                arrival = base + 90 * NS_PER_MS
-                n = tick // self.assay_every_ticks
-                window_end = arrival - 4 * NS_PER_H
-                assay = pb.Assay(assay_id=f"A{n:06d}", lot_id="L2026-0301-A", status=pb.FINAL,
-                                 lab_id="lab1", moisture_pct=float(7.5 + rng.normal(0, 0.3)),
-                                 bulk_density_t_m3=2.35)
-                set_timestamp_ns(assay.window_start, window_end - NS_PER_H)
-                set_timestamp_ns(assay.window_end, window_end)
-                set_timestamp_ns(assay.reported_time, arrival - 60 * NS_PER_S)
-                assay.analytes.update({
-                    "Fe": round(float(62.0 + rng.normal(0, 0.6)), 2),
-                    "SiO2": round(float(4.0 + rng.normal(0, 0.3)), 2),
-                    "Al2O3": round(float(2.3 + rng.normal(0, 0.15)), 2),
-                    "P": round(float(0.08 + rng.normal(0, 0.005)), 3),
-                    "LOI": round(float(5.0 + rng.normal(0, 0.3)), 2),
-                })
-                yield self._event(assay, "lab1.assays", arrival)
-
-    def take(self, n: int, name: str) -> Workload:
-        events, arrivals = [], []
-        for event, arrival in itertools.islice(self, n):
-            events.append(event)
-            arrivals.append(arrival)
-        return Workload(name, events, arrivals)
-
-
-class ScanProfile:
-    """LMS200-like scans of a stockpile face: a smooth profile plus noise, a few NaN."""
-
-    CHUNK = 1_000
-
-    def __init__(self, rng: np.random.Generator) -> None:
-        self.rng = rng
-        angles = np.linspace(-1.0, 1.0, SCAN_RANGES)
-        self.base = 18.0 + 14.0 * angles**2 + 4.0 * np.sin(3.0 * angles)
-        self._noise: np.ndarray | None = None
-        self._i = self.CHUNK
-
-    def _ranges(self) -> list[float]:
-        if self._i >= self.CHUNK:
-            noise = self.rng.normal(0.0, 0.05, (self.CHUNK, SCAN_RANGES))
-            drift = self.rng.normal(0.0, 1.5, (self.CHUNK, 1))
-            r = np.clip(self.base + drift + noise, 2.0, 60.0).round(3)
-            r[self.rng.random(r.shape) < 0.01] = np.nan  # no return
-            self._noise, self._i = r, 0
-        row = self._noise[self._i]
-        self._i += 1
-        return row.tolist()
-
-    def scan(self, t_ns: int) -> LaserScan:
-        msg = LaserScan(frame_id="bwr1/scanner", start_angle=SCAN_START_RAD,
-                        end_angle=SCAN_END_RAD)
-        set_timestamp_ns(msg.timestamp, t_ns)
-        msg.ranges.extend(self._ranges())
-        return msg
-
-
-def scan_workload(rng: np.random.Generator, n: int) -> Workload:
-    """``n`` scans at 10 Hz from one scanner."""
-    profile = ScanProfile(rng)
-    events, arrivals = [], []
-    for i in range(n):
-        t = T0_NS + i * 100 * NS_PER_MS
-        events.append(make_event(profile.scan(t), source="bwr1.scanner", epoch=1, seq=i))
-        arrivals.append(t)
-    return Workload("scan", events, arrivals)
-
-
-# --- the two systems under test ---------------------------------------------------------
-
-
-def batches(n: int, size: int) -> list[tuple[int, int]]:
-    return [(i, min(i + size, n)) for i in range(0, n, size)]
-
-
-def ours_append(path: str, work: Workload, batch: int, store=None) -> tuple[float, dict[str, int]]:
-    """Append ``work`` in batches to a ledger at ``path``; return (seconds, outcome counts)."""
-    own = store is None
-    clock = ManualClock(T0_NS)
-    if own:
-        store = open_ledger(path, clock)
-    else:
-        clock = store.clock
-    counts = {"appended": 0, "duplicate": 0, "conflict": 0, "rejected": 0}
-    events, arrivals = work.events, work.arrival_ns
-    spans = batches(len(events), batch)
-    problems: list[str] = []
-    gc.collect()
-    start = time.perf_counter()
-    for lo, hi in spans:
-        clock.set_ns(arrivals[hi - 1] + LATENCY_NS)
-        result = store.append(events[lo:hi])
-        for k, v in result.counts.items():
-            counts[k] += v
-        if result.counts["rejected"] or result.counts["conflict"]:
-            problems.extend(o.reason for o in result.outcomes if o.reason)
-    seconds = time.perf_counter() - start
-    if own:
-        store.close()
-    if problems:
-        raise RuntimeError(f"ledger refused benchmark events, e.g. {problems[:3]}")
-    return seconds, counts
-
-
-def es_recorder(path: str):
-    from eventsourcing.sqlite import SQLiteApplicationRecorder, SQLiteDatastore
-
-    datastore = SQLiteDatastore(path)
-    recorder = SQLiteApplicationRecorder(datastore)
-    recorder.create_table()
-    return datastore, recorder
-
-
-def es_stored(work: Workload) -> list:
-    """The same events as eventsourcing ``StoredEvent``s (same payload bytes)."""
-    from eventsourcing.persistence import StoredEvent
-
-    ids: dict[tuple[str, int], uuid.UUID] = {}
-    out = []
-    for e in work.events:
-        oid = ids.get((e.source, e.epoch))
-        if oid is None:
-            oid = ids[(e.source, e.epoch)] = uuid.uuid5(ES_NAMESPACE, f"{e.source}/{e.epoch}")
-        out.append(StoredEvent(originator_id=oid, originator_version=e.seq, topic=e.type,
-                               state=e.payload))
-    return out
-
-
-def es_append(recorder, stored: list, batch: int, *, expect_duplicates: bool = False
-              ) -> tuple[float, int]:
-    """insert_events in batches; return (seconds, batches refused with IntegrityError)."""
-    from eventsourcing.persistence import IntegrityError
-
-    refused = 0
-    spans = batches(len(stored), batch)
-    gc.collect()
-    start = time.perf_counter()
-    for lo, hi in spans:
-        try:
-            recorder.insert_events(stored[lo:hi])
-        except IntegrityError:
-            refused += 1
-    seconds = time.perf_counter() - start
-    if refused and not expect_duplicates:
-        raise RuntimeError(f"eventsourcing refused {refused} batches of fresh events")
-    return seconds, refused
-
-
-def ours_read(path: str) -> tuple[float, int]:
-    store = open_ledger(path, ManualClock(T0_NS), read_only=True)
-    try:
-        gc.collect()
-        start = time.perf_counter()
-        n = 0
-        for _ in store.read():
-            n += 1
-        return time.perf_counter() - start, n
-    finally:
-        store.close()
-
-
-def es_read_notifications(path: str) -> tuple[float, int]:
-    datastore, recorder = es_recorder(path)
-    try:
-        gc.collect()
-        start = time.perf_counter()
-        n, next_id = 0, 1
-        while True:
-            page = recorder.select_notifications(start=next_id, limit=ES_PAGE)
-            if not page:
-                break
-            n += len(page)
-            next_id = page[-1].id + 1
-        return time.perf_counter() - start, n
-    finally:
-        datastore.close()
-
-
-def es_read_events(path: str, originators: Sequence[uuid.UUID]) -> tuple[float, int]:
-    datastore, recorder = es_recorder(path)
-    try:
-        gc.collect()
-        start = time.perf_counter()
-        n = 0
-        for oid in originators:
-            n += len(recorder.select_events(oid))
-        return time.perf_counter() - start, n
-    finally:
-        datastore.close()
 
 
 # --- reporting ------------------------------------------------------------------------------
@@ -473,18 +200,12 @@ def out(text: str = "") -> None:
     print(text, flush=True)
 
 
+
 # --- the benchmark ------------------------------------------------------------------------
 
 
-def run(args: argparse.Namespace) -> int:
-    quick = args.quick
-    pick = 1 if quick else 0
-    counts = {(w, b): EVENTS_PER_ROW[b][pick] for w in ("scan", "yard mix") for b in BATCH_SIZES}
-    counts[("yard mix", 10_000)] = READ_BACK_EVENTS[pick]
-    n_1m = args.events_1m if args.events_1m is not None else (EVENTS_1M_QUICK if quick else EVENTS_1M)
-    wall_start = time.perf_counter()
-
-    out("stockpile-ledger benchmark: bench/ledger.py" + ("  (--quick)" if quick else ""))
+def _print_header(args: argparse.Namespace) -> None:
+    out("stockpile-ledger benchmark: bench/ledger.py" + ("  (--quick)" if args.quick else ""))
     for line in machine_info():
         out(line)
     out(f"seed {args.seed}; ours = DuckDB ledger file (open_ledger), every check on; "
@@ -493,7 +214,10 @@ def run(args: argparse.Namespace) -> int:
         "are the meaningful figure.")
     out()
 
-    rng = np.random.default_rng(args.seed)
+
+def _build_workloads(rng: np.random.Generator, counts: dict[tuple[str, int], int]
+                     ) -> tuple[dict[str, Workload], dict[str, list]]:
+    """The ``scan`` and ``yard mix`` workloads, as our events and as eventsourcing's."""
     n_scan = max(n for (w, _), n in counts.items() if w == "scan")
     n_yard = max(n for (w, _), n in counts.items() if w == "yard mix")
     log(f"building {n_scan:,} scan and {n_yard:,} yard-mix events ...")
@@ -504,166 +228,196 @@ def run(args: argparse.Namespace) -> int:
     }
     stored = {name: es_stored(w) for name, w in workloads.items()}
     log(f"  built in {time.perf_counter() - t:.1f} s")
-    gc.collect()
-    gc.freeze()  # the pre-built inputs are not what we measure: keep the GC off them
+    return workloads, stored
 
-    tmp = tempfile.TemporaryDirectory(prefix="bench-ledger-", dir=args.tmpdir)
+
+def _append_table() -> Table:
+    return Table([("workload", 24, "<"), ("batch", 6, ">"), ("events", 8, ">"),
+                  ("payload_MB", 10, ">"), ("ours_ev/s", 10, ">"),
+                  ("eventsourcing_ev/s", 18, ">"), ("ratio_ours/es", 13, ">")])
+
+
+def _reappend(name: str, w: Workload, st: list, batch: int, ours_path: str, recorder
+              ) -> tuple[str, int, int, float, float, float]:
+    """Section 2's row: the same events appended again, every one a duplicate."""
+    n = len(w)
+    log(f"re-append {name} batch 1,000 x {n:,} (all duplicates) ...")
+    dup_s, dup_counts = ours_append(ours_path, w, batch)
+    if dup_counts["duplicate"] != n:
+        raise RuntimeError(f"re-append gave {dup_counts}, expected {n} duplicates")
+    es_dup_s, refused = es_append(recorder, st, batch, expect_duplicates=True)
+    if refused != len(batches(n, batch)):
+        raise RuntimeError(f"eventsourcing accepted {len(batches(n, batch)) - refused}"
+                           " batches of duplicates")
+    return (name, batch, n, w.payload_mb, rate(n, dup_s), rate(n, es_dup_s))
+
+
+def _remove_files(*paths: str) -> None:
+    for path in paths:
+        for suffix in ("", ".wal", "-wal", "-shm"):
+            if os.path.exists(path + suffix):
+                os.remove(path + suffix)
+
+
+def section_append(workloads: dict[str, Workload], stored: dict[str, list],
+                   counts: dict[tuple[str, int], int], tmp: str
+                   ) -> dict[tuple[str, int], tuple[float, float]]:
+    """Sections 1 and 2: append throughput per workload and batch size, and re-append.
+
+    Returns ``(ours, eventsourcing)`` events/s per ``(workload, batch)``; keeps the
+    ``yard mix`` batch-10,000 files in ``tmp`` for the read-back.
+    """
     results: dict[tuple[str, int], tuple[float, float]] = {}
-    try:
-        # 1. append throughput ---------------------------------------------------------
-        table = Table([("workload", 24, "<"), ("batch", 6, ">"), ("events", 8, ">"),
-                       ("payload_MB", 10, ">"), ("ours_ev/s", 10, ">"),
-                       ("eventsourcing_ev/s", 18, ">"), ("ratio_ours/es", 13, ">")])
-        out("1. Append throughput (events/s), fresh file per row; all checks on")
-        out(table.header())
-        dup_rows = []
-        for name, work in workloads.items():
-            for batch in BATCH_SIZES:
-                n = counts[(name, batch)]
-                w = work.head(n)
-                st = stored[name][:n]
-                tag = f"{name.replace(' ', '_')}_b{batch}"
-                ours_path = os.path.join(tmp.name, f"{tag}.duckdb")
-                es_path = os.path.join(tmp.name, f"{tag}.sqlite")
-                log(f"append {name} batch {batch:,} x {n:,} events ...")
-                ours_s, ours_counts = ours_append(ours_path, w, batch)
-                if ours_counts["appended"] != n:
-                    raise RuntimeError(f"ours appended {ours_counts} of {n}")
-                datastore, recorder = es_recorder(es_path)
-                es_s, _ = es_append(recorder, st, batch)
-                ours_r, es_r = rate(n, ours_s), rate(n, es_s)
-                results[(name, batch)] = (ours_r, es_r)
-                out(table.row(name, f"{batch:,}", f"{n:,}", f"{w.payload_mb:,.1f}",
-                              fmt_rate(ours_r), fmt_rate(es_r), fmt_ratio(ours_r, es_r)))
-                if batch == 1_000:
-                    # 2. idempotent re-append of the same events, all duplicates
-                    log(f"re-append {name} batch 1,000 x {n:,} (all duplicates) ...")
-                    dup_s, dup_counts = ours_append(ours_path, w, batch)
-                    if dup_counts["duplicate"] != n:
-                        raise RuntimeError(f"re-append gave {dup_counts}, expected {n} duplicates")
-                    es_dup_s, refused = es_append(recorder, st, batch, expect_duplicates=True)
-                    if refused != len(batches(n, batch)):
-                        raise RuntimeError(f"eventsourcing accepted {len(batches(n, batch)) - refused}"
-                                           " batches of duplicates")
-                    dup_rows.append((name, batch, n, w.payload_mb, rate(n, dup_s), rate(n, es_dup_s)))
-                datastore.close()
-                if batch != 10_000 or name != "yard mix":
-                    for path in (ours_path, es_path):
-                        for suffix in ("", ".wal", "-wal", "-shm"):
-                            if os.path.exists(path + suffix):
-                                os.remove(path + suffix)
-        out()
-        out("2. Idempotent re-append (every event a duplicate), events/s")
-        out("   ours: per-event 'duplicate' outcome, nothing written;"
-            " eventsourcing: IntegrityError at the first duplicate, batch rolled back")
-        out(table.header())
-        for name, batch, n, mb, ours_r, es_r in dup_rows:
-            out(table.row(f"{name} (re-append)", f"{batch:,}", f"{n:,}", f"{mb:,.1f}",
+    table = _append_table()
+    out("1. Append throughput (events/s), fresh file per row; all checks on")
+    out(table.header())
+    dup_rows = []
+    for name, work in workloads.items():
+        for batch in BATCH_SIZES:
+            n = counts[(name, batch)]
+            w = work.head(n)
+            st = stored[name][:n]
+            tag = f"{name.replace(' ', '_')}_b{batch}"
+            ours_path = os.path.join(tmp, f"{tag}.duckdb")
+            es_path = os.path.join(tmp, f"{tag}.sqlite")
+            log(f"append {name} batch {batch:,} x {n:,} events ...")
+            ours_s, ours_counts = ours_append(ours_path, w, batch)
+            if ours_counts["appended"] != n:
+                raise RuntimeError(f"ours appended {ours_counts} of {n}")
+            datastore, recorder = es_recorder(es_path)
+            es_s, _ = es_append(recorder, st, batch)
+            ours_r, es_r = rate(n, ours_s), rate(n, es_s)
+            results[(name, batch)] = (ours_r, es_r)
+            out(table.row(name, f"{batch:,}", f"{n:,}", f"{w.payload_mb:,.1f}",
                           fmt_rate(ours_r), fmt_rate(es_r), fmt_ratio(ours_r, es_r)))
-        out()
+            if batch == 1_000:
+                dup_rows.append(_reappend(name, w, st, batch, ours_path, recorder))
+            datastore.close()
+            if batch != 10_000 or name != "yard mix":
+                _remove_files(ours_path, es_path)
+    out()
+    out("2. Idempotent re-append (every event a duplicate), events/s")
+    out("   ours: per-event 'duplicate' outcome, nothing written;"
+        " eventsourcing: IntegrityError at the first duplicate, batch rolled back")
+    out(table.header())
+    for name, batch, n, mb, ours_r, es_r in dup_rows:
+        out(table.row(f"{name} (re-append)", f"{batch:,}", f"{n:,}", f"{mb:,.1f}",
+                      fmt_rate(ours_r), fmt_rate(es_r), fmt_ratio(ours_r, es_r)))
+    out()
+    return results
 
-        # 3. read-back --------------------------------------------------------------------
-        n_read = counts[("yard mix", 10_000)]
-        tag = "yard_mix_b10000"
-        ours_path = os.path.join(tmp.name, f"{tag}.duckdb")
-        es_path = os.path.join(tmp.name, f"{tag}.sqlite")
-        originators = sorted({s.originator_id for s in stored["yard mix"][:n_read]}, key=str)
-        log(f"read back {n_read:,} yard-mix events (best of 2) ...")
-        ours_s, ours_n = best_of(2, lambda: ours_read(ours_path))
-        es_s, es_n = best_of(2, lambda: es_read_notifications(es_path))
-        es2_s, es2_n = best_of(2, lambda: es_read_events(es_path, originators))
-        for label, got in (("ours", ours_n), ("select_notifications", es_n),
-                           ("select_events", es2_n)):
-            if got != n_read:
-                raise RuntimeError(f"{label} read {got:,} of {n_read:,} events")
-        read_ours = rate(n_read, ours_s)
-        rtable = Table([("read-back", 48, "<"), ("events", 8, ">"), ("seconds", 8, ">"),
-                        ("events/s", 10, ">"), ("ratio_ours/es", 13, ">")])
-        out(f"3. Full read-back throughput, yard-mix ledger of {n_read:,} events "
-            f"({workloads['yard mix'].head(n_read).payload_mb:,.1f} MB payload), best of 2")
-        out(rtable.header())
-        out(rtable.row("ours: store.read() (global order)", f"{ours_n:,}", f"{ours_s:.3f}",
-                       fmt_rate(read_ours), ""))
-        out(rtable.row("eventsourcing: select_notifications (pages 10k)", f"{es_n:,}",
-                       f"{es_s:.3f}", fmt_rate(rate(es_n, es_s)),
-                       fmt_ratio(read_ours, rate(es_n, es_s))))
-        out(rtable.row(f"eventsourcing: select_events x {len(originators)} originators",
-                       f"{es2_n:,}", f"{es2_s:.3f}", fmt_rate(rate(es2_n, es2_s)),
-                       fmt_ratio(read_ours, rate(es2_n, es2_s))))
-        out()
 
-        del workloads, stored
-        gc.unfreeze()
+def section_read_back(workloads: dict[str, Workload], stored: dict[str, list],
+                      n_read: int, tmp: str) -> float:
+    """Section 3: the ``yard mix`` batch-10,000 ledger read back in full; ours, events/s."""
+    tag = "yard_mix_b10000"
+    ours_path = os.path.join(tmp, f"{tag}.duckdb")
+    es_path = os.path.join(tmp, f"{tag}.sqlite")
+    originators = sorted({s.originator_id for s in stored["yard mix"][:n_read]}, key=str)
+    log(f"read back {n_read:,} yard-mix events (best of 2) ...")
+    ours_s, ours_n = best_of(2, lambda: ours_read(ours_path))
+    es_s, es_n = best_of(2, lambda: es_read_notifications(es_path))
+    es2_s, es2_n = best_of(2, lambda: es_read_events(es_path, originators))
+    for label, got in (("ours", ours_n), ("select_notifications", es_n),
+                       ("select_events", es2_n)):
+        if got != n_read:
+            raise RuntimeError(f"{label} read {got:,} of {n_read:,} events")
+    read_ours = rate(n_read, ours_s)
+    rtable = Table([("read-back", 48, "<"), ("events", 8, ">"), ("seconds", 8, ">"),
+                    ("events/s", 10, ">"), ("ratio_ours/es", 13, ">")])
+    out(f"3. Full read-back throughput, yard-mix ledger of {n_read:,} events "
+        f"({workloads['yard mix'].head(n_read).payload_mb:,.1f} MB payload), best of 2")
+    out(rtable.header())
+    out(rtable.row("ours: store.read() (global order)", f"{ours_n:,}", f"{ours_s:.3f}",
+                   fmt_rate(read_ours), ""))
+    out(rtable.row("eventsourcing: select_notifications (pages 10k)", f"{es_n:,}",
+                   f"{es_s:.3f}", fmt_rate(rate(es_n, es_s)),
+                   fmt_ratio(read_ours, rate(es_n, es_s))))
+    out(rtable.row(f"eventsourcing: select_events x {len(originators)} originators",
+                   f"{es2_n:,}", f"{es2_s:.3f}", fmt_rate(rate(es2_n, es2_s)),
+                   fmt_ratio(read_ours, rate(es2_n, es2_s))))
+    out()
+    return read_ours
+
+
+def _build_as_of_ledger(path: str, seed: int, n_1m: int) -> tuple[float, float, int]:
+    """Append ``n_1m`` small yard-mix events at batch 10,000 into a ledger at ``path``.
+
+    Returns (seconds in ``store.append``, seconds in all, the last event's arrival ns).
+    """
+    log(f"building the as-of ledger: {n_1m:,} small yard-mix events at batch 10,000 ...")
+    clock = ManualClock(T0_NS)
+    store = open_ledger(path, clock)
+    stream = iter(YardStream(np.random.default_rng(seed), scans=False))
+    append_s, done, last_arrival = 0.0, 0, T0_NS
+    build_start = time.perf_counter()
+    while done < n_1m:
+        chunk = list(itertools.islice(stream, min(10_000, n_1m - done)))
+        events = [e for e, _ in chunk]
+        last_arrival = chunk[-1][1]
+        clock.set_ns(last_arrival + LATENCY_NS)
+        t = time.perf_counter()
+        result = store.append(events)
+        append_s += time.perf_counter() - t
+        if result.counts["appended"] != len(events):
+            raise RuntimeError(f"as-of ledger build: {result.counts}")
+        done += len(events)
+        if done % 100_000 == 0 or done == n_1m:
+            log(f"  {done:,} / {n_1m:,} events, {time.perf_counter() - build_start:.0f} s")
+    store.close()
+    return append_s, time.perf_counter() - build_start, last_arrival
+
+
+def _time_as_of(store, v: int, k: int, types: list[str] | None) -> tuple[float, int]:
+    """One as-of query: (seconds, rows), best of 3 (best of 2 when ``types`` is None: all)."""
+    def query() -> tuple[float, int]:
         gc.collect()
+        start = time.perf_counter()
+        if types is None:
+            n = sum(1 for _ in store.as_of(v, k))
+        else:
+            n = len(list(store.as_of(v, k, types=types)))
+        return time.perf_counter() - start, n
+    return best_of(3 if types else 2, query)
 
-        # 4. as-of on 1M events -----------------------------------------------------------
-        path_1m = os.path.join(tmp.name, "asof_1m.duckdb")
-        log(f"building the as-of ledger: {n_1m:,} small yard-mix events at batch 10,000 ...")
-        clock = ManualClock(T0_NS)
-        store = open_ledger(path_1m, clock)
-        stream = iter(YardStream(np.random.default_rng(args.seed + 1), scans=False))
-        append_s, done, last_arrival = 0.0, 0, T0_NS
-        build_start = time.perf_counter()
-        while done < n_1m:
-            chunk = list(itertools.islice(stream, min(10_000, n_1m - done)))
-            events = [e for e, _ in chunk]
-            last_arrival = chunk[-1][1]
-            clock.set_ns(last_arrival + LATENCY_NS)
-            t = time.perf_counter()
-            result = store.append(events)
-            append_s += time.perf_counter() - t
-            if result.counts["appended"] != len(events):
-                raise RuntimeError(f"as-of ledger build: {result.counts}")
-            done += len(events)
-            if done % 100_000 == 0 or done == n_1m:
-                log(f"  {done:,} / {n_1m:,} events, {time.perf_counter() - build_start:.0f} s")
-        store.close()
-        build_s = time.perf_counter() - build_start
-        store = open_ledger(path_1m, ManualClock(last_arrival + NS_PER_S), read_only=True)
-        stats = store.stats()
-        t_end = last_arrival + LATENCY_NS
-        span = t_end - T0_NS
-        mid, early = T0_NS + span // 2, T0_NS + span // 10
-        points = [
-            ("end, as known at end", t_end, t_end),
-            ("mid-stream, as known at end", mid, t_end),
-            ("mid-stream, as known then", mid, mid + LATENCY_NS),
-            ("10% in, as known at end", early, t_end),
-        ]
-        atable = Table([("as-of query (V, K)", 30, "<"), ("types", 6, "<"), ("rows", 9, ">"),
-                        ("ours_ms", 9, ">"), ("eventsourcing_ms", 16, ">")])
-        hours = span / NS_PER_H
-        out(f"4. As-of query time on {stats.events:,} events ({hours:.1f} h of yard time; "
-            f"{stats.per_type.get('assay', 0):,} assays, each recorded 4 h after its valid time), "
-            "ms, best of 3 (all: best of 2)")
-        out("   assay: list(store.as_of(V, K, types=['assay']));  all: sum(1 for _ in store.as_of(V, K))")
-        out(f"   ledger built with store.append at batch 10,000: append {append_s:.1f} s "
-            f"= {fmt_rate(rate(n_1m, append_s))} events/s (plus {build_s - append_s:.1f} s "
-            "building protobufs)")
-        out(atable.header())
-        asof_ms = []
-        for label, v, k in points:
-            for types in (["assay"], None):
-                def query(v=v, k=k, types=types) -> tuple[float, int]:
-                    gc.collect()
-                    start = time.perf_counter()
-                    if types is None:
-                        n = sum(1 for _ in store.as_of(v, k))
-                    else:
-                        n = len(list(store.as_of(v, k, types=types)))
-                    return time.perf_counter() - start, n
-                seconds, n = best_of(3 if types else 2, query)
-                asof_ms.append(seconds * 1e3)
-                out(atable.row(label, "assay" if types else "all", f"{n:,}",
-                               f"{seconds * 1e3:,.1f}", "n/a"))
-        store.close()
-        out("   eventsourcing has no bitemporal (valid time x recorded time) query: n/a")
-        out()
-    finally:
-        gc.unfreeze()
-        tmp.cleanup()
 
-    # targets -----------------------------------------------------------------------------
+def section_as_of(seed: int, n_1m: int, tmp: str) -> None:
+    """Section 4: as-of query times on a ledger of ``n_1m`` small yard-mix events."""
+    path_1m = os.path.join(tmp, "asof_1m.duckdb")
+    append_s, build_s, last_arrival = _build_as_of_ledger(path_1m, seed, n_1m)
+    store = open_ledger(path_1m, ManualClock(last_arrival + NS_PER_S), read_only=True)
+    stats = store.stats()
+    t_end = last_arrival + LATENCY_NS
+    span = t_end - T0_NS
+    mid, early = T0_NS + span // 2, T0_NS + span // 10
+    points = [
+        ("end, as known at end", t_end, t_end),
+        ("mid-stream, as known at end", mid, t_end),
+        ("mid-stream, as known then", mid, mid + LATENCY_NS),
+        ("10% in, as known at end", early, t_end),
+    ]
+    atable = Table([("as-of query (V, K)", 30, "<"), ("types", 6, "<"), ("rows", 9, ">"),
+                    ("ours_ms", 9, ">"), ("eventsourcing_ms", 16, ">")])
+    hours = span / NS_PER_H
+    out(f"4. As-of query time on {stats.events:,} events ({hours:.1f} h of yard time; "
+        f"{stats.per_type.get('assay', 0):,} assays, each recorded 4 h after its valid time), "
+        "ms, best of 3 (all: best of 2)")
+    out("   assay: list(store.as_of(V, K, types=['assay']));  all: sum(1 for _ in store.as_of(V, K))")
+    out(f"   ledger built with store.append at batch 10,000: append {append_s:.1f} s "
+        f"= {fmt_rate(rate(n_1m, append_s))} events/s (plus {build_s - append_s:.1f} s "
+        "building protobufs)")
+    out(atable.header())
+    for label, v, k in points:
+        for types in (["assay"], None):
+            seconds, n = _time_as_of(store, v, k, types)
+            out(atable.row(label, "assay" if types else "all", f"{n:,}",
+                           f"{seconds * 1e3:,.1f}", "n/a"))
+    store.close()
+    out("   eventsourcing has no bitemporal (valid time x recorded time) query: n/a")
+    out()
+
+
+def print_targets(results: dict[tuple[str, int], tuple[float, float]], read_ours: float) -> None:
     def verdict(ok: bool) -> str:
         return "PASS" if ok else "MISS"
 
@@ -676,6 +430,32 @@ def run(args: argparse.Namespace) -> int:
     out(f"  read back >= {TARGET_READ_EV_S:,} events/s: {fmt_rate(read_ours)} events/s  "
         f"{verdict(read_ours >= TARGET_READ_EV_S)}")
     out()
+
+
+def run(args: argparse.Namespace) -> int:
+    pick = 1 if args.quick else 0
+    counts = {(w, b): EVENTS_PER_ROW[b][pick] for w in ("scan", "yard mix") for b in BATCH_SIZES}
+    counts[("yard mix", 10_000)] = READ_BACK_EVENTS[pick]
+    n_1m = args.events_1m if args.events_1m is not None else (
+        EVENTS_1M_QUICK if args.quick else EVENTS_1M)
+    wall_start = time.perf_counter()
+    _print_header(args)
+    workloads, stored = _build_workloads(np.random.default_rng(args.seed), counts)
+    gc.collect()
+    gc.freeze()  # the pre-built inputs are not what we measure: keep the GC off them
+
+    tmp = tempfile.TemporaryDirectory(prefix="bench-ledger-", dir=args.tmpdir)
+    try:
+        results = section_append(workloads, stored, counts, tmp.name)
+        read_ours = section_read_back(workloads, stored, counts[("yard mix", 10_000)], tmp.name)
+        del workloads, stored
+        gc.unfreeze()
+        gc.collect()
+        section_as_of(args.seed + 1, n_1m, tmp.name)
+    finally:
+        gc.unfreeze()
+        tmp.cleanup()
+    print_targets(results, read_ours)
     out(f"total wall time {time.perf_counter() - wall_start:,.0f} s")
     return 0
 

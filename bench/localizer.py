@@ -20,7 +20,7 @@ What it does (thesis §3.2-§3.3):
    fusing both.  The filter sees only the readings and the fixes (with a covariance
    from their fix quality and HDOP, :func:`services.localizer_tuning.gnss_covariance_m2`) and the
    encoder set's datasheet drift figures; never the truth.
-4. Target (the issue's acceptance figure): UKF RMSE <= 1/3 of GNSS alone and <= 1/3 of
+4. Target: UKF RMSE <= 1/3 of GNSS alone and <= 1/3 of
    encoders alone, on the mean over runs.
 
 Two GNSS error models, side by side (``--gnss``):
@@ -54,8 +54,11 @@ for p in (ROOT, ROOT / "bench"):
 import numpy as np  # noqa: E402
 from scipy.linalg import solve_discrete_are  # noqa: E402
 
-from sim_errors import NS_PER_S, bench_reclaim_trajectory, rmse_m  # noqa: E402
+from sim_errors import bench_reclaim_trajectory, rmse_m  # noqa: E402
 from projector.kinematics import MachineGeometry  # noqa: E402
+from schemas.times import NS_PER_S  # noqa: E402
+from services.gnss import (  # noqa: E402
+    DEFAULT_AUTONOMOUS_UERE_M, DEFAULT_UERE_M, position_covariance_m2, uere_for_quality)
 from services.localizer_batch import filter_sequence  # noqa: E402
 from services.localizer_tuning import FilterTuning, gnss_covariance_m2  # noqa: E402
 from sim.kinematics import FULL_SCALE, Machine, wheel_centre  # noqa: E402
@@ -110,9 +113,6 @@ def fix_covariances(quality, hdop, model: str = "quality") -> np.ndarray:
     """
     out = np.empty((len(quality), 3, 3))
     if model == "hdop":
-        from services.gnss import (DEFAULT_AUTONOMOUS_UERE_M, DEFAULT_UERE_M,
-                                   position_covariance_m2, uere_for_quality)
-
         for k, (q, h) in enumerate(zip(quality, hdop)):
             uere = uere_for_quality(int(q), DEFAULT_UERE_M, DEFAULT_AUTONOMOUS_UERE_M)
             out[k] = np.asarray(position_covariance_m2(float(h), uere)).reshape(3, 3)

@@ -16,7 +16,7 @@ as known at K).  Also with ``--bench-height`` lower benches at full scale.  Memo
 peak of Python allocations while planning (tracemalloc, a separate untimed run) and the
 process's peak RSS.
 
-Target (issue 8): a 10-cut bench on the full-scale pile in <= 2 s (the default plan, the top
+Target: a 10-cut bench on the full-scale pile in <= 2 s (the default plan, the top
 bench).  The lower benches are shown for information.
 """
 

@@ -22,9 +22,9 @@ Section ``ledger`` (the product's path): ``stockpile sim --scan-events truth`` w
 reclaim, the events imported into a DuckDB ledger, ``stockpile plan reclaim`` (the same
 code, :func:`planner.cli.make_plan`) on the projection with every assay known, the
 plan driven into the true pile; plus the collision tally over sampled valid landings of
-the projected pile.  The projector's own error (issue 5, in progress) is part of this.
+the projected pile.  The projector's own error is part of this.
 
-Targets (issue 8): no valid landing collides; tonnes within 5 % and Fe within 0.5 pp per
+Targets: no valid landing collides; tonnes within 5 % and Fe within 0.5 pp per
 cut once assays are known.
 """
 
@@ -44,11 +44,16 @@ from types import SimpleNamespace
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from ledger import EventClock, open_ledger  # noqa: E402
+from ledger.cli import import_lines  # noqa: E402
+from planner.cli import make_plan  # noqa: E402
 from planner.grades import predict_cuts  # noqa: E402
 from projector.kinematics import PlannerMachine  # noqa: E402
 from planner.plan import evaluate_landings, plan_bench_from, plan_reclaim  # noqa: E402
 from projector.grades import AssayRecord  # noqa: E402
+from projector.query import project  # noqa: E402
 from sim.drive import drive_bench, lab_assays, stacked_world, truth_stack  # noqa: E402
+from sim.runner import Simulation  # noqa: E402
 from sim.scenario import scenario_by_name  # noqa: E402
 
 TARGET_T_PCT = 5.0
@@ -167,10 +172,6 @@ def _report_tally(tally: Tally) -> bool:
 
 def _ledger_run(name: str, seed: int, keep: Path):
     """A full run with scans and no reclaim: (ledger path, world, simulation)."""
-    from ledger import EventClock, open_ledger
-    from ledger.cli import import_lines
-    from sim.runner import Simulation
-
     out = keep / f"ledger-{name}-{seed}"
     ledger = out / "ledger.duckdb"
     cache = out / "world.pkl"
@@ -192,10 +193,6 @@ def _ledger_run(name: str, seed: int, keep: Path):
 
 
 def section_ledger(args, keep: Path) -> bool:
-    from ledger import open_ledger
-    from projector.query import project
-    from planner.cli import make_plan
-
     print("\n== the product's path: simulator -> ledger -> projector -> stockpile plan "
           "reclaim, every assay known ==")
     tally = Tally()

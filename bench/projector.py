@@ -51,6 +51,7 @@ import argparse  # noqa: E402
 import contextlib  # noqa: E402
 import math  # noqa: E402
 import resource  # noqa: E402
+import subprocess  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
 import tracemalloc  # noqa: E402
@@ -64,12 +65,18 @@ for _p in (ROOT, ROOT / "bench"):
 
 import numpy as np  # noqa: E402
 
-from accuracy import NS_PER_S, Case, Rig, grid_for, simulate, thesis_piles  # noqa: E402
+from accuracy import Case, Rig, grid_for, simulate, thesis_piles  # noqa: E402
+from ledger import open_ledger  # noqa: E402
+from projector.fold import FoldConfig  # noqa: E402
 from projector.georef import georeference, interpolate_poses  # noqa: E402
+from projector.grid import GridGeometry, cell_centres  # noqa: E402
 from projector.ground import height_corrections  # noqa: E402
 from projector.heightmap import HeightMap, fuse, rasterize  # noqa: E402
-from projector.fold import FoldConfig  # noqa: E402
+from projector.layers import DepositInfo, LayerStack  # noqa: E402
 from projector.profile import clean_profile  # noqa: E402
+from projector.query import SnapshotStore, build_snapshots, project  # noqa: E402
+from projector.voxels import ClassWeights, integrate  # noqa: E402
+from schemas.times import NS_PER_H, NS_PER_S  # noqa: E402
 
 
 @dataclass
@@ -185,7 +192,7 @@ def section_georef_fuse(args) -> Section:
         t_scan, _pos, ranges, angle_min, inc, t_pose, pose_tr, pose_q = simulate(case, geom, rng)
         passes.append((t_scan, ranges, t_pose, pose_tr, pose_q))
     # the second pass happens an hour later (the same ride)
-    hour = 3600 * NS_PER_S
+    hour = NS_PER_H
     t_scan2, ranges2, t_pose2, pose_tr2, pose_q2 = passes[1]
     passes[1] = (t_scan2 + hour, ranges2, t_pose2 + hour, pose_tr2, pose_q2)
     n_beams = passes[0][1].shape[1]
@@ -242,9 +249,6 @@ def section_georef_fuse(args) -> Section:
 def _chevron_stack(n_deposits: int, nx: int, ny: int, cell_m: float, height_m: float,
                    seed: int):
     """A full-scale chevron pile: ``n_deposits`` triangular layers, each a pass in time."""
-    from projector.grid import GridGeometry, cell_centres
-    from projector.layers import DepositInfo, LayerStack
-
     g = GridGeometry(0.0, 0.0, cell_m, nx, ny)
     x, y = cell_centres(g)
     half = g.length_x_m / 2
@@ -254,10 +258,10 @@ def _chevron_stack(n_deposits: int, nx: int, ny: int, cell_m: float, height_m: f
     stack = LayerStack.empty(g, 0.0)
     rng = np.random.default_rng(seed)
     for k in range(1, n_deposits + 1):
-        stack = stack.open_deposit(DepositInfo(k, f"P{k}", f"LOT-{k % 7}", k * 600 * 10**9))
+        stack = stack.open_deposit(DepositInfo(k, f"P{k}", f"LOT-{k % 7}", k * 600 * NS_PER_S))
         # chevron: each pass lays a layer following the final shape, scaled by its share
         surface = final * (k / n_deposits) ** 0.5
-        stack, _ = stack.raise_to(surface, k * 600 * 10**9 + int(rng.integers(0, 600)) * 10**9)
+        stack, _ = stack.raise_to(surface, k * 600 * NS_PER_S + int(rng.integers(0, 600)) * NS_PER_S)
     return g, stack
 
 
@@ -268,9 +272,6 @@ def _voxel_weights(g, n_dep: int, analytes: int, seed: int):
     sampling windows cut it into one to three stretches of distinct grade and density (the
     classes :func:`projector.grades.grade_classes` gives the query).
     """
-    from projector.grid import cell_centres
-    from projector.voxels import ClassWeights
-
     _x, y = cell_centres(g)
     rng = np.random.default_rng(seed)
     classed, per_cell = [], []
@@ -288,9 +289,6 @@ def _voxel_weights(g, n_dep: int, analytes: int, seed: int):
 
 def section_voxels(args) -> Section:
     """Voxel tonnes and grades of a full-scale pile from its layer stack (one core)."""
-
-    from projector.voxels import integrate
-
     nx, ny, cell = (240, 880, 0.25) if not args.quick else (120, 440, 0.5)
     n_dep, analytes = 60, 5
     g, stack = _chevron_stack(n_dep, nx, ny, cell, 30.0, args.seed)
@@ -351,8 +349,6 @@ def section_voxels(args) -> Section:
 
 def _ledger_for_as_of(args) -> tuple[Path, str]:
     """The imported simulator ledger for section 3 (built into ``--ledger-dir`` once)."""
-    import subprocess
-
     scenario, hours = ("demo", 2.0) if args.quick else ("full-scale", 24.0)
     out = Path(args.ledger_dir) / f"{scenario}-{hours:g}h-seed1"
     ledger = out.with_suffix(".duckdb")
@@ -371,14 +367,82 @@ def _ledger_for_as_of(args) -> tuple[Path, str]:
     return ledger, scenario
 
 
+def _ensure_snapshots(store, snaps, snap_path: Path, pile: str, config, args, first: int,
+                      last: int, notes: list[str]) -> None:
+    """Build this fold config's snapshots into ``snaps`` unless a complete set is there.
+
+    Snapshots of another fold version (its code changed since they were built) are never
+    read again: deleted; another config's never serve this one's queries: this one's are
+    built.  Appends what it did to ``notes``.
+    """
+    every_s = 60.0 * args.snapshot_every_min
+    old, freed = snaps.drop_other_versions()
+    if old:
+        notes.append(f"deleted {old} snapshots of another fold version "
+                     f"({freed / 2**30:,.1f} GiB) from {snap_path.name}")
+    mine = snaps.count(config)
+    stale = snaps.count() - mine
+    if stale:
+        notes.append(f"{stale} snapshots of another fold config in {snap_path.name} "
+                     "are ignored (delete the file and its .d folder to free the space)")
+    reach = snaps.latest_valid_ns(config) if mine else None
+    if mine and (reach is None or reach < last - every_s * NS_PER_S):
+        # a build that was stopped part way: its snapshots stop short of the end
+        notes.append(f"{snaps.drop(config)} snapshots that stopped short of the "
+                     "ledger's end (a build stopped part way) were rebuilt")
+        mine = 0
+    if not mine:
+        t_build = time.perf_counter()
+        with every_core():    # the frames of each snapshot compress in parallel
+            saved = build_snapshots(
+                store, snaps, pile, every_ns=int(every_s * NS_PER_S), config=config,
+                progress=lambda n, v: print(
+                    f"  snapshot {n} at site hour {(v - first) / NS_PER_H:.2f} "
+                    f"({time.perf_counter() - t_build:.0f} s)", file=sys.stderr,
+                    flush=True))
+        size = snap_path.stat().st_size + sum(
+            f.stat().st_size for f in Path(str(snap_path) + ".d").glob("*.snap*"))
+        notes.append(f"snapshots: {saved} (one per {args.snapshot_every_min:g} site "
+                     f"min, {size / 2**20:,.0f} MiB) built in "
+                     f"{time.perf_counter() - t_build:.1f} s into {snap_path.name}")
+
+
+def _as_of_row(store, snaps, pile: str, label: str, v: int | None, k: int | None,
+               scratch: bool) -> tuple[list[str], bool, int]:
+    """Time one query from the snapshots (one core, every core), its peak memory and, when
+    ``scratch``, the same query folded from the first event; the table row, whether it
+    meets the target, and the number of cores."""
+    t0 = time.perf_counter()
+    fast = project(store, pile, v, k, snapshots=snaps)
+    one_core = time.perf_counter() - t0
+    with every_core() as n_cores:
+        t0 = time.perf_counter()
+        project(store, pile, v, k, snapshots=snaps)
+        seconds = time.perf_counter() - t0
+    # memory on a third run: tracing allocations slows numpy down
+    tracemalloc.start()
+    project(store, pile, v, k, snapshots=snaps)
+    _cur, peak = tracemalloc.get_traced_memory()
+    tracemalloc.stop()
+    if scratch:
+        t0 = time.perf_counter()
+        slow = project(store, pile, v, k)
+        scratch_s = time.perf_counter() - t0
+        same = (math.isclose(fast.tonnes, slow.tonnes, rel_tol=1e-9)
+                and len(fast.cuts) == len(slow.cuts))
+        cells = [f"{scratch_s:.1f}", f"{scratch_s / seconds:.0f}x", "yes" if same else "NO"]
+    else:   # not folded from the first event (--scratch)
+        same, cells = True, ["-", "-", "-"]
+    good = max(seconds, one_core) <= 2.0 and same
+    row = [label, f"{fast.tonnes:,.0f}", str(len(fast.cuts)), f"{one_core:.2f}",
+           f"{seconds:.2f}", cells[0], cells[1], f"{peak / 2**20:.0f} MiB", cells[2],
+           "PASS" if good else "MISS"]
+    return row, good, n_cores
+
+
 def section_as_of(args) -> Section:
     """``project(V, K)`` on a 24-hour full-scale ledger, from a snapshot vs from scratch."""
-    from ledger import open_ledger
-    from projector.fold import FoldConfig
-    from projector.query import SnapshotStore, build_snapshots, project
-
     ledger, scenario = _ledger_for_as_of(args)
-    every_s = 60.0 * args.snapshot_every_min
     snap_path = ledger.with_name(f"{ledger.stem}-snapshots-{args.snapshot_every_min:g}min.duckdb")
     pile = "P1"
     rows, ok, notes = [], True, []
@@ -387,77 +451,23 @@ def section_as_of(args) -> Section:
         events = head.global_seq + 1
         first = next(iter(store.read(0, 1))).valid_time_ns
         last = max(e.valid_time_ns for e in store.read(max(0, head.global_seq - 2000)))
-        hours = (last - first) / 3.6e12
+        hours = (last - first) / NS_PER_H
         config = FoldConfig(pile_id=pile)
         with SnapshotStore(snap_path) as snaps:
-            # snapshots of another fold version (its code changed since they were built)
-            # are never read again: deleted; another config's never serve this one's
-            # queries: this one's are built
-            old, freed = snaps.drop_other_versions()
-            if old:
-                notes.append(f"deleted {old} snapshots of another fold version "
-                             f"({freed / 2**30:,.1f} GiB) from {snap_path.name}")
-            mine = snaps.count(config)
-            stale = snaps.count() - mine
-            if stale:
-                notes.append(f"{stale} snapshots of another fold config in {snap_path.name} "
-                             "are ignored (delete the file and its .d folder to free the space)")
-            reach = snaps.latest_valid_ns(config) if mine else None
-            if mine and (reach is None or reach < last - every_s * NS_PER_S):
-                # a build that was stopped part way: its snapshots stop short of the end
-                notes.append(f"{snaps.drop(config)} snapshots that stopped short of the "
-                             "ledger's end (a build stopped part way) were rebuilt")
-                mine = 0
-            if not mine:
-                t_build = time.perf_counter()
-                with every_core():    # the frames of each snapshot compress in parallel
-                    saved = build_snapshots(
-                        store, snaps, pile, every_ns=int(every_s * NS_PER_S), config=config,
-                        progress=lambda n, v: print(
-                            f"  snapshot {n} at site hour {(v - first) / 3.6e12:.2f} "
-                            f"({time.perf_counter() - t_build:.0f} s)", file=sys.stderr,
-                            flush=True))
-                size = snap_path.stat().st_size + sum(
-                    f.stat().st_size for f in Path(str(snap_path) + ".d").glob("*.snap*"))
-                notes.append(f"snapshots: {saved} (one per {args.snapshot_every_min:g} site "
-                             f"min, {size / 2**20:,.0f} MiB) built in "
-                             f"{time.perf_counter() - t_build:.1f} s into {snap_path.name}")
+            _ensure_snapshots(store, snaps, snap_path, pile, config, args, first, last, notes)
             queries = [("the end, everything known", None, None),
-                       ("1 h before the end, known then", last - 3600 * NS_PER_S,
-                        head.recorded_time_ns - 3600 * NS_PER_S),
+                       ("1 h before the end, known then", last - NS_PER_H,
+                        head.recorded_time_ns - NS_PER_H),
                        ("half way, known now", first + (last - first) // 2, None)]
             # the first query of a process also pays for imports and DuckDB's first plans
             t0 = time.perf_counter()
             project(store, pile, first + (last - first) // 3, None, snapshots=snaps)
             notes.append(f"a first (cold) query, not in the table: {time.perf_counter() - t0:.2f} s")
             for label, v, k in queries:
-                t0 = time.perf_counter()
-                fast = project(store, pile, v, k, snapshots=snaps)
-                one_core = time.perf_counter() - t0
-                with every_core() as n_cores:
-                    t0 = time.perf_counter()
-                    project(store, pile, v, k, snapshots=snaps)
-                    seconds = time.perf_counter() - t0
-                # memory on a third run: tracing allocations slows numpy down
-                tracemalloc.start()
-                project(store, pile, v, k, snapshots=snaps)
-                _cur, peak = tracemalloc.get_traced_memory()
-                tracemalloc.stop()
-                if args.scratch == "all" or (args.scratch == "first" and not rows):
-                    t0 = time.perf_counter()
-                    slow = project(store, pile, v, k)
-                    scratch = time.perf_counter() - t0
-                    same = (math.isclose(fast.tonnes, slow.tonnes, rel_tol=1e-9)
-                            and len(fast.cuts) == len(slow.cuts))
-                    cells = [f"{scratch:.1f}", f"{scratch / seconds:.0f}x",
-                             "yes" if same else "NO"]
-                else:   # not folded from the first event (--scratch)
-                    same, cells = True, ["-", "-", "-"]
-                good = max(seconds, one_core) <= 2.0 and same
+                scratch = args.scratch == "all" or (args.scratch == "first" and not rows)
+                row, good, n_cores = _as_of_row(store, snaps, pile, label, v, k, scratch)
                 ok &= good
-                rows.append([label, f"{fast.tonnes:,.0f}", str(len(fast.cuts)),
-                             f"{one_core:.2f}", f"{seconds:.2f}", cells[0], cells[1],
-                             f"{peak / 2**20:.0f} MiB", cells[2], "PASS" if good else "MISS"])
+                rows.append(row)
             notes.append(f"'snapshot s' on {n_cores} cores (the snapshot's frames unpack in "
                          "parallel; the fold and the grade join run on one), beside the same "
                          "query pinned to one core ('1 core s'); the verdict asks both to meet "

@@ -33,6 +33,9 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+import zenoh  # noqa: E402
+from mcap.writer import CompressionType, Writer  # noqa: E402
+
 from ledger import EventClock, open_ledger  # noqa: E402
 from ledger.cli import import_lines  # noqa: E402
 from replay.export import export_ledger  # noqa: E402
@@ -41,6 +44,7 @@ from replay.record import Config, Recorder  # noqa: E402
 from replay.replay import iter_events, replay_to_ledger  # noqa: E402
 from schemas.events import encode_attachment  # noqa: E402
 from services.service import SiteTime, ZenohOptions  # noqa: E402
+from stockpile.orchestrate import free_loopback_port  # noqa: E402
 
 SITE = "capelambert"
 
@@ -68,8 +72,6 @@ def demo_ledger(work: Path) -> Path:
 
 def bare_writer(samples: list, path: Path) -> float:
     """Seconds for the bare mcap writer to write ``samples`` (channels made on first use)."""
-    from mcap.writer import CompressionType, Writer
-
     started = time.perf_counter()
     with open(path, "wb") as f:
         writer = Writer(f, compression=CompressionType.ZSTD)
@@ -144,10 +146,6 @@ def bench_replay_ledger(session: Path, work: Path) -> dict:
 
 
 def bench_replay_zenoh(session: Path, expected: int) -> dict:
-    import zenoh
-
-    from stockpile.orchestrate import free_loopback_port
-
     endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
     router = zenoh.open(ZenohOptions(mode="router", listen=(endpoint,)).to_config())
     received = [0]

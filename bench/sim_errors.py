@@ -43,8 +43,7 @@ from sim.kinematics import FULL_SCALE, wheel_centre  # noqa: E402
 from sim.scenario import DEFAULT_START_NS, Scenario  # noqa: E402
 from sim.encoders import ENCODER_SET_1, ENCODER_SET_2, EncoderModel  # noqa: E402
 from sim.gnss import GnssConfig, GnssModel  # noqa: E402
-
-NS_PER_S = 1_000_000_000
+from schemas.times import NS_PER_S  # noqa: E402
 
 
 def bench_reclaim_trajectory(hours: float = 1.0, dt_s: float = 1.0, *, luff_top_deg: float = 10.0,

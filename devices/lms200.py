@@ -1,4 +1,4 @@
-"""SICK LMS200 binary telegrams (DOMAIN.md §5, thesis §3.4 and Appendix A).
+"""SICK LMS200 binary telegrams (docs/domain.md §5, thesis §3.4 and Appendix A).
 
 Framing (all integers little-endian)::
 
@@ -113,7 +113,7 @@ class TelegramError(ValueError):
 
 
 def crc16(data: bytes | bytearray | memoryview) -> int:
-    """SICK's CRC-16 of an LMS200 telegram (DOMAIN.md §5).
+    """SICK's CRC-16 of an LMS200 telegram (docs/domain.md §5).
 
     Parameters
     ----------

@@ -1,4 +1,4 @@
-"""NMEA 0183 GGA sentences, as GNSS receivers send them over serial (DOMAIN.md §5).
+"""NMEA 0183 GGA sentences, as GNSS receivers send them over serial (docs/domain.md §5).
 
 ::
 
@@ -21,13 +21,14 @@ import math
 import re
 from dataclasses import dataclass
 
+from schemas.times import NS_PER_DAY
+
 __all__ = ["NmeaError", "Gga", "NmeaReader", "nmea_checksum", "format_gga", "parse_gga",
            "MAX_LINE_LENGTH"]
 
 #: Longest line :class:`NmeaReader` accepts by default, characters including ``$`` and CR LF.
 MAX_LINE_LENGTH = 128
 
-_NS_PER_DAY = 86_400 * 10**9
 _NS_PER_CS = 10**7  # nanoseconds per centisecond
 _MINUTE_DECIMALS = 7
 _TALKER_RE = re.compile(r"^[A-Z]{2}$")
@@ -112,7 +113,7 @@ def _format_angle(angle_deg: float, deg_digits: int) -> str:
 
 def _format_time(time_ns: int) -> str:
     """UTC nanoseconds -> hhmmss.ss (time of day, truncated to the centisecond)."""
-    cs = (time_ns % _NS_PER_DAY) // _NS_PER_CS
+    cs = (time_ns % NS_PER_DAY) // _NS_PER_CS
     s, cs = divmod(cs, 100)
     m, s = divmod(s, 60)
     h, m = divmod(m, 60)

@@ -10,7 +10,12 @@
 - :mod:`ledger.memory`: the in-memory backend
 - :mod:`ledger.testing`: the contract test class every backend passes
 - :mod:`ledger.errors`: the exception tree
+- :mod:`ledger.records`: the immutable records the ledger returns
+- :mod:`ledger.clock`: site clocks, where recorded time comes from
+- :mod:`ledger.chain`: the payload hash and the hash chain
 - :mod:`ledger.views`: SQL views for auditors
+- :mod:`ledger.wire`: a compact binary form of records, for reads over the network
+- :mod:`ledger.cli`: ``stockpile ledger import|export|verify|stats``
 """
 
 from __future__ import annotations
@@ -40,6 +45,7 @@ from ledger.records import (
     StreamInfo,
     VerifyReport,
 )
+from ledger.memory import MemoryStore
 from ledger.store import LedgerStore
 
 MEMORY = ":memory:"
@@ -49,11 +55,11 @@ def open_ledger(path: str | os.PathLike[str], clock: SiteClock | None = None, *,
                 read_only: bool = False) -> LedgerStore:
     """Open (or create) a ledger: a DuckDB file, or ``":memory:"`` for the in-memory store."""
     if str(path) == MEMORY:
-        from ledger.memory import MemoryStore
-
         if read_only:
             raise InterfaceError("an in-memory ledger cannot be opened read-only")
         return MemoryStore(clock)
+    # deferred: duckdb and pyarrow are heavy, and most processes that import the ledger
+    # package (the edge services) never open a DuckDB file (see docs/design-notes.md)
     from ledger.duckdb_store import DuckDBStore
 
     return DuckDBStore(path, clock, read_only=read_only)

@@ -61,6 +61,7 @@ class NotSupportedError(DatabaseError):
 
 
 def _duckdb_mapping() -> list[tuple[type[BaseException], type[LedgerError]]]:
+    # deferred: duckdb is heavy and only a DuckDB store (which has imported it) raises its errors
     import duckdb
 
     mapping: list[tuple[type[BaseException], type[LedgerError]]] = []

@@ -25,7 +25,7 @@ from hypothesis import strategies as st
 from schemas import pb
 from schemas.events import Event, make_event, set_timestamp_ns
 
-from ledger.clock import ManualClock
+from ledger.clock import EventClock, ManualClock
 from ledger.store import LedgerStore
 
 
@@ -284,8 +284,6 @@ class LedgerStoreContract(abc.ABC):
         store.close()
 
     def test_event_clock_follows_clock_events(self, tmp_path):
-        from ledger.clock import EventClock
-
         def clock_event(seq: int, t: int) -> Event:
             m = pb.Clock()
             set_timestamp_ns(m.time, t)

@@ -13,8 +13,17 @@ import math
 import re
 import sys
 
-from schemas.times import format_time_ns, parse_time_ns
+from schemas.events import decode_payload
 from schemas.jsonl import json_safe
+from schemas.times import format_time_ns, parse_time_ns
+
+from ledger import open_ledger
+from projector.grades import AssayRecord
+from projector.query import FAR_FUTURE_NS, project
+from planner.bench import PlanParams
+from planner.grades import check_bounds, predict_cuts
+from projector.kinematics import PlannerMachine
+from planner.plan import plan_reclaim
 
 EXIT_OK, EXIT_NO_PLAN = 0, 1
 _BOUND = re.compile(r"^\s*([A-Za-z][A-Za-z0-9_]*)\s*(>=|<=)\s*([-+0-9.eE]+)\s*$")
@@ -36,12 +45,8 @@ def parse_bounds(texts: list[str]) -> dict[str, tuple[float | None, float | None
     return {k: (v[0], v[1]) for k, v in out.items()}
 
 
-
-
 def _declarations(store, v: int, k: int, pile_id: str, machine_id: str):
     """The pile's and the machine's declarations as of (V, K); a clear error otherwise."""
-    from schemas.events import decode_payload
-
     piles, machines = {}, {}
     for event in store.as_of(v, k, types=["pile_declared", "machine_declared"]):
         msg = decode_payload(event.type, event.payload)
@@ -63,9 +68,6 @@ def _declarations(store, v: int, k: int, pile_id: str, machine_id: str):
 
 def grades_input(store, v: int, k: int):
     """Lots' planned grades and every assay as of (V, K): the grade join's input."""
-    from projector.grades import AssayRecord
-    from schemas.events import decode_payload
-
     lots, assays = {}, []
     for event in store.as_of(v, k, types=["lot_declared", "assay"]):
         msg = decode_payload(event.type, event.payload)
@@ -83,15 +85,8 @@ def plan_args(ledger: str, pile: str, machine: str, *, cuts: int = 10) -> argpar
                               valid_time=None, known_time=None, all=False)
 
 
-def make_plan(args: argparse.Namespace, store=None) -> dict:
-    """Read the ledger (or the open ``store``), plan, predict; one JSON-ready dict."""
-    from ledger import open_ledger
-    from planner.bench import PlanParams
-    from planner.grades import check_bounds, predict_cuts
-    from projector.kinematics import PlannerMachine
-    from planner.plan import plan_reclaim
-    from projector.query import FAR_FUTURE_NS, project
-
+def _check_plan_args(args: argparse.Namespace) -> None:
+    """A clear error for a number of cuts, a spacing or a clearance that cannot be planned."""
     if args.cuts < 1:
         raise ValueError(f"--cuts must be >= 1, got {args.cuts}")
     for name in ("bench_height", "spacing", "clearance"):
@@ -102,6 +97,80 @@ def make_plan(args: argparse.Namespace, store=None) -> dict:
         raise ValueError(f"--spacing must be > 0, got {args.spacing}")
     if args.clearance is not None and args.clearance < 0:
         raise ValueError(f"--clearance must be >= 0, got {args.clearance}")
+
+
+def _noise_warnings(state, plan, machine) -> list[str]:
+    """A warning when the clearance is within the scans' surface noise (3 sd)."""
+    warnings = []
+    noise_m = float(getattr(state.state, "point_sd_m", math.nan))
+    if math.isfinite(noise_m) and plan.params.clearance_m < 3 * noise_m:
+        warnings.append(
+            f"the clearance ({plan.params.clearance_m:.3g} m) is less than 3 x the surface "
+            f"noise of the scans ({noise_m:.3g} m): a landing may collide where the model's "
+            f"surface is low; the wheel bites at most Rv - Rk - clearance = "
+            f"{machine.cutting_radius_m - machine.wheel_radius_m - plan.params.clearance_m:.3g} m")
+    return warnings
+
+
+def _landing_json(plan) -> dict | None:
+    """The plan's landing (point, normal, wheel centre, joints, depth), or None."""
+    if plan.landing is None:
+        return None
+    lz, search = plan.landing, plan.search
+    return {
+        "point_m": list(lz.point_m), "normal": list(lz.normal),
+        "wheel_centre_m": list(lz.centre_m),
+        "joints": {"travel_m": lz.travel_m, "slew_rad": lz.slew_rad, "luff_rad": lz.luff_rad},
+        "direction": lz.direction, "cutting_depth_m": lz.cutting_depth_m,
+        "bench_floor_m": lz.bench_floor_m,
+        "candidates_tried": search.tried, "candidates_valid": search.valid,
+    }
+
+
+def _plan_json(args: argparse.Namespace, state, plan, machine, warnings: list[str]) -> dict:
+    """The plan's search, landing and parameters as one JSON-ready dict (no cuts yet)."""
+    search = plan.search
+    return {
+        "pile_id": args.pile, "machine_id": args.machine,
+        "valid_time_ns": state.valid_time_ns, "known_time_ns": state.known_time_ns,
+        "landing": None,
+        "search": {"spacing_m": search.spacing_m, "in_region": search.in_region,
+                   "tried": search.tried, "landing_valid": search.landing_valid,
+                   "bench_checked": search.bench_checked, "valid": search.valid,
+                   "exhaustive": search.exhaustive, "rejected": search.rejected},
+        "cuts": [],
+        "warnings": warnings,
+        "params": {"clearance_m": plan.params.clearance_m, "min_bite_m": plan.params.min_bite_m,
+                   "cut_depth_m": plan.params.cut_depth_m, "spacing_m": plan.params.spacing_m,
+                   "slump": plan.params.slump, "repose_deg": plan.params.repose_deg,
+                   "max_cutting_height_m": machine.max_cutting_height_m,
+                   "bench_floor_m": args.bench_height},
+    }
+
+
+def _add_predictions(out: dict, plan, predictions, bounds) -> None:
+    """Each planned cut with its predicted tonnes and grade, the bench's, and the bounds."""
+    for cut, p in zip(plan.cuts, predictions):
+        g = cut.geometry
+        out["cuts"].append({
+            "cut": cut.index + 1, "travel_m": cut.travel_m, "luff_rad": cut.luff_rad,
+            "slew_start_rad": cut.slew_start_rad, "slew_end_rad": cut.slew_end_rad,
+            "volume_m3": p.volume_m3, "tonnes": p.tonnes, "grade": p.grade,
+            "assayed_fraction": p.assayed_fraction, "bank_m": g.bank_m,
+            "slumped_m3": g.slumped_m3, "deposits": p.deposits})
+    tonnes = sum(p.tonnes for p in predictions)
+    assayed = sum(p.tonnes * p.assayed_fraction for p in predictions)
+    report = check_bounds(predictions, bounds)
+    out["bench"] = {"tonnes": tonnes, "grade": report.bench_grade,
+                    "assayed_fraction": assayed / tonnes if tonnes > 0 else 0.0}
+    if bounds:
+        out["bounds"] = {"limits": {a: {"min": lo, "max": hi} for a, (lo, hi) in bounds.items()},
+                         "cuts_outside": report.outside, "bench_outside": report.bench_outside}
+
+
+def make_plan(args: argparse.Namespace, store=None) -> dict:
+    """Read the ledger (or the open ``store``), plan, predict; one JSON-ready dict."""
+    _check_plan_args(args)
     bounds = parse_bounds(args.bound or [])
     valid = parse_time_ns(args.valid_time) if args.valid_time else None
     known = parse_time_ns(args.known_time) if args.known_time else None
@@ -122,59 +191,12 @@ def make_plan(args: argparse.Namespace, store=None) -> dict:
     plan = plan_reclaim(state.state.stack, machine, n_cuts=args.cuts,
                         bench_floor_m=args.bench_height, params=params, exhaustive=args.all)
     density = float(pile_msg.default_bulk_density_t_m3) or 2.4
-    warnings = []
-    noise_m = float(getattr(state.state, "point_sd_m", math.nan))
-    if math.isfinite(noise_m) and plan.params.clearance_m < 3 * noise_m:
-        warnings.append(
-            f"the clearance ({plan.params.clearance_m:.3g} m) is less than 3 x the surface "
-            f"noise of the scans ({noise_m:.3g} m): a landing may collide where the model's "
-            f"surface is low; the wheel bites at most Rv - Rk - clearance = "
-            f"{machine.cutting_radius_m - machine.wheel_radius_m - plan.params.clearance_m:.3g} m")
+    warnings = _noise_warnings(state, plan, machine)
     predictions = predict_cuts(state.geometry, [c.removal for c in plan.cuts], lots, assays,
                                state.known_time_ns, density, pile_id=args.pile)
-    search = plan.search
-    out: dict = {
-        "pile_id": args.pile, "machine_id": args.machine,
-        "valid_time_ns": state.valid_time_ns, "known_time_ns": state.known_time_ns,
-        "landing": None,
-        "search": {"spacing_m": search.spacing_m, "in_region": search.in_region,
-                   "tried": search.tried, "landing_valid": search.landing_valid,
-                   "bench_checked": search.bench_checked, "valid": search.valid,
-                   "exhaustive": search.exhaustive, "rejected": search.rejected},
-        "cuts": [],
-        "warnings": warnings,
-        "params": {"clearance_m": plan.params.clearance_m, "min_bite_m": plan.params.min_bite_m,
-                   "cut_depth_m": plan.params.cut_depth_m, "spacing_m": plan.params.spacing_m,
-                   "slump": plan.params.slump, "repose_deg": plan.params.repose_deg,
-                   "max_cutting_height_m": machine.max_cutting_height_m,
-                   "bench_floor_m": args.bench_height},
-    }
-    if plan.landing is not None:
-        lz = plan.landing
-        out["landing"] = {
-            "point_m": list(lz.point_m), "normal": list(lz.normal),
-            "wheel_centre_m": list(lz.centre_m),
-            "joints": {"travel_m": lz.travel_m, "slew_rad": lz.slew_rad, "luff_rad": lz.luff_rad},
-            "direction": lz.direction, "cutting_depth_m": lz.cutting_depth_m,
-            "bench_floor_m": lz.bench_floor_m,
-            "candidates_tried": search.tried, "candidates_valid": search.valid,
-        }
-    for cut, p in zip(plan.cuts, predictions):
-        g = cut.geometry
-        out["cuts"].append({
-            "cut": cut.index + 1, "travel_m": cut.travel_m, "luff_rad": cut.luff_rad,
-            "slew_start_rad": cut.slew_start_rad, "slew_end_rad": cut.slew_end_rad,
-            "volume_m3": p.volume_m3, "tonnes": p.tonnes, "grade": p.grade,
-            "assayed_fraction": p.assayed_fraction, "bank_m": g.bank_m,
-            "slumped_m3": g.slumped_m3, "deposits": p.deposits})
-    tonnes = sum(p.tonnes for p in predictions)
-    assayed = sum(p.tonnes * p.assayed_fraction for p in predictions)
-    report = check_bounds(predictions, bounds)
-    out["bench"] = {"tonnes": tonnes, "grade": report.bench_grade,
-                    "assayed_fraction": assayed / tonnes if tonnes > 0 else 0.0}
-    if bounds:
-        out["bounds"] = {"limits": {a: {"min": lo, "max": hi} for a, (lo, hi) in bounds.items()},
-                         "cuts_outside": report.outside, "bench_outside": report.bench_outside}
+    out = _plan_json(args, state, plan, machine, warnings)
+    out["landing"] = _landing_json(plan)
+    _add_predictions(out, plan, predictions, bounds)
     return out
 
 

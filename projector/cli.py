@@ -9,6 +9,9 @@ import sys
 
 from schemas.times import format_time_ns, parse_time_ns
 
+from ledger import open_ledger
+from projector.query import SnapshotStore, project
+
 
 def _fmt_grade(grade: dict[str, float]) -> str:
     return ", ".join(f"{k} {v:.2f} %" for k, v in grade.items() if math.isfinite(v)) or "-"
@@ -32,9 +35,6 @@ def _clean(value):
 
 
 def cmd_project(args: argparse.Namespace) -> int:
-    from ledger import open_ledger
-    from projector.query import SnapshotStore, project
-
     valid = parse_time_ns(args.valid_time) if args.valid_time else None
     known = parse_time_ns(args.known_time) if args.known_time else None
     with open_ledger(args.ledger, read_only=True) as store:

@@ -36,7 +36,7 @@ import numpy as np
 from schemas.times import NS_PER_S
 
 __all__ = ["AssayRecord", "GradeClasses", "effective_assays", "grade_at", "grade_classes",
-           "timestamp_ns", "STATUSES"]
+           "coerce_time_ns", "STATUSES"]
 
 #: Assay statuses, in increasing precedence.
 STATUSES: tuple[str, ...] = ("PROVISIONAL", "FINAL")
@@ -45,7 +45,7 @@ STATUSES: tuple[str, ...] = ("PROVISIONAL", "FINAL")
 _STATUS_BY_NUMBER = {1: "PROVISIONAL", 2: "FINAL"}
 
 
-def timestamp_ns(value) -> int:
+def coerce_time_ns(value) -> int:
     """UTC ns of a protobuf ``Timestamp`` (``seconds``, ``nanos``) or of an integer."""
     if isinstance(value, bool):
         raise TypeError("a time must be a Timestamp or integer ns, got a bool")
@@ -119,8 +119,8 @@ class AssayRecord:
                 raise ValueError(f"assay {msg.assay_id!r}: unknown status {status!r}")
             status = _STATUS_BY_NUMBER[number]
         return cls(assay_id=str(msg.assay_id), lot_id=str(msg.lot_id),
-                   window_start_ns=timestamp_ns(msg.window_start),
-                   window_end_ns=timestamp_ns(msg.window_end),
+                   window_start_ns=coerce_time_ns(msg.window_start),
+                   window_end_ns=coerce_time_ns(msg.window_end),
                    analytes=dict(msg.analytes),
                    bulk_density_t_m3=float(getattr(msg, "bulk_density_t_m3", 0.0) or 0.0),
                    status=status, supersedes=str(getattr(msg, "supersedes", "") or ""),

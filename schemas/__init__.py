@@ -1,11 +1,13 @@
-"""Event schemas of stockpile-ledger: the bottom of the import chain.
+"""Event schemas of stockpile-ledger: the bottom layer, imported by every other package.
 
-``schemas`` <- ``ledger`` <- ``services``, ``replay``.  Nothing here does I/O.
+Nothing here does I/O (except :mod:`schemas.generate`, the code generator).
 
 - :mod:`schemas.stockpile.v1.events_pb2`: generated from ``schemas/proto`` (the source of truth)
 - :mod:`schemas.events`: event types, the identity envelope, Zenoh keys and attachments
 - :mod:`schemas.validate`: checks applied at the ledger boundary
 - :mod:`schemas.jsonl`: canonical JSON lines
+- :mod:`schemas.times`: the time constants (``NS_PER_S`` ...) and ISO-8601 <-> UTC ns
+- :mod:`schemas.generate`: regenerates ``events_pb2`` with protoc (``make schemas``)
 """
 
 from schemas.events import (

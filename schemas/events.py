@@ -30,6 +30,7 @@ from google.protobuf.message import Message
 from google.protobuf.timestamp_pb2 import Timestamp
 
 from schemas.stockpile.v1 import events_pb2 as pb
+from schemas.times import NS_PER_S
 
 #: event type name -> protobuf message class.  Order is the documentation order.
 EVENT_TYPES: dict[str, type[Message]] = {
@@ -70,8 +71,6 @@ MAX_COUNTER = 2**63 - 1
 
 _SOURCE_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,127}$")
 _SITE_RE = _SOURCE_RE
-
-_NS_PER_S = 1_000_000_000
 
 
 @dataclass(frozen=True, slots=True)
@@ -138,12 +137,12 @@ def type_of_message(message: Message) -> str:
 
 def timestamp_ns(ts: Timestamp) -> int:
     """A protobuf Timestamp as integer UTC nanoseconds."""
-    return ts.seconds * _NS_PER_S + ts.nanos
+    return ts.seconds * NS_PER_S + ts.nanos
 
 
 def set_timestamp_ns(ts: Timestamp, time_ns: int) -> None:
     """Set a protobuf Timestamp from integer UTC nanoseconds (floor semantics)."""
-    seconds, nanos = divmod(int(time_ns), _NS_PER_S)
+    seconds, nanos = divmod(int(time_ns), NS_PER_S)
     ts.seconds = seconds
     ts.nanos = nanos
 

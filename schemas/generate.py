@@ -29,6 +29,7 @@ def generate(output_root: Path = OUTPUT_ROOT, proto_root: Path = PROTO_ROOT) -> 
     RuntimeError
         If protoc reports an error.
     """
+    # deferred: grpc_tools (grpcio-tools) is a dev-only dependency, needed only to regenerate
     import grpc_tools
     from grpc_tools import protoc
 

@@ -47,7 +47,7 @@ def parse_time_ns(text: str) -> int:
         digits = tz[1:].replace(":", "")
         whole -= sign * timedelta(hours=int(digits[:2]), minutes=int(digits[2:]))
     delta = whole - _EPOCH
-    ns = (delta.days * 86_400 + delta.seconds) * 1_000_000_000
+    ns = (delta.days * 86_400 + delta.seconds) * NS_PER_S
     frac = match["frac"]
     if frac:
         ns += int(frac.ljust(9, "0"))
@@ -58,7 +58,7 @@ def format_time_ns(ns: int | None) -> str:
     """UTC nanoseconds as ISO-8601 with a 'Z' (fraction only when non-zero)."""
     if ns is None:
         return "-"
-    seconds, frac = divmod(int(ns), 1_000_000_000)
+    seconds, frac = divmod(int(ns), NS_PER_S)
     text = (_EPOCH + timedelta(seconds=seconds)).strftime("%Y-%m-%dT%H:%M:%S")
     if frac:
         text += "." + f"{frac:09d}".rstrip("0")

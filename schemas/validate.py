@@ -25,6 +25,7 @@ from schemas.events import (
     is_valid_source,
     payload_valid_time_ns,
 )
+from schemas.times import NS_PER_S
 
 #: Every reason the ledger can give for refusing an event.
 REASON_CODES: dict[str, str] = {
@@ -260,7 +261,7 @@ class _CompiledChecks:
                 raise InvalidEvent("unknown_enum", f"{self.name}.{path} = {value} is not a {enum_name}")
         for path, ts in zip(self.timestamp_paths, self.get_timestamps(message)):
             nanos = ts.nanos
-            if not 0 <= nanos < 1_000_000_000 or not is_time_ns(ts.seconds * 1_000_000_000 + nanos):
+            if not 0 <= nanos < NS_PER_S or not is_time_ns(ts.seconds * NS_PER_S + nanos):
                 raise InvalidEvent(
                     "out_of_range",
                     f"{self.name}.{path} is not a timestamp between 1677-09-21 and 2262-04-11")

@@ -21,19 +21,20 @@ from __future__ import annotations
 
 import argparse
 import io
+import json
 import time
 from pathlib import Path
 
 from schemas.events import decode_payload
+from schemas.times import NS_PER_H, format_time_ns
 
 from ledger import EventClock, open_ledger
 from ledger.cli import export_lines, format_stats, import_lines
+from sim.runner import Simulation
+from sim.scenario import demo
 from stockpile.orchestrate import fresh_ledger_path
 from stockpile.sample import generate_sample
 from stockpile.yard_demo import run_yard_demo
-from sim.runner import Simulation
-from sim.scenario import demo
-from schemas.times import format_time_ns
 
 
 def show_late_assay(store) -> None:
@@ -42,7 +43,7 @@ def show_late_assay(store) -> None:
     assays = list(store.read(types=["assay"]))
     late = max(assays, key=lambda r: r.recorded_time_ns - r.valid_time_ns)
     body = decode_payload("assay", late.payload)
-    hours = (late.recorded_time_ns - late.valid_time_ns) / 3.6e12
+    hours = (late.recorded_time_ns - late.valid_time_ns) / NS_PER_H
     print(f"   {body.assay_id} (lot {body.lot_id}, Fe {body.analytes['Fe']:.2f} %): window ends "
           f"{format_time_ns(late.valid_time_ns)}, recorded {format_time_ns(late.recorded_time_ns)} "
           f"({hours:.1f} h late)")
@@ -113,9 +114,6 @@ def run_demo(out_dir: Path, seed: int = 7) -> int:
 
 
 def run_sim_demo(out_dir: Path, seed: int = 1) -> int:
-    import json
-
-
     out_dir.mkdir(parents=True, exist_ok=True)
     started = time.monotonic()
     print(f"== simulating the demo yard (seed {seed}): 3 lots, 9 chevron passes, one reclaim "

@@ -20,6 +20,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
+import zenoh
+
 from services.service import ZenohOptions, log, parse_logfmt
 
 
@@ -82,8 +84,6 @@ class Supervisor:
     """A loopback router plus child processes; a context manager that always cleans up."""
 
     def __init__(self, out_dir: Path, *, site: str, quiet: bool = False) -> None:
-        import zenoh
-
         self.out_dir = Path(out_dir)
         self.logs = self.out_dir / "logs"
         self.logs.mkdir(parents=True, exist_ok=True)

@@ -33,6 +33,7 @@ import subprocess
 import sys
 import threading
 import time
+import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -84,8 +85,6 @@ class YardConfig:
 
 def load_config(path: str | Path) -> YardConfig:
     """Parse and check a yard config; raises :class:`ConfigError` with the reason."""
-    import tomllib
-
     try:
         data = tomllib.loads(Path(path).read_text())
     except OSError as exc:

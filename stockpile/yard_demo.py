@@ -110,7 +110,7 @@ def localizer_rmse(store, truth_npz: Path) -> dict[str, float]:
     """Wheel-centre RMSE (m) of the localizer's estimates and of the raw encoders vs truth.
 
     Truth joints are interpolated at each estimate's valid time; both sides go
-    through the same forward kinematics (DOMAIN.md §3).
+    through the same forward kinematics (docs/domain.md §3).
     """
 
     machine = _machine_from_ledger(store)
@@ -303,91 +303,101 @@ def _wait_done(sim, timeout_s: float, every_s: float = 15.0) -> str:
             _say(f"   {shown}")
 
 
-def run_yard_demo(out_dir: Path, *, seed: int = 1, speed: float = 40.0, idle_speed: float = 2000.0,
-                  duration_h: float | None = None, scenario: str = "demo",
-                  site: str = SITE_OF_SCENARIO, record: Path | None = None) -> int:
-    """Run the yard end to end; print the summary; return 0 when every check holds.
+def _start_services(yard: Supervisor, ledger_path: Path, site: str, record: Path | None,
+                    common: list[str]) -> None:
+    """Start the ledger, the recorder (when ``record`` is given) and the localizer."""
+    yard.start("ledger", ["service", "ledger", "--ledger", str(ledger_path), "--clock", "events",
+                          *common])
+    yard.wait_live("ledger")
+    if record is not None:
+        yard.start("recorder", ["service", "recorder", "--out", str(record), "--clock", "site",
+                                "--site", site, "--status-period", "1", *yard.client_args])
+        yard.wait_live("recorder")
+    yard.start("localizer", ["service", "localizer", "--machine", MACHINE, *common])
 
-    ``record`` (off by default) also runs ``stockpile service recorder`` writing the
-    site's events to that MCAP file (site-clock log times); it is stopped once it holds
-    as many events as the ledger.
-    """
-    started = time.monotonic()
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
 
-    ledger_path = fresh_ledger_path(out_dir / "ledger.duckdb")
-    sim_dir = out_dir / "sim"
+def _start_sim_and_sensors(yard: Supervisor, sim_dir: Path, common: list[str], *, site: str,
+                           scenario: str, seed: int, speed: float, idle_speed: float,
+                           duration_h: float | None):
+    """Start the simulator on pseudo-terminals and the scanner and GNSS services on its ports."""
     live = f"stockpile/{site}/@live"
-    with Supervisor(out_dir, site=site) as yard:
-        _say(f"== the yard as processes: zenoh router on {yard.endpoint} (loopback, scouting off); "
-             f"logs in {yard.logs}")
-        common = ["--site", site, "--status-period", "5", *yard.client_args]
-        yard.start("ledger", ["service", "ledger", "--ledger", str(ledger_path), "--clock", "events",
-                              *common])
-        yard.wait_live("ledger")
-        if record is not None:
-            yard.start("recorder", ["service", "recorder", "--out", str(record), "--clock", "site",
-                                    "--site", site, "--status-period", "1", *yard.client_args])
-            yard.wait_live("recorder")
-        yard.start("localizer", ["service", "localizer", "--machine", MACHINE, *common])
-        sim_args = ["sim", "--scenario", scenario, "--seed", str(seed), "--out", str(sim_dir),
-                    "--pty", "--zenoh", "--speed", str(speed), "--idle-speed", str(idle_speed),
-                    "--wait-subscriber", "60", "--linger", "600",
-                    "--wait-live", f"{live}/scanner/**", "--wait-live", f"{live}/gnss/**",
-                    "--wait-live", f"{live}/localizer/**", *yard.client_args]
-        if duration_h is not None:
-            sim_args += ["--duration", str(duration_h)]
-        sim = yard.start("sim", sim_args)
-        scanner_path = sim.wait_stdout(lambda l: l.startswith("LMS200 scanner on"), 60).split()[-1]
-        gnss_path = sim.wait_stdout(lambda l: l.startswith("GNSS receiver"), 60).split()[-1]
-        yard.start("scanner", ["service", "scanner", "--device", scanner_path, "--clock", "site",
-                               "--source", f"{MACHINE}.scanner", *common])
-        yard.start("gnss", ["service", "gnss", "--device", gnss_path, "--clock", "site",
-                            "--source", f"{MACHINE}.gnss", *common])
-        _say(f"   scanner on {scanner_path}, GNSS on {gnss_path}; simulating at {speed:g}x "
-             f"({idle_speed:g}x while the yard waits for assays) ...")
-        done_line = _wait_done(sim, 6 * 3600)
-        _say(f"   simulator {done_line}")
-        sim.wait_stdout(lambda l: l.strip().startswith("stacked"), 30)  # the pacing line is before it
-        pacing = next((l.strip() for l in list(sim.stdout_lines) if l.strip().startswith("pacing:")),
-                      "")
-        if pacing:
-            _say(f"   simulator {pacing}")
-        lag = re.search(r"largest lag ([0-9.]+) s", pacing)
-        sim_max_lag_s = float(lag.group(1)) if lag else 0.0
-        for name in ("scanner", "gnss"):  # their ports went quiet: they end on their own
-            if yard.wait_exit(name, 30) is None:
-                yard.stop(name)
-        published: dict[str, tuple[int, int]] = {}
-        for name in ("sim", "scanner", "gnss"):
-            published.update(yard.children[name].published())
-        client = LedgerClient(yard.session, site, timeout_s=60)
-        wait_ledgered(client, published, 300)
-        rc_localizer = yard.stop("localizer")
-        published.update(yard.children["localizer"].published())
-        wait_ledgered(client, published, 120)
-        if record is not None:
-            _wait_recorded(yard.children["recorder"], client.stats()["events"], 60)
-            rc_recorder = yard.stop("recorder")
-        rc = {"localizer": rc_localizer, "sim": yard.stop("sim"), "ledger": yard.stop("ledger")}
-        if record is not None:
-            rc["recorder"] = rc_recorder
-        rc.update({n: yard.children[n].process.returncode for n in ("scanner", "gnss")})
+    sim_args = ["sim", "--scenario", scenario, "--seed", str(seed), "--out", str(sim_dir),
+                "--pty", "--zenoh", "--speed", str(speed), "--idle-speed", str(idle_speed),
+                "--wait-subscriber", "60", "--linger", "600",
+                "--wait-live", f"{live}/scanner/**", "--wait-live", f"{live}/gnss/**",
+                "--wait-live", f"{live}/localizer/**", *yard.client_args]
+    if duration_h is not None:
+        sim_args += ["--duration", str(duration_h)]
+    sim = yard.start("sim", sim_args)
+    scanner_path = sim.wait_stdout(lambda l: l.startswith("LMS200 scanner on"), 60).split()[-1]
+    gnss_path = sim.wait_stdout(lambda l: l.startswith("GNSS receiver"), 60).split()[-1]
+    yard.start("scanner", ["service", "scanner", "--device", scanner_path, "--clock", "site",
+                           "--source", f"{MACHINE}.scanner", *common])
+    yard.start("gnss", ["service", "gnss", "--device", gnss_path, "--clock", "site",
+                        "--source", f"{MACHINE}.gnss", *common])
+    _say(f"   scanner on {scanner_path}, GNSS on {gnss_path}; simulating at {speed:g}x "
+         f"({idle_speed:g}x while the yard waits for assays) ...")
+    return sim
 
+
+def _wait_sim_end(sim) -> tuple[str, float]:
+    """Wait for the scenario's end; the simulator's pacing line and its largest lag (s)."""
+    done_line = _wait_done(sim, 6 * 3600)
+    _say(f"   simulator {done_line}")
+    sim.wait_stdout(lambda l: l.strip().startswith("stacked"), 30)  # the pacing line is before it
+    pacing = next((l.strip() for l in list(sim.stdout_lines) if l.strip().startswith("pacing:")),
+                  "")
+    if pacing:
+        _say(f"   simulator {pacing}")
+    lag = re.search(r"largest lag ([0-9.]+) s", pacing)
+    return pacing, float(lag.group(1)) if lag else 0.0
+
+
+def _drain_and_stop(yard: Supervisor, site: str, record: Path | None
+                    ) -> tuple[dict[str, tuple[int, int]], dict[str, int | None]]:
+    """Stop the producers, wait until the ledger holds all they published, stop the ledger.
+
+    Returns what each source says it published ``{source: (epoch, count)}`` and each
+    process's exit code.
+    """
+    for name in ("scanner", "gnss"):  # their ports went quiet: they end on their own
+        if yard.wait_exit(name, 30) is None:
+            yard.stop(name)
+    published: dict[str, tuple[int, int]] = {}
+    for name in ("sim", "scanner", "gnss"):
+        published.update(yard.children[name].published())
+    client = LedgerClient(yard.session, site, timeout_s=60)
+    wait_ledgered(client, published, 300)
+    rc_localizer = yard.stop("localizer")
+    published.update(yard.children["localizer"].published())
+    wait_ledgered(client, published, 120)
+    if record is not None:
+        _wait_recorded(yard.children["recorder"], client.stats()["events"], 60)
+        rc_recorder = yard.stop("recorder")
+    rc = {"localizer": rc_localizer, "sim": yard.stop("sim"), "ledger": yard.stop("ledger")}
+    if record is not None:
+        rc["recorder"] = rc_recorder
+    rc.update({n: yard.children[n].process.returncode for n in ("scanner", "gnss")})
+    return published, rc
+
+
+def _check_ledger(ledger_path: Path, published: dict[str, tuple[int, int]],
+                  sim_dir: Path) -> dict[str, Any]:
+    """Everything the summary reports, read from the finished ledger and the simulator's truth."""
     with open_ledger(ledger_path, read_only=True) as store:
-        stats = store.stats()
-        exact = check_exactly_once(store, published)
-        verify = store.verify()
-        gaps = store.gaps(open_only=True)
-        quarantine = store.quarantine()
-        book = pile_book(store)
-        rmse = localizer_rmse(store, sim_dir / "truth.npz")
-        timing = scan_timing(store, sim_dir / "truth.npz")
-        truth = json.loads((sim_dir / "truth.json").read_text())
+        checks = {"stats": store.stats(), "exact": check_exactly_once(store, published),
+                  "verify": store.verify(), "gaps": store.gaps(open_only=True),
+                  "quarantine": store.quarantine(), "book": pile_book(store),
+                  "rmse": localizer_rmse(store, sim_dir / "truth.npz"),
+                  "timing": scan_timing(store, sim_dir / "truth.npz"),
+                  "truth": json.loads((sim_dir / "truth.json").read_text())}
         _say("\n== folding the ledger into the layered model (stockpile project) ...")
-        model = projector_vs_truth(store, truth)
+        checks["model"] = projector_vs_truth(store, checks["truth"])
+    return checks
 
+
+def _say_ledger(stats, exact: list[dict[str, Any]], verify, gaps, quarantine) -> None:
+    """Print the events per type and the exactly-once check per source."""
     _say("\n== events per type in the ledger")
     for type_name, n in sorted(stats.per_type.items(), key=lambda kv: -kv[1]):
         _say(f"   {type_name:<16} {n:>8,}")
@@ -400,23 +410,32 @@ def run_yard_demo(out_dir: Path, *, seed: int = 1, speed: float = 40.0, idle_spe
          f"{'verified' if verify.ok else 'BROKEN'} ({verify.rows_checked:,} rows)")
     for entry in quarantine[:5]:
         _say(f"   quarantined {entry.type} from {entry.source}: {entry.reason[:100]}")
+
+
+def _vs(measured: float, true: float) -> str:
+    return f"true {true:,.0f} t, {(measured / true - 1) * 100:+.2f} %" if true > 0 else \
+        f"true {true:,.0f} t"
+
+
+def _say_pile_book(book: dict[str, Any], truth: dict[str, Any]) -> None:
+    """Print :func:`pile_book`'s result beside the simulator's truth."""
     _say("\n== the pile by belt scales and assays as known at the end")
     world = truth["world"]
     true_in = sum(p["true_tonnes"] for p in truth["passes"])
     true_out = sum(c["true_tonnes"] for c in truth["cuts"])
-
-    def vs(measured: float, true: float) -> str:
-        return f"true {true:,.0f} t, {(measured / true - 1) * 100:+.2f} %" if true > 0 else \
-            f"true {true:,.0f} t"
-
-    _say(f"   stacked {book['stacked_t']:,.0f} t by the belt scales ({vs(book['stacked_t'], true_in)}), "
-         f"reclaimed {book['reclaimed_t']:,.0f} t ({vs(book['reclaimed_t'], true_out)}), "
+    _say(f"   stacked {book['stacked_t']:,.0f} t by the belt scales ({_vs(book['stacked_t'], true_in)}), "
+         f"reclaimed {book['reclaimed_t']:,.0f} t ({_vs(book['reclaimed_t'], true_out)}), "
          f"pile {book['pile_t']:,.0f} t")
     _say(f"   the simulated pile holds {world['tonnes']:,.0f} t now, including any pass still "
          "running when the run ended")
     _say("   grade " + ", ".join(f"{k} {v:.2f} %" for k, v in book["grade_pct"].items())
          + f" (assayed fraction {book['assayed_fraction']:.2f}; truth Fe {world['grade']['Fe']:.2f} %, "
          f"SiO2 {world['grade']['SiO2']:.2f} %)")
+
+
+def _say_localizer(rmse: dict[str, float], timing: dict[str, float], speed: float,
+                   pacing: str) -> None:
+    """Print the localizer's RMSE and the scans' timing error against the simulator's truth."""
     _say("\n== localizer against the simulator's truth (wheel centre)")
     if "localizer_rmse_m" in rmse:
         _say(f"   UKF {rmse['localizer_rmse_m']:.3f} m RMSE over {rmse['localizer_samples']:,} "
@@ -434,6 +453,41 @@ def run_yard_demo(out_dir: Path, *, seed: int = 1, speed: float = 40.0, idle_spe
             _say("   (the simulator fell behind its schedule at times, see its pacing line; it "
                  "then moves its schedule on, and a service that reads late on a busy machine "
                  "dates its scans late)")
+
+
+def run_yard_demo(out_dir: Path, *, seed: int = 1, speed: float = 40.0, idle_speed: float = 2000.0,
+                  duration_h: float | None = None, scenario: str = "demo",
+                  site: str = SITE_OF_SCENARIO, record: Path | None = None) -> int:
+    """Run the yard end to end; print the summary; return 0 when every check holds.
+
+    ``record`` (off by default) also runs ``stockpile service recorder`` writing the
+    site's events to that MCAP file (site-clock log times); it is stopped once it holds
+    as many events as the ledger.
+    """
+    started = time.monotonic()
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+
+    ledger_path = fresh_ledger_path(out_dir / "ledger.duckdb")
+    sim_dir = out_dir / "sim"
+    with Supervisor(out_dir, site=site) as yard:
+        _say(f"== the yard as processes: zenoh router on {yard.endpoint} (loopback, scouting off); "
+             f"logs in {yard.logs}")
+        common = ["--site", site, "--status-period", "5", *yard.client_args]
+        _start_services(yard, ledger_path, site, record, common)
+        sim = _start_sim_and_sensors(yard, sim_dir, common, site=site, scenario=scenario,
+                                     seed=seed, speed=speed, idle_speed=idle_speed,
+                                     duration_h=duration_h)
+        pacing, sim_max_lag_s = _wait_sim_end(sim)
+        published, rc = _drain_and_stop(yard, site, record)
+
+    c = _check_ledger(ledger_path, published, sim_dir)
+    stats, exact, verify, gaps, quarantine = (c["stats"], c["exact"], c["verify"], c["gaps"],
+                                              c["quarantine"])
+    book, rmse, timing, model = c["book"], c["rmse"], c["timing"], c["model"]
+    _say_ledger(stats, exact, verify, gaps, quarantine)
+    _say_pile_book(book, c["truth"])
+    _say_localizer(rmse, timing, speed, pacing)
     _say("\n== the layered model as of the end (stockpile project) against the simulator's truth")
     _say_projector(model)
     ok = (verify.ok and not gaps and all(r["exact"] and not r["open_gaps"] for r in exact)

@@ -14,6 +14,7 @@ import pytest
 from scipy.spatial.transform import Rotation, Slerp
 
 from projector.georef import georeference, interpolate_poses, sensor_points
+from projector.kinematics import quaternion_to_matrix
 from projector_helpers import LOOK_DOWN, NS, T0_NS, make_rng
 
 

@@ -14,7 +14,7 @@ import math
 
 import numpy as np
 
-from projector.grades import timestamp_ns
+from projector.grades import coerce_time_ns
 from services.dashboard.pose import (joints_from_wheel_pose, machine_strips, scan_points,
                                      scanner_pose_at)
 from services.dashboard.recorder import iso, rr
@@ -243,7 +243,7 @@ def log_scan(out, msg, scanner_poses: dict) -> None:
     ranges = np.asarray(msg.ranges, np.float64)
     if not poses or ranges.size < 2:
         return
-    position, quaternion = scanner_pose_at(timestamp_ns(msg.timestamp), poses)
+    position, quaternion = scanner_pose_at(coerce_time_ns(msg.timestamp), poses)
     if not np.isfinite(position).all():
         return
     pts = scan_points(ranges, msg.start_angle, msg.end_angle, position, quaternion)

@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from projector.kinematics import Reclaimer
-from projector.grades import timestamp_ns
+from projector.grades import coerce_time_ns
 from schemas.events import decode_payload
 from schemas.times import NS_PER_H
 from services.dashboard.pose import quat_matrix, wheel_from_scanner
@@ -146,7 +146,7 @@ class PileTracker:
         self.assay_version += 1
         self.reasons.add("assay")
         self._widen_range(dict(msg.analytes))
-        late_h = (record.recorded_time_ns - timestamp_ns(msg.window_end)) / NS_PER_H
+        late_h = (record.recorded_time_ns - coerce_time_ns(msg.window_end)) / NS_PER_H
         status = {1: "PROVISIONAL", 2: "FINAL"}.get(int(msg.status), str(msg.status))
         unknown = "unknown_lot" in (getattr(record, "flags", ()) or ())
         lines = [(
@@ -182,7 +182,7 @@ class PileTracker:
         if msg.parent_frame_id != "site" or "/" not in msg.child_frame_id:
             return
         machine_id, frame = msg.child_frame_id.split("/", 1)
-        t = timestamp_ns(msg.timestamp)
+        t = coerce_time_ns(msg.timestamp)
         p = np.array([msg.translation.x, msg.translation.y, msg.translation.z])
         q = (msg.rotation.x, msg.rotation.y, msg.rotation.z, msg.rotation.w)
         if frame == "scanner":
