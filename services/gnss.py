@@ -60,7 +60,7 @@ import serial
 from foxglove_schemas_protobuf.LocationFix_pb2 import LocationFix
 
 from schemas.events import is_valid_source, set_timestamp_ns
-from schemas.times import NS_PER_DAY
+from schemas.times import NS_PER_DAY, NS_PER_S
 from devices import nmea
 from services.serial_device import DevicePipeline, run_serial_service
 from services.service import (
@@ -190,7 +190,7 @@ def gga_time_ns(time_of_day_s: float, now_ns: int) -> int:
     """
     if not (math.isfinite(time_of_day_s) and time_of_day_s >= 0):
         raise ValueError(f"time of day must be finite and >= 0, got {time_of_day_s}")
-    tod_ns = round(time_of_day_s * 1e9)
+    tod_ns = round(time_of_day_s * NS_PER_S)
     midnight = now_ns // NS_PER_DAY * NS_PER_DAY
     candidates = (midnight - NS_PER_DAY + tod_ns, midnight + tod_ns,
                   midnight + NS_PER_DAY + tod_ns)

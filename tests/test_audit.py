@@ -29,7 +29,7 @@ from stockpile import cli
 SEED = 2          # the seed of the small_yard_sim fixture (tests/conftest.py)
 PILE = "P1"
 CUT = "T-C01"
-S = 1_000_000_000
+from schemas.times import NS_PER_S as S  # noqa: E402
 H = 3600 * S
 
 

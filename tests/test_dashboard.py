@@ -33,7 +33,7 @@ from test_audit import CUT, PILE, SEED, audit_ledger
 from zenoh_helpers import (client_args, log_lines, open_router, service_on_a_stuck_ledger, stockpile,
                            stop, stop_all, wait_liveliness, wait_until)
 
-S = 1_000_000_000
+from schemas.times import NS_PER_S as S  # noqa: E402
 SITE = "dash"
 
 

@@ -37,7 +37,7 @@ from sim.kinematics import FULL_SCALE, wheel_centre
 from sim.motion import SCANNER_IN_WHEEL, wheel_rotation
 from sim.scenario import DEFAULT_START_NS, Scenario
 
-NS = 1_000_000_000
+from schemas.times import NS_PER_S as NS  # noqa: E402
 SEED = 20261122
 MACHINE = FULL_SCALE
 GEOMETRY = MachineGeometry(rail_x_m=MACHINE.rail_x_m, rail_z_m=MACHINE.rail_z_m,

@@ -29,7 +29,7 @@ from schemas import pb
 from schemas.events import Event, decode_payload, make_event, set_timestamp_ns
 from schemas.jsonl import decode_line
 
-S = 1_000_000_000
+from schemas.times import NS_PER_S as S  # noqa: E402
 PILE = "P1"
 
 

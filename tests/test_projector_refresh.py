@@ -21,7 +21,7 @@ from projector.grid import GridGeometry
 from projector.heightmap import CellObservations, HeightMap, fuse
 from projector.layers import DepositInfo, LayerStack
 
-NS = 10**9
+from schemas.times import NS_PER_S as NS  # noqa: E402
 SD = 0.05          # point sd (m)
 
 

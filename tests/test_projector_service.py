@@ -39,7 +39,7 @@ from zenoh_helpers import (
 
 SITE = "proj"
 PILE = "P1"
-S = 1_000_000_000
+from schemas.times import NS_PER_S as S  # noqa: E402
 
 
 @pytest.fixture(scope="module")

@@ -37,7 +37,7 @@ from schemas.events import EVENT_TYPES, Event, decode_payload, make_event, set_t
 from stockpile.cli import main as stockpile
 from stockpile.yard_demo import SITE_OF_SCENARIO as SITE
 
-S = 1_000_000_000
+from schemas.times import NS_PER_S as S  # noqa: E402
 H = 3600 * S
 
 

@@ -40,7 +40,7 @@ from zenoh_helpers import (
 
 SITE = "replaysite"
 T0_NS = 1_793_491_200 * 1_000_000_000
-S = 1_000_000_000
+from schemas.times import NS_PER_S as S  # noqa: E402
 
 
 def _stamp(msg, name: str, t_ns: int):

@@ -26,7 +26,7 @@ from sim.scanner import (
 
 BASE_SEED = int(os.environ.get("SIM_SENSORS_SEED", "20261101"))
 T0_NS = 1_793_491_200_000_000_000
-NS = 1_000_000_000
+from schemas.times import NS_PER_S as NS  # noqa: E402
 LAT0, LON0, ALT0 = -20.659739, 117.078497, 5.0   # Cape Lambert (thesis §3.3)
 
 #: scanner x -> site -z, scanner y -> site +x, scanner z -> site -y: looks down, sweeps x
