@@ -18,8 +18,7 @@ from schemas.jsonl import json_safe
 from schemas.times import format_time_ns, parse_time_ns
 
 from ledger import open_ledger
-from projector.grades import AssayRecord
-from projector.query import FAR_FUTURE_NS, project
+from projector.query import FAR_FUTURE_NS, grade_inputs, project
 from planner.bench import PlanParams
 from planner.grades import check_bounds, predict_cuts
 from projector.kinematics import PlannerMachine
@@ -64,18 +63,6 @@ def _declarations(store, v: int, k: int, pile_id: str, machine_id: str):
         raise ValueError(f"machine {machine_id!r} {what} as of that time "
                          f"(reclaimers declared: {known})")
     return piles[pile_id], reclaimers[machine_id]
-
-
-def grades_input(store, v: int, k: int):
-    """Lots' planned grades and every assay as of (V, K): the grade join's input."""
-    lots, assays = {}, []
-    for event in store.as_of(v, k, types=["lot_declared", "assay"]):
-        msg = decode_payload(event.type, event.payload)
-        if event.type == "lot_declared":
-            lots[msg.lot_id] = dict(msg.planned_grade)
-        else:
-            assays.append(AssayRecord.from_message(msg, event.recorded_time_ns))
-    return lots, assays
 
 
 def plan_args(ledger: str, pile: str, machine: str, *, cuts: int = 10) -> argparse.Namespace:
@@ -181,7 +168,7 @@ def make_plan(args: argparse.Namespace, store=None) -> dict:
             return make_plan(args, opened)
     pile_msg, machine_msg = _declarations(store, v, k, args.pile, args.machine)
     state = project(store, args.pile, valid, known)
-    lots, assays = grades_input(store, v, k)
+    lots, assays = grade_inputs(store, v, k)
     if state.geometry is None or state.state.stack is None:
         raise ValueError(f"pile {args.pile!r} has no projection as of that time")
     machine = PlannerMachine.from_message(machine_msg)

@@ -123,19 +123,6 @@ class ParcelColumns:
         self._slot_rho.append(rho)
         return len(self._thk) - 1
 
-    def _slot_for(self, deposit_id, lot_idx: int, rho: float) -> int:
-        if self._thk and (self._slot_deposit[-1] == deposit_id and self._slot_lot[-1] == lot_idx
-                          and self._slot_rho[-1] == rho):
-            return len(self._thk) - 1
-        ny, nx = self.grid.shape
-        self._thk.append(np.zeros((ny, nx)))
-        self._tim.append(np.zeros((ny, nx)))
-        self._grd.append(np.zeros((len(self.analytes), ny, nx)))
-        self._slot_deposit.append(deposit_id)
-        self._slot_lot.append(lot_idx)
-        self._slot_rho.append(rho)
-        return len(self._thk) - 1
-
     # ---------------------------------------------------------------- adding and removing
     def _merge(self, slot: int, iy0: int, ix0: int, add: np.ndarray, trel, g):
         """Add thickness ``add`` (block at (iy0, ix0)) to ``slot`` with time ``trel`` and
