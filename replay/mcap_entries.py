@@ -14,8 +14,6 @@ import json
 from dataclasses import dataclass
 from typing import Callable, Iterator, NamedTuple
 
-import zenoh
-
 from replay.mcap_format import ENCODING, MALFORMED_PREFIX, SEQ_LOW_BITS, from_u64
 from replay.mcap_records import AttachmentRecord, ChannelInfo, RawMessage, SchemaInfo
 from replay.mcap_scan import McapScan
@@ -88,6 +86,8 @@ def topic_matcher(expressions: list[str] | tuple[str, ...] | None) -> Callable[[
     """A predicate: does a topic fall under any of these Zenoh key expressions?"""
     if not expressions:
         return None
+    import zenoh  # deferred: zenoh is not needed to read a file (``stockpile info``)
+
     try:
         exprs = [zenoh.KeyExpr(e) for e in expressions]
     except Exception as exc:  # noqa: BLE001 - zenoh raises its own error type
