@@ -12,7 +12,6 @@ import json
 import math
 import re
 import sys
-import time
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -20,6 +19,7 @@ from schemas.jsonl import json_safe
 from schemas.times import (NS_PER_DAY, NS_PER_H, NS_PER_MIN, NS_PER_S, format_time_ns,
                            parse_time_ns)
 
+from common.progress import Progress, enabled_from_args, progress
 from ledger import open_ledger
 from audit.report import audit_assays, audit_cuts, audit_history
 
@@ -80,43 +80,10 @@ def table(headers: Sequence[str], rows: Sequence[Sequence[str]], *, right: Seque
     return "\n".join(out)
 
 
-class ProgressLine:
-    """Progress of a long fold on stderr: a rewritten line on a terminal, else quiet.
-
-    ``force`` prints a line per update (at most every ``period_s``) even when stderr is not
-    a terminal.
-    """
-
-    def __init__(self, label: str, *, enabled: bool | None = None, force: bool = False,
-                 period_s: float = 1.0) -> None:
-        tty = sys.stderr.isatty()
-        self.label, self.force, self.period_s = label, force, period_s
-        self.enabled = force or (tty if enabled is None else enabled)
-        self.tty = tty and not force
-        self._last = 0.0
-        self._shown = False
-        self._t0 = time.monotonic()
-
-    def __call__(self, fraction: float, events: int) -> None:
-        if not self.enabled:
-            return
-        now = time.monotonic()
-        if now - self._last < self.period_s and fraction < 1.0:
-            return
-        self._last = now
-        text = (f"{self.label}: folded {events:,} geometry events ({100 * fraction:3.0f} % of "
-                f"valid time, {now - self._t0:.0f} s)")
-        if self.tty:
-            sys.stderr.write("\r" + text + " " * 4)
-        else:
-            sys.stderr.write(text + "\n")
-        sys.stderr.flush()
-        self._shown = True
-
-    def done(self) -> None:
-        if self.enabled and self.tty and self._shown:
-            sys.stderr.write("\r" + " " * 100 + "\r")
-            sys.stderr.flush()
+def _fold_progress(label: str, args: argparse.Namespace) -> Progress:
+    """Progress of a long fold on stderr, in geometry events (the total estimated from the
+    fraction of valid time folded)."""
+    return progress(unit="geometry events", desc=label, enabled=enabled_from_args(args))
 
 
 def _open(path: str):
@@ -246,11 +213,10 @@ def _print_cuts(report, rows: list[dict[str, Any]], with_truth: bool, a: str,
 
 def cmd_cuts(args: argparse.Namespace) -> int:
     truth = load_truth_cuts(args.truth) if args.truth else None
-    progress = ProgressLine("audit cuts", enabled=False if args.no_progress else None,
-                            force=args.progress)
-    with _open(args.ledger) as store:
-        report = audit_cuts(store, args.pile, _known(args), progress=progress)
-    progress.done()
+    with _open(args.ledger) as store, _fold_progress("audit cuts", args) as bar:
+        report = audit_cuts(store, args.pile, _known(args),
+                            progress=lambda fraction, events: bar.update_to(events,
+                                                                            fraction=fraction))
     analyte = args.analyte
     if report.analytes and analyte not in report.analytes:
         raise ValueError(f"analyte {analyte!r} is not in this ledger (it has "
@@ -270,12 +236,10 @@ def cmd_history(args: argparse.Namespace) -> int:
     every = parse_duration_ns(args.every)
     start = parse_time_ns(args.start) if args.start else None
     end = parse_time_ns(args.end) if args.end else None
-    progress = ProgressLine("audit history", enabled=False if args.no_progress else None,
-                            force=args.progress)
-    with _open(args.ledger) as store:
+    with _open(args.ledger) as store, _fold_progress("audit history", args) as bar:
         report = audit_history(store, args.pile, every, _known(args), start_ns=start, end_ns=end,
-                               progress=progress)
-    progress.done()
+                               progress=lambda fraction, events: bar.update_to(
+                                   events, fraction=fraction))
     analyte = args.analyte
     if report.analytes and analyte not in report.analytes:
         raise ValueError(f"analyte {analyte!r} is not in this ledger (it has "

@@ -8,10 +8,11 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-import time
 from dataclasses import asdict
 from pathlib import Path
-from typing import IO, Iterable, Iterator, TextIO
+from typing import IO, Callable, Iterable, Iterator
+
+from common.progress import Progress, enabled_from_args, progress as progress_bar
 
 from schemas.events import EVENT_TYPES, Event, Malformed
 from schemas.jsonl import decode_line, encode_line
@@ -26,21 +27,6 @@ DEFAULT_BATCH = 1_000
 EXIT_OK, EXIT_VERIFY_FAILED, EXIT_USAGE = 0, 1, 2
 
 
-class Progress:
-    """A progress line on stderr every ``every_s`` seconds (long imports and exports)."""
-
-    def __init__(self, what: str, stream: TextIO = sys.stderr, every_s: float = 2.0) -> None:
-        self.what, self.stream, self.every_s = what, stream, every_s
-        self.started = self.last = time.monotonic()
-
-    def update(self, done: int, extra: str = "") -> None:
-        now = time.monotonic()
-        if now - self.last >= self.every_s:
-            self.last = now
-            rate = done / max(now - self.started, 1e-9)
-            print(f"{self.what}: {done:,} ({rate:,.0f}/s){extra}", file=self.stream, flush=True)
-
-
 def _batches(items: Iterable[Event | Malformed], size: int) -> Iterator[list[Event | Malformed]]:
     batch: list[Event | Malformed] = []
     for item in items:
@@ -53,11 +39,13 @@ def _batches(items: Iterable[Event | Malformed], size: int) -> Iterator[list[Eve
 
 
 def import_lines(store: LedgerStore, lines: Iterable[str | bytes], *, name: str = "<input>",
-                 batch_size: int = DEFAULT_BATCH, progress: Progress | None = None) -> dict[str, int]:
+                 batch_size: int = DEFAULT_BATCH, progress: Progress | None = None,
+                 fraction: Callable[[], float] | None = None) -> dict[str, int]:
     """Append canonical JSON lines to a store in batches; return counts per status.
 
     Blank lines are skipped; every other line ends up appended, a duplicate, or in
-    quarantine with its reason.
+    quarantine with its reason.  ``progress`` counts lines after each batch;
+    ``fraction()`` (0..1, the part of the input read) lets it estimate the total.
     """
     counts = dict.fromkeys(STATUSES, 0)
     counts["lines"] = 0
@@ -74,8 +62,9 @@ def import_lines(store: LedgerStore, lines: Iterable[str | bytes], *, name: str 
         result = store.append(batch)
         for status, n in result.counts.items():
             counts[status] += n
-        if progress:
-            progress.update(counts["lines"], f" lines, {counts['appended']:,} appended")
+        if progress is not None:
+            progress.set_postfix(f"{counts['appended']:,} appended")
+            progress.update_to(counts["lines"], fraction=fraction() if fraction else None)
     return counts
 
 
@@ -101,8 +90,8 @@ def export_lines(store: LedgerStore, out: IO[str], *, types: list[str] | None = 
                               row.payload, row.recorded_time_ns))
         out.write("\n")
         n += 1
-        if progress and n % 10_000 == 0:
-            progress.update(n, " events")
+        if progress is not None and n % 1_000 == 0:
+            progress.update_to(n)
     return n
 
 
@@ -146,9 +135,13 @@ def cmd_import(args: argparse.Namespace) -> int:
         raise FileNotFoundError(f"no such file: {args.file}")
     with open_ledger(args.ledger, clock) as store:
         handle = source or open(args.file, "rb")
+        size_bytes = 0 if source is not None else Path(args.file).stat().st_size
         try:
-            counts = import_lines(store, handle, name=args.file, batch_size=args.batch_size,
-                                  progress=Progress(f"importing {args.file}"))
+            with progress_bar(unit="lines", desc=f"importing {Path(args.file).name}",
+                              enabled=enabled_from_args(args)) as bar:
+                counts = import_lines(store, handle, name=args.file, batch_size=args.batch_size,
+                                      progress=bar, fraction=(lambda: handle.tell() / size_bytes)
+                                      if size_bytes else None)
         finally:
             if source is None:
                 handle.close()
@@ -170,9 +163,12 @@ def cmd_export(args: argparse.Namespace) -> int:
     known = parse_time_ns(args.as_of_known) if args.as_of_known is not None else None
     with open_ledger(args.ledger, read_only=True) as store:
         out = sys.stdout if args.output in (None, "-") else open(args.output, "w")
+        everything = args.types is None and valid is None and known is None
         try:
-            n = export_lines(store, out, types=args.types, as_of_valid_ns=valid,
-                             as_of_known_ns=known, progress=Progress("exporting"))
+            with progress_bar(store.head().global_seq + 1 if everything else None,
+                              desc="exporting", enabled=enabled_from_args(args)) as bar:
+                n = export_lines(store, out, types=args.types, as_of_valid_ns=valid,
+                                 as_of_known_ns=known, progress=bar)
         finally:
             if out is not sys.stdout:
                 out.close()

@@ -12,6 +12,5 @@
 - :mod:`replay.replay`: a file back onto Zenoh or into a ledger (``stockpile replay``);
 - :mod:`replay.export`: a ledger's events as an MCAP file (``stockpile export-mcap``);
 - :mod:`replay.recover`: salvage a damaged recording (``stockpile record --recover``);
-- :mod:`replay.progress`: the progress bar on stderr;
 - :mod:`replay.cli`: the ``record``, ``replay`` and ``export-mcap`` commands.
 """

@@ -14,12 +14,12 @@ from pathlib import Path
 
 import zenoh
 
+from common.progress import enabled_from_args, progress
 from ledger import open_ledger
 from ledger.clock import clock_by_name
 from replay import record
 from replay.export import export_ledger
 from replay.mcap_entries import topic_matcher
-from replay.progress import ProgressBar
 from replay.recover import recover
 from replay.replay import iter_events, replay_publish, replay_to_ledger
 from schemas.events import EVENT_TYPES, key_expr
@@ -98,13 +98,13 @@ def cmd_replay(args: argparse.Namespace) -> int:
 def _replay_ledger(args: argparse.Namespace, topics) -> int:
     if args.rate is not None or args.max or args.loop:
         raise ValueError("--rate, --max and --loop are for --publish")
-    progress = ProgressBar("replay", enabled=not args.no_progress)
-    with open_ledger(args.ledger, clock_by_name(args.clock)) as store:
+    with open_ledger(args.ledger, clock_by_name(args.clock)) as store, \
+            progress(desc="replay", enabled=enabled_from_args(args)) as bar:
         result = replay_to_ledger(args.input, store,
                                   preserve_recorded_time=args.preserve_recorded_time,
                                   topics=topics, start_offset_s=args.start_offset,
                                   until_s=args.until, batch_size=args.batch_size,
-                                  progress=progress)
+                                  progress=bar)
     c = result.counts
     print(f"replayed {args.input} into {args.ledger}: {result.events:,} events -> "
           f"{c['appended']:,} appended, {c['duplicate']:,} duplicate, {c['conflict']:,} conflict, "
@@ -128,14 +128,15 @@ def _replay_publish(args: argparse.Namespace, topics) -> int:
     if rate is not None and not rate > 0:
         raise ValueError(f"--rate must be > 0, got {rate:g}")
     stopper = Stopper()
-    progress = ProgressBar("replay", enabled=not args.no_progress)
     session = zenoh.open(config_from_args(args))
     try:
         if args.wait_subscriber:
             _wait_subscriber(session, args, stopper)
-        result = replay_publish(args.input, session, rate=rate, loop=args.loop, topics=topics,
-                                start_offset_s=args.start_offset, until_s=args.until,
-                                site=args.site, stop=stopper, progress=progress)
+        with progress(desc="replay", enabled=enabled_from_args(args)) as bar:
+            result = replay_publish(args.input, session, rate=rate, loop=args.loop,
+                                    topics=topics, start_offset_s=args.start_offset,
+                                    until_s=args.until, site=args.site, stop=stopper,
+                                    progress=bar)
         if args.linger > 0 and not stopper.is_set():
             stopper.wait(args.linger)  # the caches stay up for late joiners
     finally:
@@ -175,10 +176,10 @@ def cmd_export_mcap(args: argparse.Namespace) -> int:
     for name in args.types or ():
         if name not in EVENT_TYPES:
             raise ValueError(f"unknown event type {name!r}; known: {', '.join(EVENT_TYPES)}")
-    progress = ProgressBar("export", enabled=not args.no_progress)
-    with open_ledger(args.ledger, read_only=True) as store:
+    with open_ledger(args.ledger, read_only=True) as store, \
+            progress(desc="export", enabled=enabled_from_args(args)) as bar:
         result = export_ledger(store, args.output, site=args.site, types=args.types,
-                               progress=progress)
+                               progress=bar)
     print(f"exported {result.events:,} events of {args.ledger} (head global_seq "
           f"{result.head_global_seq}) to {result.path} in {result.wall_s:.2f} s")
     return EXIT_OK

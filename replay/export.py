@@ -14,9 +14,9 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+from common.progress import Progress
 from replay.mcap_format import DEFAULT_CHUNK_BYTES
 from replay.mcap_writer import EventWriter
-from replay.progress import ProgressBar
 from schemas.events import key_expr
 
 
@@ -29,7 +29,7 @@ class ExportResult:
 
 
 def export_ledger(store, out_path: str | Path, *, site: str, types: list[str] | None = None,
-                  progress: ProgressBar | None = None,
+                  progress: Progress | None = None,
                   chunk_size_bytes: int = DEFAULT_CHUNK_BYTES) -> ExportResult:
     """Write ``store``'s events (optionally only ``types``) to ``out_path``."""
     key_expr(site, "clock", "x")  # a bad site id fails here, before any file is made
@@ -46,7 +46,7 @@ def export_ledger(store, out_path: str | Path, *, site: str, types: list[str] | 
             writer.write_event(site, row, row.recorded_time_ns)
             n += 1
             if progress is not None and n % 1_000 == 0:
-                progress.update(n)
+                progress.update_to(n)
         writer.close(("stockpile.export", {
             "ledger": str(getattr(store, "path", "")), "site": site, "events": n,
             "types": types or "all", "head_global_seq": head.global_seq,
@@ -59,5 +59,5 @@ def export_ledger(store, out_path: str | Path, *, site: str, types: list[str] | 
             partial.unlink(missing_ok=True)
         raise
     if progress is not None:
-        progress.finish(n)
+        progress.update_to(n)
     return ExportResult(str(out_path), n, time.monotonic() - started, head.global_seq)

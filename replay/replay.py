@@ -30,9 +30,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Iterator
 
+from common.progress import Progress
+
 from replay.mcap_entries import Entry, MalformedSample, read_entries
 from replay.mcap_scan import McapScan, ScanReport
-from replay.progress import ProgressBar
 from schemas.events import Event, encode_attachment, event_from_sample, key_expr
 from schemas.times import NS_PER_S
 from services.service import declare_ledger_publisher
@@ -83,7 +84,7 @@ def replay_to_ledger(path: str | Path, store, *, preserve_recorded_time: bool = 
                      topics: Callable[[str], bool] | None = None,
                      start_offset_s: float | None = None, until_s: float | None = None,
                      batch_size: int = DEFAULT_BATCH,
-                     progress: ProgressBar | None = None) -> LedgerReplay:
+                     progress: Progress | None = None) -> LedgerReplay:
     """Append a file's events to ``store`` (a :class:`ledger.store.LedgerStore`)."""
     result = LedgerReplay(str(path))
     started = time.monotonic()
@@ -109,14 +110,14 @@ def replay_to_ledger(path: str | Path, store, *, preserve_recorded_time: bool = 
                 _append(store, batch, result)
                 batch = []
                 if progress is not None:
-                    progress.update(result.events, None if progress.total else _fraction(scan))
+                    progress.update_to(result.events, fraction=_fraction(scan))
         batch.extend(_quarantined(malformed, result))
         if batch:
             _append(store, batch, result)
     result.head_global_seq = store.head().global_seq
     result.wall_s = time.monotonic() - started
     if progress is not None:
-        progress.finish(result.events)
+        progress.update_to(result.events)
     return result
 
 
@@ -206,7 +207,7 @@ def replay_publish(path: str | Path, session, *, rate: float | None = 1.0, loop:
                    topics: Callable[[str], bool] | None = None,
                    start_offset_s: float | None = None, until_s: float | None = None,
                    site: str | None = None, stop=None, cache_samples: int = 50_000,
-                   progress: ProgressBar | None = None) -> PublishReplay:
+                   progress: Progress | None = None) -> PublishReplay:
     """Publish a file's events on ``session`` (see the module docstring).
 
     ``stop`` is a :class:`services.service.Stopper` (or anything with ``wait(s)`` and
@@ -231,7 +232,7 @@ def replay_publish(path: str | Path, session, *, rate: float | None = 1.0, loop:
         result.wall_s = time.monotonic() - started
         publishers.close()
     if progress is not None:
-        progress.finish(result.published)
+        progress.update_to(result.published)
     return result
 
 
@@ -253,7 +254,7 @@ def _publish_pass(path, publishers: Publishers, result: PublishReplay, *, rate, 
                            encode_attachment(entry.epoch, entry.seq, entry.valid_time_ns))
             result.published += 1
             if progress is not None:
-                progress.update(result.published, None if progress.total else _fraction(scan))
+                progress.update_to(result.published, fraction=None if loop else _fraction(scan))
     return True
 
 

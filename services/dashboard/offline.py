@@ -18,6 +18,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
+from common.progress import Progress, progress as progress_bar
 from ledger import open_ledger
 from planner.cli import make_plan, plan_args
 from projector.query import CANONICAL_ANALYTES
@@ -202,22 +203,15 @@ def _log_gaps_and_quarantine(dash: Dashboard, gaps, quarantine, seen: set, known
 # -- the command ------------------------------------------------------------------------------
 
 
-def _progress_printer(args: argparse.Namespace) -> Callable[[int, int], None]:
-    """Progress on stderr: one updated line on a terminal, or lines with ``--progress``
-    (at most one a second)."""
-    tty = sys.stderr.isatty()
-    last = [0.0]
+def _progress_printer(bar: Progress) -> Callable[[int, int], None]:
+    """``progress(done, total)`` for :func:`render_ledger`, drawn by ``bar``; the bar closes
+    when the render is done (before a ``--serve`` keeps serving)."""
 
     def progress(done: int, total: int) -> None:
-        if not (tty or args.progress):
-            return
-        now = time.monotonic()
-        if now - last[0] < 1.0 and done < total:
-            return
-        last[0] = now
-        text = f"dashboard: {done:,} of {total:,} records ({100 * done / max(total, 1):.0f} %)"
-        sys.stderr.write(("\r" + text) if tty and not args.progress else text + "\n")
-        sys.stderr.flush()
+        bar.total = total
+        bar.update_to(done)
+        if done >= total:
+            bar.close()
 
     return progress
 
@@ -232,12 +226,12 @@ def cmd_dashboard(args: argparse.Namespace) -> int:
                     delta_threshold_pp=args.delta_threshold_pp, reorder_s=args.reorder_s,
                     plan_machine=args.plan_machine, plan_cuts=args.plan_cuts)
     t0 = time.monotonic()
-    tty = sys.stderr.isatty()
     stopper = Stopper() if args.serve else None
-    result = render_ledger(args.ledger, args.pile, config, progress=_progress_printer(args),
-                           keep_serving=stopper)
-    if tty and not args.progress:
-        sys.stderr.write("\n")
+    # on (a bar on a terminal, plain lines otherwise): the command has no --no-progress yet,
+    # and its --progress (a store_true: False = not given) asks for what is now the default
+    with progress_bar(unit="records", desc="dashboard", enabled=True) as bar:
+        result = render_ledger(args.ledger, args.pile, config, progress=_progress_printer(bar),
+                               keep_serving=stopper)
     print(f"dashboard: pile {result.pile_id}: {result.records:,} records, {result.updates} "
           f"updates, {result.history_points} history points, {result.rebuilds} rebuilds, "
           f"{result.tonnes_t:,.1f} t at the end"
