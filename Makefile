@@ -1,31 +1,45 @@
 # Two commands do all set-up on a fresh machine with python3 and make:
 #   make demo   runs the main job on the embedded default sample
 #   make test   runs the test suite
-PYTHON ?= python3
-VENV   := .venv
-PY     := $(VENV)/bin/python
-STAMP  := $(VENV)/.installed
+# Both install into .venv with the tested versions (constraints.txt); `make demo` installs
+# only the extras the demo runs, `make test` the dev extra (everything plus the test tools).
+# Each has its own stamp, so one .venv serves both; a changed pyproject.toml or
+# constraints.txt reinstalls.
+PYTHON      ?= python3
+VENV        := .venv
+PY          := $(VENV)/bin/python
+PIP         := $(PY) -m pip install --quiet -c constraints.txt
+DEMO_STAMP  := $(VENV)/.installed-demo
+DEV_STAMP   := $(VENV)/.installed-dev
+# the process demo: the edge services, the ledger and projector services, the simulator
+DEMO_EXTRAS := edge,ledger,projector,sim
 
 .PHONY: demo test bench schemas clean
 
-$(STAMP): pyproject.toml
-	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
+$(PY):
+	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e '.[dev]'
-	@touch $(STAMP)
 
-demo: $(STAMP)
+$(DEMO_STAMP): pyproject.toml constraints.txt | $(PY)
+	$(PIP) -e '.[$(DEMO_EXTRAS)]'
+	@touch $@
+
+$(DEV_STAMP): pyproject.toml constraints.txt | $(PY)
+	$(PIP) -e '.[dev]'
+	@touch $@
+
+demo: $(DEMO_STAMP)
 	$(VENV)/bin/stockpile demo
 
-test: $(STAMP)
+test: $(DEV_STAMP)
 	$(VENV)/bin/lint-imports --no-cache
 	$(PY) -m pytest -q
 
-bench: $(STAMP)
+bench: $(DEV_STAMP)
 	$(PY) bench/ledger.py
 
 # Regenerate schemas/stockpile/v1/*_pb2.py from schemas/proto (commit the result).
-schemas: $(STAMP)
+schemas: $(DEV_STAMP)
 	$(PY) -m schemas.generate
 
 clean:

@@ -8,7 +8,8 @@ A backend's test module subclasses :class:`LedgerStoreContract` and implements
             return MemoryStore(clock)
         ...
 
-Requires pytest and hypothesis (the ``dev`` extra).
+Requires pytest; the property test also needs hypothesis (the ``dev`` extra), imported when
+it runs, so that the module imports without it.
 """
 
 from __future__ import annotations
@@ -18,9 +19,6 @@ import random
 import tempfile
 import threading
 from pathlib import Path
-
-from hypothesis import HealthCheck, given, settings
-from hypothesis import strategies as st
 
 from schemas import pb
 from schemas.events import Event, make_event, set_timestamp_ns
@@ -37,9 +35,9 @@ def joint_event(source: str, seq: int, valid_time_ns: int, travel_m: float = 0.0
     return make_event(message, source=source, epoch=epoch, seq=seq)
 
 
-@st.composite
-def _histories(draw):
-    """Batches of events with a non-decreasing site clock, late events included."""
+def _histories(draw, st):
+    """Batches of events with a non-decreasing site clock, late events included (a
+    hypothesis ``composite`` body: ``draw`` and the ``strategies`` module are passed in)."""
     n_batches = draw(st.integers(1, 6))
     clock = 0
     next_seq: dict[str, int] = {}
@@ -247,10 +245,22 @@ class LedgerStoreContract(abc.ABC):
         store.close()
 
     # each backend subclass runs this same method: that is the point of a contract
-    @settings(max_examples=40, deadline=None,
-              suppress_health_check=[HealthCheck.differing_executors])
-    @given(_histories())
-    def test_as_of_matches_brute_force(self, history):
+    def test_as_of_matches_brute_force(self):
+        # deferred: hypothesis is a dev dependency (this module ships in the package)
+        from hypothesis import HealthCheck, given, settings
+        from hypothesis import strategies as st
+
+        histories = st.composite(lambda draw: _histories(draw, st))
+
+        @settings(max_examples=40, deadline=None,
+                  suppress_health_check=[HealthCheck.differing_executors])
+        @given(histories())
+        def check(history):
+            self._check_as_of(history)
+
+        check()
+
+    def _check_as_of(self, history) -> None:
         batches, queries = history
         with tempfile.TemporaryDirectory() as directory:
             clock = ManualClock(0)

@@ -2,25 +2,61 @@
 
 Every subcommand reports errors as one line on stderr (no traceback) and exits
 0 when all is well, 1 when a verification failed, 2 on bad usage or an error.
+A command whose extra is not installed (:data:`COMMAND_MODULES`) is still listed, and
+using it is one line naming the extra to install.
 """
 
 from __future__ import annotations
 
 import argparse
 import sys
+from dataclasses import dataclass
 from typing import Sequence
 
-from audit import cli as audit_cli
-from ledger import cli as ledger_cli
 from ledger.errors import LedgerError
-from planner import cli as plan_cli
-from projector import cli as project_cli
-from replay import cli as replay_cli
-from services import dashboard
-from sim import cli as sim_cli
-from stockpile import demo, run_config, service_cli
+from stockpile import MissingExtra, add_missing_extra, import_for, is_missing_extra, version
 
 EXIT_USAGE = 2
+
+
+@dataclass(frozen=True)
+class CommandModule:
+    """A module whose ``register(subparsers)`` adds top-level commands."""
+
+    module: str
+    #: the extras whose packages its imports need (empty: the base install)
+    extras: tuple[str, ...]
+    #: the commands it registers -> their one-line summary (shown when an extra is missing)
+    commands: dict[str, str]
+
+
+#: every top-level command, in ``stockpile --help`` order.  A module is imported only
+#: when the parser is built, so the base install (no extras) runs the commands it can
+#: and names the extra for the others.
+COMMAND_MODULES: tuple[CommandModule, ...] = (
+    CommandModule("stockpile.demo", ("edge", "ledger", "projector", "sim"),
+                  {"demo": "simulate the demo yard and ledger it (the main job)"}),
+    CommandModule("ledger.cli", (),
+                  {"ledger": "import, export, verify and summarise an event ledger"}),
+    CommandModule("projector.cli", ("projector",),
+                  {"project": "the pile as of a valid time, as known at a known time"}),
+    CommandModule("sim.cli", ("sim",),
+                  {"sim": "run the yard simulator (ground truth + emulated hardware)"}),
+    CommandModule("stockpile.service_cli", (),
+                  {"service": "start one service of the yard"}),
+    CommandModule("stockpile.run_config", ("ledger",),
+                  {"run": "start the services a yard config names (a real site)"}),
+    CommandModule("planner.cli", ("projector",),
+                  {"plan": "plan reclaim work before the wheel touches the pile"}),
+    CommandModule("replay.cli", ("ledger",),
+                  {"record": "record the site's events to MCAP",
+                   "replay": "replay an MCAP file onto Zenoh or into a ledger",
+                   "export-mcap": "write a ledger's events as an MCAP file"}),
+    CommandModule("audit.cli", ("projector",),
+                  {"audit": "audit and reconciliation reports (cuts, history, assays)"}),
+    CommandModule("services.dashboard", ("dashboard",),
+                  {"dashboard": "render a ledger to a Rerun dashboard"}),
+)
 
 
 class _Parser(argparse.ArgumentParser):
@@ -36,18 +72,25 @@ def build_parser() -> argparse.ArgumentParser:
         description="stockpile-ledger: the system of record for the grade of iron-ore "
         "stockpiles.",
     )
+    parser.add_argument("--version", action="version", version=f"stockpile-ledger {version()}",
+                        help="print the version and exit")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True,
                                 parser_class=_Parser)
-    demo.register(sub)
-    ledger_cli.register(sub)
-    project_cli.register(sub)
-    sim_cli.register(sub)
-    service_cli.register(sub)
-    run_config.register(sub)
-    plan_cli.register(sub)
-    replay_cli.register(sub)
-    audit_cli.register(sub)
-    dashboard.register(sub)
+    for entry in COMMAND_MODULES:
+        # deferred: each command's module is imported here, not at the top, so that a
+        # missing extra (an optional dependency) leaves the other commands working
+        try:
+            module = import_for(entry.module, f"stockpile {next(iter(entry.commands))}",
+                                entry.extras)
+        except MissingExtra:
+            for name, summary in entry.commands.items():
+                add_missing_extra(sub, name, summary, MissingExtra(f"stockpile {name}",
+                                                                   entry.extras))
+            continue
+        module.register(sub)
+        for name in entry.commands:
+            # a deferred import of the extra inside the command is reported the same way
+            sub.choices[name].set_defaults(_needs=(f"stockpile {name}", entry.extras))
     return parser
 
 
@@ -59,6 +102,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("stockpile: interrupted", file=sys.stderr)
         return 130
+    except ModuleNotFoundError as exc:
+        command, extras = getattr(args, "_needs", ("stockpile", ()))
+        if not is_missing_extra(exc, extras):
+            raise
+        print(f"stockpile: error: {MissingExtra(command, extras)}", file=sys.stderr)
+        return EXIT_USAGE
     except BrokenPipeError:
         # the reader went away (e.g. `| head`): not an error
         sys.stderr.close()

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import importlib.metadata
 import json
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -154,3 +156,13 @@ def test_sample_demo_runs_and_checks_itself(tmp_path):
     assert out.returncode == 0, out.stderr
     assert "identical: True" in out.stdout and "verify: ok" in out.stdout
     assert "quarantined:" in out.stdout and "gap:" in out.stdout
+
+
+def test_version_is_the_installed_distributions():
+    out = run("--version")
+    assert out.returncode == 0, out.stderr
+    name, version = out.stdout.split()
+    assert name == "stockpile-ledger"
+    assert version == importlib.metadata.version("stockpile-ledger")
+    assert re.fullmatch(r"\d+\.\d+\.\d+", version)
+    assert "--version" in run("--help").stdout
