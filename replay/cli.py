@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import sys
 import threading
+from typing import Callable
 from pathlib import Path
 
 import zenoh
@@ -19,7 +20,6 @@ from ledger import open_ledger
 from ledger.clock import clock_by_name
 from replay import record
 from replay.export import export_ledger
-from replay.mcap_entries import topic_matcher
 from replay.recover import recover
 from replay.replay import iter_events, replay_publish, replay_to_ledger
 from schemas.events import EVENT_TYPES, key_expr
@@ -253,3 +253,23 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--types", nargs="+", metavar="TYPE", help="only these event types")
     p.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
     p.set_defaults(func=cmd_export_mcap)
+
+
+def topic_matcher(expressions: list[str] | tuple[str, ...] | None) -> Callable[[str], bool] | None:
+    """A predicate: does a topic fall under any of these Zenoh key expressions?"""
+    if not expressions:
+        return None
+
+    try:
+        exprs = [zenoh.KeyExpr(e) for e in expressions]
+    except Exception as exc:  # noqa: BLE001 - zenoh raises its own error type
+        raise ValueError(f"bad key expression in --topics: {exc}") from None
+
+    def matches(topic: str) -> bool:
+        try:
+            key = zenoh.KeyExpr(topic)
+        except Exception:  # noqa: BLE001 - a topic that is not a key expression
+            return False
+        return any(e.includes(key) for e in exprs)
+
+    return matches

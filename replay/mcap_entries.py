@@ -5,7 +5,7 @@
 :class:`Identity` comes from its topic, schema and metadata (:func:`resolve_channel`),
 and messages on channels that are not stockpile event channels are counted, not
 yielded.  :func:`malformed_from_attachment` reads back a sample the recorder kept as
-``stockpile.malformed/<n>``; :func:`topic_matcher` selects topics by key expression.
+``stockpile.malformed/<n>``.
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ from replay.mcap_scan import McapScan
 from schemas.events import EVENT_TYPES, KEY_PREFIX, SCHEMA_VERSION, parse_key_expr
 
 __all__ = ["Entry", "Identity", "MalformedSample", "malformed_from_attachment", "read_entries",
-           "resolve_channel", "topic_matcher"]
+           "resolve_channel"]
 
 
 class Entry(NamedTuple):
@@ -80,27 +80,6 @@ def resolve_channel(channel: ChannelInfo, schema: SchemaInfo | None) -> Identity
     if not 0 <= epoch < 1 << 63 or not 0 <= seq_high < 1 << 31:
         return "epoch or seq_high out of range"
     return Identity(type_name, source, epoch, seq_high << SEQ_LOW_BITS)
-
-
-def topic_matcher(expressions: list[str] | tuple[str, ...] | None) -> Callable[[str], bool] | None:
-    """A predicate: does a topic fall under any of these Zenoh key expressions?"""
-    if not expressions:
-        return None
-    import zenoh  # deferred: zenoh is not needed to read a file (``stockpile info``)
-
-    try:
-        exprs = [zenoh.KeyExpr(e) for e in expressions]
-    except Exception as exc:  # noqa: BLE001 - zenoh raises its own error type
-        raise ValueError(f"bad key expression in --topics: {exc}") from None
-
-    def matches(topic: str) -> bool:
-        try:
-            key = zenoh.KeyExpr(topic)
-        except Exception:  # noqa: BLE001 - a topic that is not a key expression
-            return False
-        return any(e.includes(key) for e in exprs)
-
-    return matches
 
 
 def malformed_from_attachment(record: AttachmentRecord) -> MalformedSample | None:

@@ -56,6 +56,10 @@ COMMAND_MODULES: tuple[CommandModule, ...] = (
                   {"audit": "audit and reconciliation reports (cuts, history, assays)"}),
     CommandModule("services.dashboard", ("dashboard",),
                   {"dashboard": "render a ledger to a Rerun dashboard"}),
+    CommandModule("stockpile.info", (),
+                  {"info": "what an MCAP session or a ledger holds: span, counts, gaps"}),
+    CommandModule("ledger.sql", (),
+                  {"sql": "SQL on a ledger's views, read-only"}),
 )
 
 

@@ -155,6 +155,9 @@ def test_a_base_install_runs_the_ledger_and_names_the_extras(tmp_path):
     assert json.loads(stats.stdout)["events"] == appended
     verify = stockpile_cmd("ledger", "verify", "--ledger", str(ledger))
     assert verify.returncode == 0, verify.stderr
+    info = stockpile_cmd("info", str(ledger), "--json")
+    assert info.returncode == 0, info.stderr
+    assert json.loads(info.stdout)["events"] == appended
     import_ledger = subprocess.run([str(bin_dir / "python"), "-c", "import ledger.testing"],
                                    capture_output=True, text=True, timeout=120)
     assert import_ledger.returncode == 0, import_ledger.stderr
