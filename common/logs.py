@@ -8,7 +8,8 @@ One handler on the root logger writes one line per record on stderr, either logf
 or, with ``fmt="json"``, one JSON object per line with the same keys in the same order
 (for log collectors).  Records of other libraries' loggers and Python warnings
 (:func:`logging.captureWarnings`, e.g. duckdb's) go through the same handler, with
-``service`` set to the logger's name (``py.warnings`` for warnings).
+``service`` set to the logger's name (``py.warnings`` for warnings), and so does a
+thread's uncaught exception (one error line with its traceback in ``exception``).
 
 - :func:`configure_logging` sets the level, the format and the stream (idempotent: a
   second call replaces the first one's handler);
@@ -194,6 +195,17 @@ def configure_logging(level: str = "info", fmt: str = "logfmt",
             wrapper_class=structlog.stdlib.BoundLogger,
             cache_logger_on_first_use=False)
     logging.captureWarnings(True)
+    if threading.excepthook is threading.__excepthook__:     # not replaced by a test runner
+        threading.excepthook = _log_thread_exception
+
+
+def _log_thread_exception(args: threading.ExceptHookArgs) -> None:
+    """A thread's uncaught exception as one error line (not a bare traceback on stderr)."""
+    if args.exc_type is SystemExit:
+        return
+    name = args.thread.name if args.thread is not None else "?"
+    emit("stockpile.thread", "error", "uncaught exception in a thread", thread=name,
+         exc_info=(args.exc_type, args.exc_value, args.exc_traceback))
 
 
 def ensure_configured() -> None:

@@ -119,23 +119,32 @@ configure_logging("info", "json")
 warnings.warn("this option is deprecated", DeprecationWarning)   # shown in __main__
 warnings.warn("this option is going away", FutureWarning)
 logging.getLogger("duckdb").warning("checkpoint took %d ms", 12)
+import threading
+def fail():
+    raise RuntimeError("reader died")
+worker = threading.Thread(target=fail, name="reader")
+worker.start()
+worker.join()
 """
 
 
-def test_python_warnings_and_other_libraries_go_to_the_same_stream():
+def test_warnings_other_libraries_and_thread_crashes_go_to_the_same_stream():
     # a fresh interpreter: pytest records warnings itself in this one
     done = subprocess.run([sys.executable, "-c", WARNING_SCRIPT], capture_output=True,
                           text=True, timeout=60)
     assert done.returncode == 0, done.stderr
     assert done.stdout == ""
     records = [json.loads(line) for line in done.stderr.splitlines()]
-    assert len(records) == 3, records
+    assert len(records) == 4, records
     assert all(r["service"] == "py.warnings" and r["level"] == "warning" for r in records[:2])
     assert "DeprecationWarning: this option is deprecated" in records[0]["msg"]
     assert "FutureWarning: this option is going away" in records[1]["msg"]
     assert not records[1]["msg"].endswith("\n")
     assert records[2] == {"ts": records[2]["ts"], "level": "warning", "service": "duckdb",
                           "msg": "checkpoint took 12 ms"}
+    # a thread's uncaught exception: one error line, the traceback inside it
+    assert records[3]["level"] == "error" and records[3]["thread"] == "reader"
+    assert records[3]["exception"].endswith("RuntimeError: reader died")
 
 
 def test_an_exception_is_one_line_with_its_traceback():
