@@ -9,7 +9,8 @@ The shared runtime (what a service imports, through :mod:`services.service`):
 - :mod:`services.service`: :class:`~services.service.ServiceRuntime` and the facade of the
   names below
 - :mod:`services.zenoh_config`: the shared Zenoh options
-- :mod:`services.logfmt`: logfmt log lines; :mod:`services.status`: the status line
+- :mod:`services.logfmt`: log lines (logfmt or JSON, via :mod:`common.logs`);
+  :mod:`services.status`: the status line
 - :mod:`services.stopping`: clean stop on SIGINT/SIGTERM; :mod:`services.inbox`: Zenoh
   callbacks to one consumer
 - :mod:`services.publishing`: ledger-bound publishers (epoch, dense sequence, cache)

@@ -250,7 +250,7 @@ class Localizer:
             message = check_event(item)
         except InvalidEvent as exc:
             self._count("invalid")
-            self._log("invalid event", level="warn", type=item.type, source=item.source,
+            self._log("invalid event", level="warning", type=item.type, source=item.source,
                       seq=item.seq, code=exc.code, detail=exc.detail)
             return
         seen = self._seen.setdefault((item.source, item.epoch), _SeenSeqs())
@@ -295,7 +295,7 @@ class Localizer:
                 antenna_up_m=self.config.antenna_up_m)
         except ValueError as exc:
             self._count("invalid")
-            self._log("bad machine declaration", level="warn", detail=str(exc))
+            self._log("bad machine declaration", level="warning", detail=str(exc))
             return
         if geometry == self.geometry:
             return
@@ -351,7 +351,7 @@ class Localizer:
             self._count("late")
             self._late += 1
             if self._late <= 10 or self._late % 1000 == 0:   # the first few, then sparsely
-                self._log("late measurement skipped", level="warn", type=event.type,
+                self._log("late measurement skipped", level="warning", type=event.type,
                           source=event.source, seq=event.seq, valid_time_ns=t_ns,
                           filter_time_ns=f.t_ns, late_total=self._late)
             return
@@ -371,14 +371,14 @@ class Localizer:
                 if f.counters.regates != regates:
                     self._count("regates")
                     self._log("fixes rejected for too long: bias uncertainty re-opened",
-                              level="warn", valid_time_ns=t_ns)
+                              level="warning", valid_time_ns=t_ns)
                 if outcome == "gated":
                     self._count("fixes_gated")
                 elif outcome == "skipped":
                     self._count("fixes_skipped")
         except (ValueError, ArithmeticError, np.linalg.LinAlgError) as exc:
             self._count("errors")
-            self._log("measurement skipped", level="warn", type=event.type,
+            self._log("measurement skipped", level="warning", type=event.type,
                       source=event.source, seq=event.seq, detail=str(exc))
 
     def _maybe_publish(self, t_ns: int) -> None:
@@ -396,7 +396,7 @@ class Localizer:
                 check_event(make_event(m, source=source, epoch=0, seq=0))
             except InvalidEvent as exc:
                 self._count("errors")
-                self._log("estimate not published", level="warn", code=exc.code,
+                self._log("estimate not published", level="warning", code=exc.code,
                           detail=exc.detail)
                 return
         for m in messages:
@@ -474,4 +474,4 @@ def _handle_safely(localizer: Localizer, item, status, runtime: ServiceRuntime) 
         localizer.handle(event_from_sample(*item))
     except Exception as exc:  # noqa: BLE001 - bad input must not stop the service
         status.add("errors")
-        runtime.log("sample skipped", level="warn", error=f"{type(exc).__name__}: {exc}")
+        runtime.log("sample skipped", level="warning", error=f"{type(exc).__name__}: {exc}")

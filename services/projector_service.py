@@ -266,7 +266,7 @@ def main(config: Config, *, stopper: Stopper | None = None) -> int:
                     if stop.is_set():     # a read given up because the service stops
                         break
                     status.add("errors")
-                    runtime.log("update failed", level="warn",
+                    runtime.log("update failed", level="warning",
                                 error=f"{type(exc).__name__}: {exc}")
                     stop.wait(0.5)
         except LedgerUnavailable:

@@ -1,7 +1,9 @@
 """The one-line status a service logs every few seconds: rate, backlog, errors, counters.
 
 :class:`StatusReporter` holds a service's counters (thread-safe) and runs a thread
-that logs them as a ``level=status`` logfmt line every ``period_s`` seconds.
+that logs them as a ``level=status`` line every ``period_s`` seconds, through the same
+logger as every other line (:func:`services.logfmt.log`; the ``status`` level sits
+between info and warning, so ``--quiet`` hides it).
 """
 
 from __future__ import annotations

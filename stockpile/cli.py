@@ -13,6 +13,7 @@ import sys
 from dataclasses import dataclass
 from typing import Sequence
 
+from common.logs import add_logging_options, configure_from_args
 from ledger.errors import LedgerError
 from stockpile import MissingExtra, add_missing_extra, import_for, is_missing_extra, version
 
@@ -78,6 +79,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--version", action="version", version=f"stockpile-ledger {version()}",
                         help="print the version and exit")
+    add_logging_options(parser)
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True,
                                 parser_class=_Parser)
     for entry in COMMAND_MODULES:
@@ -101,6 +103,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    configure_from_args(args)
     try:
         return int(args.func(args) or 0)
     except KeyboardInterrupt:

@@ -2,7 +2,7 @@
 
 A :class:`Supervisor` owns a loopback Zenoh router (a router-mode session in this
 process, scouting off) and the child processes wired to it as Zenoh clients.  Each
-child's stderr (its logfmt lines) goes to ``<logs>/<name>.log`` and stdout to
+child's stderr (its log lines) goes to ``<logs>/<name>.log`` and stdout to
 ``<logs>/<name>.out``.  Stopping is orderly: producers first, the ledger last,
 SIGTERM with a deadline, then SIGKILL (reported).
 """
@@ -22,7 +22,8 @@ from typing import Callable
 
 import zenoh
 
-from services.service import ZenohOptions, log, parse_logfmt
+from services.logfmt import parse_log_line
+from services.service import ZenohOptions, log
 
 
 def free_loopback_port() -> int:
@@ -43,12 +44,12 @@ class Child:
     stdout_lines: list[str] = field(default_factory=list)
     _reader: threading.Thread | None = None
 
-    def log_records(self) -> list[dict[str, str]]:
-        """The child's logfmt lines so far."""
+    def log_records(self) -> list[dict]:
+        """The child's log lines so far (logfmt or JSON lines), as dicts."""
         if not self.log_path.exists():
             return []
-        return [parse_logfmt(line) for line in self.log_path.read_text(errors="replace").splitlines()
-                if line.startswith("ts=")]
+        lines = self.log_path.read_text(errors="replace").splitlines()
+        return [record for record in map(parse_log_line, lines) if record is not None]
 
     def published(self) -> dict[str, tuple[int, int]]:
         """``source -> (epoch, count)`` from the child's ``published`` lines."""

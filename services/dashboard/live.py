@@ -114,7 +114,7 @@ class Follower:
             if self.runtime.stopper.is_set():   # given up because the service stops
                 return
             self.status.add("errors")
-            self.runtime.log("poll failed", level="warn", error=f"{type(exc).__name__}: {exc}")
+            self.runtime.log("poll failed", level="warning", error=f"{type(exc).__name__}: {exc}")
 
     def _log_gaps(self, gaps) -> None:
         for g in gaps:
@@ -171,7 +171,7 @@ class Follower:
                 if stop.is_set():     # a read given up because the service stops
                     break
                 self.status.add("errors")
-                self.runtime.log("update failed", level="warn",
+                self.runtime.log("update failed", level="warning",
                                  error=f"{type(exc).__name__}: {exc}")
                 stop.wait(RETRY_WAIT_S)
 

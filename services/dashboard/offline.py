@@ -26,7 +26,7 @@ from schemas.events import decode_payload
 from services.dashboard.config import READ_CHUNK, Config, add_common_arguments, duration_s
 from services.dashboard.core import Dashboard, feed, rebuild_from
 from services.dashboard.viewer import WebViewer, close_recording, make_recording
-from services.service import Stopper
+from services.service import Stopper, log
 
 #: records between two progress reports
 PROGRESS_EVERY = 5000
@@ -121,11 +121,10 @@ def render_ledger(path: str, pile_id: str | None, config: Config, *,
             viewer = WebViewer(config, uri) if config.serve and uri else None
             url = viewer.url if viewer else None
             if url:
-                print(f"dashboard: web viewer at {url} (gRPC {uri})", file=sys.stderr,
-                      flush=True)
+                log("dashboard", "web viewer", url=url, grpc=uri)
             result = _render(store, head, pile_id, rec, config, progress, url, str(path))
             if keep_serving is not None and config.serve:
-                print(f"dashboard: serving {url} until interrupted", file=sys.stderr, flush=True)
+                log("dashboard", "serving until interrupted", url=url)
                 keep_serving.wait()
         finally:
             if viewer is not None:
