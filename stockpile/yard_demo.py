@@ -500,7 +500,7 @@ def run_yard_demo(out_dir: Path, *, seed: int = 1, speed: float = 40.0, idle_spe
     (out_dir / "summary.json").write_text(json.dumps(summary, indent=2, default=list))
     _say(f"\n{'all checks hold' if ok else 'CHECKS FAILED'}: exit codes {rc}; "
          f"done in {time.monotonic() - started:.0f} s -> {out_dir}/summary.json")
-    _say(f"Try:\n  .venv/bin/stockpile ledger stats --ledger {ledger_path}\n"
-         f"  .venv/bin/stockpile project --ledger {ledger_path} --pile {model['pile_id']}\n"
-         f"  .venv/bin/stockpile ledger export --ledger {ledger_path} --types reclaim_cut assay")
+    _say(f"Try:\n  stockpile ledger stats --ledger {ledger_path}\n"
+         f"  stockpile project --ledger {ledger_path} --pile {model['pile_id']}\n"
+         f"  stockpile ledger export --ledger {ledger_path} --types reclaim_cut assay")
     return 0 if ok else 1

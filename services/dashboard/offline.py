@@ -18,11 +18,12 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
+from common.options import add_duration, add_progress
 from ledger import open_ledger
 from planner.cli import make_plan, plan_args
 from projector.query import CANONICAL_ANALYTES
 from schemas.events import decode_payload
-from services.dashboard.config import READ_CHUNK, Config, add_common_arguments, duration_s
+from services.dashboard.config import DEFAULT_EVERY_S, READ_CHUNK, Config, add_common_arguments
 from services.dashboard.core import Dashboard, feed, rebuild_from
 from services.dashboard.viewer import WebViewer, close_recording, make_recording
 from services.service import Stopper
@@ -209,14 +210,14 @@ def _progress_printer(args: argparse.Namespace) -> Callable[[int, int], None]:
     last = [0.0]
 
     def progress(done: int, total: int) -> None:
-        if not (tty or args.progress):
+        if args.progress is False or not (tty or args.progress):
             return
         now = time.monotonic()
         if now - last[0] < 1.0 and done < total:
             return
         last[0] = now
         text = f"dashboard: {done:,} of {total:,} records ({100 * done / max(total, 1):.0f} %)"
-        sys.stderr.write(("\r" + text) if tty and not args.progress else text + "\n")
+        sys.stderr.write(("\r" + text) if tty and args.progress is None else text + "\n")
         sys.stderr.flush()
 
     return progress
@@ -227,7 +228,7 @@ def cmd_dashboard(args: argparse.Namespace) -> int:
     if not args.rrd and not args.serve:
         raise ValueError("give --rrd OUT and/or --serve")
     config = Config(pile_id=args.pile, serve=args.serve, rrd=args.rrd, grpc_port=args.grpc_port,
-                    web_port=args.web_port, every_s=duration_s(args.every),
+                    web_port=args.web_port, every_s=args.every,
                     analyte=args.analyte, layers=args.layers, layer_step_m=args.layer_step_m,
                     delta_threshold_pp=args.delta_threshold_pp, reorder_s=args.reorder_s,
                     plan_machine=args.plan_machine, plan_cuts=args.plan_cuts)
@@ -236,7 +237,7 @@ def cmd_dashboard(args: argparse.Namespace) -> int:
     stopper = Stopper() if args.serve else None
     result = render_ledger(args.ledger, args.pile, config, progress=_progress_printer(args),
                            keep_serving=stopper)
-    if tty and not args.progress:
+    if tty and args.progress is None:
         sys.stderr.write("\n")
     print(f"dashboard: pile {result.pile_id}: {result.records:,} records, {result.updates} "
           f"updates, {result.history_points} history points, {result.rebuilds} rebuilds, "
@@ -256,10 +257,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--ledger", required=True, help="ledger file (opened read-only)")
     p.add_argument("--pile", help="pile id (default: the only pile the ledger declares)")
     add_common_arguments(p)
-    p.add_argument("--every", default="5min", metavar="DURATION",
-                   help="valid time between history points (default %(default)s)")
-    p.add_argument("--progress", action="store_true",
-                   help="progress lines on stderr even when it is not a terminal")
+    add_duration(p, "--every", default=DEFAULT_EVERY_S,
+                 help="valid (site) time between history points, with a unit (default 5min)")
+    add_progress(p)
     p.add_argument("--plan-machine", metavar="ID",
                    help="also plan the next bench of this reclaimer and show its cuts as "
                    "footprints coloured by predicted grade")
