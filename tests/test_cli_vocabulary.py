@@ -22,7 +22,7 @@ from stockpile.cli import build_parser
 from stockpile.sample import generate_sample
 
 #: spellings replaced by the shared vocabulary: never shown in --help
-OLD_SPELLINGS = {"--as-of-valid", "--as-of-known", "-o", "--output"}
+OLD_SPELLINGS = {"--as-of-valid", "--as-of-known", "-o", "--output", "--rrd"}
 
 #: reST that must not leak into help texts
 REST = re.compile(r"``|:(mod|func|class|meth|data|attr|obj|ref):`")
@@ -152,7 +152,7 @@ def test_durations_need_a_unit():
      "stockpile demo: error: --duration needs a unit, e.g. 1h or 90s, got '0.1'"),
     (["record", "--out", "x.mcap", "--duration", "60"],
      "stockpile record: error: --duration needs a unit, e.g. 1h or 90s, got '60'"),
-    (["dashboard", "--ledger", "x.duckdb", "--rrd", "x.rrd", "--every", "300"],
+    (["dashboard", "--ledger", "x.duckdb", "--out", "x.rrd", "--every", "300"],
      "stockpile dashboard: error: --every needs a unit, e.g. 1h or 90s, got '300'"),
 ])
 def test_a_bare_number_is_a_one_line_error(argv, line, tmp_path):
@@ -248,3 +248,11 @@ def test_the_vocabulary_module_imports_nothing_of_the_project():
     source = Path(options.__file__).read_text()
     imports = re.findall(r"^(?:from|import) (\w+)", source, re.M)
     assert set(imports) <= {"__future__", "argparse", "re", "sys", "typing"}, imports
+
+
+def test_dashboard_rrd_is_a_deprecated_spelling_of_out(tmp_path):
+    missing = tmp_path / "none.duckdb"
+    old = run("dashboard", "--ledger", str(missing), "--rrd", str(tmp_path / "x.rrd"))
+    assert old.returncode == 2
+    assert old.stderr.splitlines() == ["stockpile: warning: --rrd is deprecated, use --out",
+                                       f"stockpile: error: no ledger at {missing}"]

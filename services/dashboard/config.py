@@ -9,7 +9,7 @@ from __future__ import annotations
 import argparse
 from dataclasses import dataclass, field
 
-from common.options import add_duration
+from common.options import add_duration, add_out
 from services.service import DEFAULT_SITE, ZenohOptions
 
 SERVICE = "dashboard"
@@ -110,7 +110,8 @@ def add_common_arguments(parser: argparse.ArgumentParser) -> None:
     """The options ``stockpile service dashboard`` and ``stockpile dashboard`` share."""
     parser.add_argument("--serve", action="store_true",
                         help="serve the Rerun web viewer and a gRPC server on loopback")
-    parser.add_argument("--rrd", metavar="PATH", help="archive the stream to this .rrd file")
+    add_out(parser, metavar="PATH", deprecated=("--rrd",),
+            help="archive the stream to this Rerun recording (.rrd) file")
     parser.add_argument("--grpc-port", type=int, default=DEFAULT_GRPC_PORT,
                         help="gRPC port with --serve (default %(default)s)")
     parser.add_argument("--web-port", type=int, default=DEFAULT_WEB_PORT,
@@ -147,7 +148,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def config_from_args(args: argparse.Namespace) -> Config:
     """The live service's :class:`Config` from its parsed arguments."""
     return Config(pile_id=args.pile_id, site=args.site, zenoh=ZenohOptions.from_args(args),
-                  serve=args.serve, rrd=args.rrd, grpc_port=args.grpc_port,
+                  serve=args.serve, rrd=args.out, grpc_port=args.grpc_port,
                   web_port=args.web_port, every_s=args.every,
                   update_period_s=args.update_period_s,
                   geometry_period_s=args.geometry_period_s, analyte=args.analyte,

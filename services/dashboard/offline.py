@@ -225,9 +225,9 @@ def _progress_printer(args: argparse.Namespace) -> Callable[[int, int], None]:
 
 def cmd_dashboard(args: argparse.Namespace) -> int:
     """``stockpile dashboard``: render, print a one-line summary."""
-    if not args.rrd and not args.serve:
-        raise ValueError("give --rrd OUT and/or --serve")
-    config = Config(pile_id=args.pile, serve=args.serve, rrd=args.rrd, grpc_port=args.grpc_port,
+    if not args.out and not args.serve:
+        raise ValueError("give --out OUT.rrd and/or --serve")
+    config = Config(pile_id=args.pile, serve=args.serve, rrd=args.out, grpc_port=args.grpc_port,
                     web_port=args.web_port, every_s=args.every,
                     analyte=args.analyte, layers=args.layers, layer_step_m=args.layer_step_m,
                     delta_threshold_pp=args.delta_threshold_pp, reorder_s=args.reorder_s,
@@ -249,7 +249,7 @@ def cmd_dashboard(args: argparse.Namespace) -> int:
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    """``stockpile dashboard --ledger PATH --rrd OUT``: render a finished ledger."""
+    """``stockpile dashboard --ledger PATH --out OUT.rrd``: render a finished ledger."""
     p = subparsers.add_parser(
         "dashboard", help="render a ledger to a Rerun dashboard (.rrd and/or the web viewer)",
         description="Render a finished ledger offline to the operators' Rerun dashboard: the "
