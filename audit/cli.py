@@ -1,6 +1,6 @@
 """``stockpile audit cuts|history|assays``: audit and reconciliation reports for people.
 
-The computations are :mod:`audit.report`; this module parses options, shows progress
+The computations are in audit.report; this module parses options, shows progress
 on stderr during long folds and prints readable tables (or one JSON object with
 ``--json``).  The ledger is opened read-only.
 """
@@ -10,36 +10,17 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import re
 import sys
 from pathlib import Path
 from typing import Any, Sequence
 
+from common.options import add_bitemporal, add_duration, add_progress, format_duration_s
 from schemas.jsonl import json_safe
-from schemas.times import (NS_PER_DAY, NS_PER_H, NS_PER_MIN, NS_PER_S, format_time_ns,
-                           parse_time_ns)
+from schemas.times import NS_PER_S, format_time_ns, parse_time_ns
 
 from common.progress import Progress, enabled_from_args, progress
 from ledger import open_ledger
 from audit.report import audit_assays, audit_cuts, audit_history
-
-_UNITS = {"s": NS_PER_S, "sec": NS_PER_S, "m": NS_PER_MIN, "min": NS_PER_MIN, "h": NS_PER_H,
-          "d": NS_PER_DAY}
-
-
-def parse_duration_ns(text: str) -> int:
-    """``"1h"``, ``"30min"``, ``"15m"``, ``"90s"``, ``"1h30m"``, ``"2d"`` or integer ns -> ns."""
-    value = str(text).strip().lower()
-    if re.fullmatch(r"\d+", value):
-        return int(value)
-    parts = re.findall(r"(\d+(?:\.\d+)?)\s*(min|sec|s|m|h|d)", value)
-    if not parts or "".join(n + u for n, u in parts) != value.replace(" ", ""):
-        raise ValueError(f"not a duration: {text!r} (use e.g. 1h, 30min, 90s)")
-    total = sum(float(n) * _UNITS[u] for n, u in parts)
-    if total <= 0:
-        raise ValueError(f"the duration must be positive: {text!r}")
-    return int(round(total))
-
 
 # -- output helpers -------------------------------------------------------------------------
 
@@ -233,7 +214,7 @@ def cmd_cuts(args: argparse.Namespace) -> int:
 
 
 def cmd_history(args: argparse.Namespace) -> int:
-    every = parse_duration_ns(args.every)
+    every = int(round(args.every * NS_PER_S))
     start = parse_time_ns(args.start) if args.start else None
     end = parse_time_ns(args.end) if args.end else None
     with _open(args.ledger) as store, _fold_progress("audit history", args) as bar:
@@ -259,8 +240,9 @@ def cmd_history(args: argparse.Namespace) -> int:
                           for p in report.points]})
         return 0
     a = analyte
-    print(f"pile {report.pile_id}: tonnes and grade every {args.every} of valid time, as known at "
-          f"{format_time_ns(report.known_time_ns)} (K) and as known at the time ({a})")
+    print(f"pile {report.pile_id}: tonnes and grade every {format_duration_s(args.every)} of "
+          f"valid time, as known at {format_time_ns(report.known_time_ns)} (K) and as known at "
+          f"the time ({a})")
     headers = ["valid time (UTC)", "t at K", "t then", f"{a} at K %", f"{a} then %", "d pp",
                "assayed K/then"]
     body = [[_when(p.valid_time_ns), _num(p.tonnes_t), _num(p.tonnes_then_t),
@@ -342,15 +324,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         sp.add_argument("--ledger", required=True, help="ledger file (opened read-only)")
         if pile:
             sp.add_argument("--pile", required=True, help="pile id")
-        sp.add_argument("--known-time", metavar="K",
-                        help="known time K (ISO-8601 or ns; default: everything in the ledger)")
+        add_bitemporal(sp, valid=False)
         sp.add_argument("--json", action="store_true", help="one JSON object instead of tables")
         if fold:
             sp.add_argument("--analyte", default="Fe",
                             help="analyte shown in the table (default %(default)s; --json has all)")
-            sp.add_argument("--progress", action="store_true",
-                            help="print progress lines on stderr even when it is not a terminal")
-            sp.add_argument("--no-progress", action="store_true", help="no progress on stderr")
+            add_progress(sp)
 
     c = sub.add_parser("cuts", help="each cut: grade as estimated when it ended vs as known at K",
                        description="One row per reclaim cut: tonnes (geometry and belt scale), "
@@ -365,10 +344,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     c.set_defaults(func=cmd_cuts)
 
     h = sub.add_parser("history", help="pile tonnes and grade over valid time, as known at K "
-                       "and as known then")
+                       "and as known then",
+                       description="The pile's volume, tonnes and grade at regular steps of valid "
+                       "time, each as known at K and as known at the time, with the difference "
+                       "in percentage points.")
     common(h, pile=True, fold=True)
-    h.add_argument("--every", required=True, metavar="DURATION",
-                   help="interval between rows: 1h, 30min, 90s ...")
+    add_duration(h, "--every", required=True,
+                 help="valid (site) time between rows, with a unit: 1h, 30min, 90s ...")
     h.add_argument("--from", dest="start", metavar="T",
                    help="first valid time (default: the pile's declaration)")
     h.add_argument("--to", dest="end", metavar="T",
@@ -376,6 +358,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     h.set_defaults(func=cmd_history)
 
     a = sub.add_parser("assays", help="lateness per lab, superseded and provisional assays, "
-                       "unknown lots, lots without assays")
+                       "unknown lots, lots without assays",
+                       description="How late each laboratory reports (from sampling to the "
+                       "ledger), superseded and provisional assays, assays of unknown lots and "
+                       "lots without an assay, as known at K.")
     common(a, pile=False, fold=False)
     a.set_defaults(func=cmd_assays)

@@ -14,16 +14,18 @@ from typing import IO, Callable, Iterable, Iterator
 
 from common.progress import Progress, enabled_from_args, progress as progress_bar
 
+from common.options import (DEFAULT_BATCH_SIZE, add_batch_size, add_bitemporal, add_clock,
+                            add_out, add_types)
 from schemas.events import EVENT_TYPES, Event, Malformed
 from schemas.jsonl import decode_line, encode_line
 
 from ledger import open_ledger
-from ledger.clock import CLOCKS, clock_by_name
+from ledger.clock import clock_by_name
 from ledger.records import STATUSES, LedgerStats
 from ledger.store import LedgerStore
 from schemas.times import format_time_ns, parse_time_ns
 
-DEFAULT_BATCH = 1_000
+DEFAULT_BATCH = DEFAULT_BATCH_SIZE
 EXIT_OK, EXIT_VERIFY_FAILED, EXIT_USAGE = 0, 1, 2
 
 
@@ -159,10 +161,10 @@ def cmd_export(args: argparse.Namespace) -> int:
     for name in args.types or ():
         if name not in EVENT_TYPES:
             raise ValueError(f"unknown event type {name!r}; known: {', '.join(EVENT_TYPES)}")
-    valid = parse_time_ns(args.as_of_valid) if args.as_of_valid is not None else None
-    known = parse_time_ns(args.as_of_known) if args.as_of_known is not None else None
+    valid = parse_time_ns(args.valid_time) if args.valid_time is not None else None
+    known = parse_time_ns(args.known_time) if args.known_time is not None else None
     with open_ledger(args.ledger, read_only=True) as store:
-        out = sys.stdout if args.output in (None, "-") else open(args.output, "w")
+        out = sys.stdout if args.out in (None, "-") else open(args.out, "w")
         everything = args.types is None and valid is None and known is None
         try:
             with progress_bar(store.head().global_seq + 1 if everything else None,
@@ -173,7 +175,7 @@ def cmd_export(args: argparse.Namespace) -> int:
             if out is not sys.stdout:
                 out.close()
     if out is not sys.stdout:
-        print(f"exported {n:,} events to {args.output}", file=sys.stderr)
+        print(f"exported {n:,} events to {args.out}", file=sys.stderr)
     return EXIT_OK
 
 
@@ -212,22 +214,18 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                        "quarantined with their reason; the rest is kept.")
     p.add_argument("file", help="JSON lines file, or - for standard input")
     p.add_argument("--ledger", required=True, help="ledger file (created if missing)")
-    p.add_argument("--batch-size", type=int, default=DEFAULT_BATCH,
-                   help=f"events per atomic batch (default {DEFAULT_BATCH})")
-    p.add_argument("--clock", choices=sorted(CLOCKS), default="wall",
-                   help="recorded time from the wall clock or from the file's clock events "
-                   "(lines with recorded_time_ns keep theirs)")
+    add_batch_size(p)
+    add_clock(p, help="recorded time from the wall clock or from the file's clock events "
+              "(lines with recorded_time_ns keep theirs)")
     p.add_argument("--json", action="store_true", help="print the counts as JSON")
     p.set_defaults(func=cmd_import)
 
     p = sub.add_parser("export", help="print events as canonical JSON lines",
                        description="Print events as canonical JSON lines on standard output.")
     p.add_argument("--ledger", required=True, help="ledger file")
-    p.add_argument("--types", nargs="+", metavar="TYPE", help="only these event types")
-    p.add_argument("--as-of-valid", metavar="T", help="only events with valid time <= T "
-                   "(ISO-8601 or integer ns)")
-    p.add_argument("--as-of-known", metavar="K", help="only events recorded at or before K")
-    p.add_argument("--output", "-o", metavar="FILE", help="write to FILE instead of stdout")
+    add_types(p)
+    add_bitemporal(p, deprecated=True)
+    add_out(p, help="write to PATH instead of standard output", deprecated=("-o", "--output"))
     p.set_defaults(func=cmd_export)
 
     p = sub.add_parser("verify", help="recompute the hash chain and name the first bad row",
@@ -236,7 +234,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--ledger", required=True, help="ledger file")
     p.set_defaults(func=cmd_verify)
 
-    p = sub.add_parser("stats", help="counts per type and source, gaps, quarantine, time ranges")
+    p = sub.add_parser("stats", help="counts per type and source, gaps, quarantine, time ranges",
+                       description="Summarise a ledger: events per type and per source, "
+                       "sequence gaps, quarantined lines and the valid and recorded time ranges.")
     p.add_argument("--ledger", required=True, help="ledger file")
     p.add_argument("--json", action="store_true", help="print as JSON")
     p.set_defaults(func=cmd_stats)

@@ -13,6 +13,7 @@ import math
 import re
 import sys
 
+from common.options import add_bitemporal
 from schemas.events import decode_payload
 from schemas.jsonl import json_safe
 from schemas.times import format_time_ns, parse_time_ns
@@ -274,8 +275,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="bench floor (m, site frame): the lowest point of the cutting "
                    "envelope, wheel centre at Z + Rv (default: anywhere in the top H of the pile)")
     r.add_argument("--cuts", type=int, default=10, metavar="N", help="cuts in the bench (10)")
-    r.add_argument("--valid-time", metavar="T", help="valid time V (ISO-8601 or ns; default: all)")
-    r.add_argument("--known-time", metavar="K", help="known time K (ISO-8601 or ns; default: now)")
+    add_bitemporal(r)
     r.add_argument("--bound", action="append", metavar="ANALYTE>=X|ANALYTE<=X",
                    help="grade bound to check the predicted cuts against (repeatable), "
                    "e.g. --bound 'Fe>=61' --bound 'SiO2<=5'")

@@ -7,6 +7,7 @@ import json
 import math
 import sys
 
+from common.options import add_bitemporal
 from schemas.times import format_time_ns, parse_time_ns
 
 from ledger import open_ledger
@@ -86,8 +87,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "deposits and what every reclaim cut delivered, as of valid time V as known at K.")
     p.add_argument("--ledger", required=True, help="ledger file (opened read-only)")
     p.add_argument("--pile", required=True, help="pile id")
-    p.add_argument("--valid-time", metavar="T", help="valid time V (ISO-8601 or ns; default: all)")
-    p.add_argument("--known-time", metavar="K", help="known time K (ISO-8601 or ns; default: now)")
+    add_bitemporal(p)
     p.add_argument("--snapshots", metavar="PATH", help="a snapshot file to start from (DuckDB)")
     p.add_argument("--json", action="store_true", help="one JSON object instead of text")
     p.set_defaults(func=cmd_project)

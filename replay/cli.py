@@ -16,6 +16,8 @@ from pathlib import Path
 import zenoh
 
 from common.progress import enabled_from_args, progress
+from common.options import (add_batch_size, add_clock, add_deprecated_positional_out, add_out,
+                            add_progress, add_types, out_path)
 from ledger import open_ledger
 from ledger.clock import clock_by_name
 from replay import record
@@ -50,12 +52,13 @@ def _report_input(report, *, what: str) -> int:
 
 
 def cmd_record(args: argparse.Namespace) -> int:
+    args.out = out_path(args)
     if args.recover:
         if args.out:
-            raise ValueError("give OUT.mcap or --recover BROKEN FIXED, not both")
+            raise ValueError("give --out OUT.mcap or --recover BROKEN FIXED, not both")
         return _recover(*args.recover)
     if not args.out:
-        raise ValueError("give OUT.mcap (or --recover BROKEN FIXED)")
+        raise ValueError("give --out OUT.mcap (or --recover BROKEN FIXED)")
     return int(record.main(record.config_from_args(args)) or 0)
 
 
@@ -176,9 +179,12 @@ def cmd_export_mcap(args: argparse.Namespace) -> int:
     for name in args.types or ():
         if name not in EVENT_TYPES:
             raise ValueError(f"unknown event type {name!r}; known: {', '.join(EVENT_TYPES)}")
+    output = out_path(args)
+    if not output:
+        raise ValueError("give --out OUT.mcap")
     with open_ledger(args.ledger, read_only=True) as store, \
             progress(desc="export", enabled=enabled_from_args(args)) as bar:
-        result = export_ledger(store, args.output, site=args.site, types=args.types,
+        result = export_ledger(store, output, site=args.site, types=args.types,
                                progress=bar)
     print(f"exported {result.events:,} events of {args.ledger} (head global_seq "
           f"{result.head_global_seq}) to {result.path} in {result.wall_s:.2f} s")
@@ -196,7 +202,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "chunks with CRCs; topic = key expression, protobuf schemas, publish_time = valid "
         "time, log_time = receive time in site time) until SIGINT/SIGTERM or --duration. "
         "--recover BROKEN FIXED salvages a file a crash left behind.")
-    p.add_argument("out", nargs="?", metavar="OUT.mcap", help="the file to write (must not exist)")
+    add_out(p, metavar="OUT.mcap", help="the file to write (must not exist)")
+    add_deprecated_positional_out(p)
     p.add_argument("--recover", nargs=2, metavar=("BROKEN", "FIXED"),
                    help="write every readable message of BROKEN to a complete file FIXED and "
                    "report what was lost (exit 1 if anything was)")
@@ -235,11 +242,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     led = p.add_argument_group("--ledger")
     led.add_argument("--preserve-recorded-time", action=argparse.BooleanOptionalAction,
                      default=True, help="recorded time = the message's log_time (default on)")
-    led.add_argument("--clock", choices=("wall", "events"), default="wall",
-                     help="with --no-preserve-recorded-time: recorded time from the wall clock "
-                     "(default) or the file's clock events")
-    led.add_argument("--batch-size", type=int, default=5_000, help="events per atomic batch")
-    p.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
+    add_clock(led, help="with --no-preserve-recorded-time: recorded time from the wall clock "
+              "or the file's clock events")
+    add_batch_size(led)
+    add_progress(p)
     p.set_defaults(func=cmd_replay)
 
     p = subparsers.add_parser(
@@ -247,11 +253,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description="Write a ledger's events in global order as MCAP (log_time = recorded "
         "time, publish_time = valid time), readable by the mcap tools, Foxglove and Rerun.")
     p.add_argument("--ledger", required=True, help="ledger file (opened read-only)")
-    p.add_argument("output", metavar="OUT.mcap", help="the file to write (replaced if it exists)")
+    add_out(p, metavar="OUT.mcap", help="the file to write (replaced if it exists; required)")
+    add_deprecated_positional_out(p)
     p.add_argument("--site", default=DEFAULT_SITE,
                    help=f"site id for the topics stockpile/<site>/@v1/... (default {DEFAULT_SITE})")
-    p.add_argument("--types", nargs="+", metavar="TYPE", help="only these event types")
-    p.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
+    add_types(p)
+    add_progress(p)
     p.set_defaults(func=cmd_export_mcap)
 
 

@@ -43,6 +43,7 @@ from typing import Callable
 
 import zenoh.ext as zext
 
+from common.options import add_clock, add_duration
 from replay.mcap_format import DEFAULT_CHUNK_BYTES, MASK64, SEQ_LOW_MASK, library_id
 from replay.mcap_writer import EventWriter
 from replay.record_parts import (
@@ -127,16 +128,16 @@ def add_recording_arguments(parser: argparse.ArgumentParser) -> None:
     """Options ``stockpile record`` and ``stockpile service recorder`` share."""
     parser.add_argument("--keys", nargs="+", metavar="EXPR", default=None,
                         help="key expressions to record (default stockpile/<site>/@v1/**)")
-    parser.add_argument("--duration", type=float, metavar="S",
-                        help="stop after S wall seconds (default: on SIGINT/SIGTERM)")
+    add_duration(parser, "--duration",
+                 help="stop after this much wall time, with a unit: 90s, 15min ... (default: on "
+                 "SIGINT/SIGTERM)")
     split = parser.add_mutually_exclusive_group()
     split.add_argument("--split-size", type=int, metavar="BYTES",
                        help="start a new file every BYTES bytes (files OUT-0000.mcap, ...)")
-    split.add_argument("--split-duration", type=float, metavar="S",
-                       help="start a new file every S wall seconds")
-    parser.add_argument("--clock", choices=("wall", "site"), default="wall",
-                        help="log time from the wall clock (default) or the site's clock "
-                        "events (simulated yard)")
+    add_duration(split, "--split-duration",
+                 help="start a new file every this much wall time, with a unit: 15min, 1h ...")
+    add_clock(parser, events_as="site",
+              help="log time from the wall clock or the site's clock events (simulated yard)")
     parser.add_argument("--no-history", action="store_true",
                         help="do not ask publishers' caches for earlier events on start")
     parser.add_argument("--flush-interval", type=float, default=DEFAULT_FLUSH_INTERVAL_S,

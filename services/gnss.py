@@ -59,6 +59,7 @@ from dataclasses import dataclass, field
 import serial
 from foxglove_schemas_protobuf.LocationFix_pb2 import LocationFix
 
+from common.options import add_clock
 from schemas.events import is_valid_source, set_timestamp_ns
 from schemas.times import NS_PER_DAY, NS_PER_S
 from devices import nmea
@@ -254,9 +255,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help=f"event source (default {DEFAULT_SOURCE})")
     parser.add_argument("--frame-id", default=DEFAULT_FRAME_ID,
                         help=f"LocationFix frame id (default {DEFAULT_FRAME_ID})")
-    parser.add_argument("--clock", choices=("wall", "site"), default="wall",
-                        help="site time: the machine's UTC clock (wall, default) or the "
-                        "simulator's clock events (site)")
+    add_clock(parser, events_as="site",
+              help="site time: the machine's UTC clock (wall) or the simulator's clock events")
     parser.add_argument("--uere-m", type=float, default=DEFAULT_UERE_M, metavar="M",
                         help="user-equivalent range error of a differential/RTK fix "
                         f"(quality 2, 4, 5) for the covariance, metres (default {DEFAULT_UERE_M})")

@@ -57,6 +57,7 @@ from typing import Any
 import zenoh
 import zenoh.ext as zext
 
+from common.options import add_batch_size, add_clock
 from ledger import clock_by_name, open_ledger
 from ledger.cli import stats_to_json
 from ledger.errors import LedgerError
@@ -131,11 +132,9 @@ class Config:
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--ledger", required=True, metavar="PATH",
                         help="the ledger's DuckDB file (created if missing)")
-    parser.add_argument("--clock", choices=("wall", "events"), default="wall",
-                        help="recorded time from the wall clock (default) or the site's "
-                        "clock events (simulated yard)")
-    parser.add_argument("--batch-size", type=int, default=DEFAULT_BATCH_SIZE,
-                        help=f"most events per append (default {DEFAULT_BATCH_SIZE})")
+    add_clock(parser, help="recorded time from the wall clock or the site's clock events "
+              "(simulated yard)")
+    add_batch_size(parser)
     parser.add_argument("--batch-interval", type=float, default=DEFAULT_BATCH_INTERVAL_S,
                         metavar="S", help="longest wait for a batch to fill, seconds "
                         f"(default {DEFAULT_BATCH_INTERVAL_S})")

@@ -84,6 +84,7 @@ from dataclasses import dataclass, field
 
 import serial
 
+from common.options import add_clock
 from devices import lms200
 from schemas.events import is_valid_source
 from services.lms200_scans import (
@@ -230,9 +231,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--send-start", action="store_true",
                         help="send the start-continuous-output command once on start (not "
                         "for a scanner already streaming or a read-only tap)")
-    parser.add_argument("--clock", choices=("wall", "site"), default="wall",
-                        help="site time: the machine's UTC clock (wall, default) or the "
-                        "simulator's clock events (site)")
+    add_clock(parser, events_as="site",
+              help="site time: the machine's UTC clock (wall) or the simulator's clock events")
 
 
 def config_from_args(args: argparse.Namespace) -> Config:

@@ -7,6 +7,7 @@ import json
 import math
 import sys
 import threading
+from common.options import add_duration, non_negative_float
 from dataclasses import replace
 from pathlib import Path
 
@@ -66,7 +67,8 @@ def run_sim(args: argparse.Namespace) -> int:
                          gnss_pty=ptys.get("gnss"), scan_events=args.scan_events,
                          cut_surfaces=args.truth_cut_surfaces, noise_seed=args.noise_seed,
                          progress=lambda line: print(f"  {line}", file=sys.stderr, flush=True))
-        stats = sim.run(duration_h=args.duration, speed=args.speed, idle_speed=args.idle_speed)
+        duration_h = None if args.duration is None else args.duration / 3600.0
+        stats = sim.run(duration_h=duration_h, speed=args.speed, idle_speed=args.idle_speed)
         for pty in ptys.values():  # the devices go quiet: their readers see the end
             pty.close()
         if session is not None:
@@ -124,12 +126,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--assay-window", type=float, metavar="SECONDS",
                    help="the lab's sampling window (default: the scenario's: demo 60 s, bench-scale "
                    "30 s, full-scale 1200 s)")
-    p.add_argument("--duration", type=float, metavar="SITE_HOURS",
-                   help="stop after this many hours of site time (default: until the last assay)")
-    p.add_argument("--idle-speed", type=float, default=0.0, metavar="X",
+    add_duration(p, "--duration", bare_unit="h",
+                 help="stop after this much site time, with a unit: 90min, 2h ... (default: "
+                 "until the last assay; a bare number, read as site hours, is deprecated)")
+    p.add_argument("--idle-speed", type=non_negative_float, default=0.0, metavar="X",
                    help="with --speed: site seconds per wall second while no machine moves "
                    "(waiting for late assays); default: the same as --speed")
-    p.add_argument("--speed", type=float, default=0.0,
+    p.add_argument("--speed", type=non_negative_float, default=0.0, metavar="X",
                    help="site seconds per wall second (default 0 = as fast as possible)")
     p.add_argument("--out", metavar="DIR", help="output folder (default sim-out/SCENARIO-seedN)")
     p.add_argument("--pty", action="store_true",

@@ -22,9 +22,11 @@ from __future__ import annotations
 import argparse
 import io
 import json
+import textwrap
 import time
 from pathlib import Path
 
+from common.options import add_duration, add_out, plain_text, positive_float, refuse_inapplicable
 from schemas.events import decode_payload
 from schemas.times import NS_PER_H, format_time_ns
 
@@ -35,6 +37,17 @@ from sim.scenario import demo
 from stockpile.orchestrate import fresh_ledger_path
 from stockpile.sample import generate_sample
 from stockpile.yard_demo import run_yard_demo
+
+
+def quarantine_line(entry, width: int = 100) -> str:
+    """One readable line for a quarantine entry: what it was (as far as it could be read) and
+    why, the reason shortened at a word boundary to about ``width`` characters."""
+    what = f"a {entry.type} event" if entry.type else "an unreadable line"
+    if entry.source:
+        what += f" from {entry.source}"
+    if entry.seq is not None:
+        what += f" (seq {entry.seq})"
+    return f"{what}: {textwrap.shorten(entry.reason, width, placeholder=' ...')}"
 
 
 def show_late_assay(store) -> None:
@@ -89,8 +102,7 @@ def run_demo(out_dir: Path, seed: int = 7) -> int:
         print("   " + ", ".join(f"{counts[s]:,} {s}"
                                  for s in ("appended", "duplicate", "conflict", "rejected")))
         for entry in store.quarantine():
-            print(f"   quarantined: {entry.type or '?'} from {entry.source or '?'} "
-                  f"seq {entry.seq}: {entry.reason[:100]}")
+            print(f"   quarantined: {quarantine_line(entry)}")
         for gap in store.gaps(open_only=True):
             print(f"   gap: {gap.source} epoch {gap.epoch} seq {gap.first_seq}..{gap.last_seq} missing")
 
@@ -108,8 +120,8 @@ def run_demo(out_dir: Path, seed: int = 7) -> int:
         print()
         print(format_stats(store.stats(), str(ledger_path)))
     print(f"\ndone in {time.monotonic() - started:.1f} s. Try:\n"
-          f"  .venv/bin/stockpile ledger stats --ledger {ledger_path}\n"
-          f"  .venv/bin/stockpile ledger export --ledger {ledger_path} --types assay")
+          f"  stockpile ledger stats --ledger {ledger_path}\n"
+          f"  stockpile ledger export --ledger {ledger_path} --types assay")
     return 0 if report.ok and same else 1
 
 
@@ -153,36 +165,56 @@ def run_sim_demo(out_dir: Path, seed: int = 1) -> int:
           f"{world['max_height_m']:.1f} m high, Fe {world['grade']['Fe']:.2f} %; "
           f"mass balance residual {world['mass_balance']['residual_tonnes']:.1e} t")
     print(f"\ndone in {time.monotonic() - started:.0f} s. Try:\n"
-          f"  .venv/bin/stockpile ledger stats --ledger {ledger_path}\n"
-          f"  .venv/bin/stockpile ledger export --ledger {ledger_path} --types reclaim_cut assay")
+          f"  stockpile ledger stats --ledger {ledger_path}\n"
+          f"  stockpile ledger export --ledger {ledger_path} --types reclaim_cut assay")
     return 0 if report.ok and same else 1
 
 
+#: the process demo's pacing when --speed / --idle-speed are not given (site s per wall s)
+DEFAULT_SPEED = 40.0
+DEFAULT_IDLE_SPEED = 2000.0
+
+#: options that only the process demo reads (dest -> spelling)
+_PROCESS_ONLY = {"speed": "--speed", "idle_speed": "--idle-speed", "record": "--record"}
+
+
 def cmd_demo(args: argparse.Namespace) -> int:
+    if args.sample and args.in_process:
+        raise ValueError("--sample and --in-process are two different demos: choose one")
     if args.sample:
+        refuse_inapplicable(args, "demo --sample",
+                            {**_PROCESS_ONLY, "duration": "--duration"})
         return run_demo(Path(args.out), args.seed)
     if args.in_process:
+        refuse_inapplicable(args, "demo --in-process",
+                            {**_PROCESS_ONLY, "duration": "--duration"})
         return run_sim_demo(Path(args.out), args.seed)
 
-    return run_yard_demo(Path(args.out), seed=args.seed, speed=args.speed,
-                         idle_speed=args.idle_speed, duration_h=args.duration,
+    return run_yard_demo(Path(args.out), seed=args.seed,
+                         speed=DEFAULT_SPEED if args.speed is None else args.speed,
+                         idle_speed=DEFAULT_IDLE_SPEED if args.idle_speed is None else args.idle_speed,
+                         duration_h=None if args.duration is None else args.duration / 3600.0,
                          record=Path(args.record) if args.record else None)
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser("demo", help="simulate the demo yard and ledger it (the main job)",
-                              description=__doc__.split("\n\n")[1] if __doc__ else None)
-    p.add_argument("--out", default="demo-out", help="output folder (default demo-out)")
+                              description=plain_text(" ".join(__doc__.split("\n\n")[1:3]))
+                              if __doc__ else None)
+    add_out(p, metavar="DIR", default="demo-out", help="output folder (default demo-out)")
     p.add_argument("--seed", type=int, default=1, help="random seed (default 1)")
-    p.add_argument("--speed", type=float, default=40.0,
-                   help="site seconds per wall second while machines work (default 40)")
-    p.add_argument("--idle-speed", type=float, default=2000.0,
-                   help="site seconds per wall second while the yard waits for assays "
-                   "(default 2000)")
-    p.add_argument("--duration", type=float, metavar="SITE_HOURS",
-                   help="stop the scenario after this many site hours (default: to the end)")
+    p.add_argument("--speed", type=positive_float, metavar="X",
+                   help="process demo only: site seconds per wall second while machines work "
+                   f"(default {DEFAULT_SPEED:g})")
+    p.add_argument("--idle-speed", type=positive_float, metavar="X",
+                   help="process demo only: site seconds per wall second while the yard waits "
+                   f"for assays (default {DEFAULT_IDLE_SPEED:g})")
+    add_duration(p, "--duration",
+                 help="process demo only: stop the scenario after this much site time, with a "
+                 "unit: 90min, 2h ... (default: to the end)")
     p.add_argument("--record", metavar="OUT.mcap",
-                   help="also record the live session to MCAP (stockpile service recorder)")
+                   help="process demo only: also record the live session to MCAP (stockpile "
+                   "service recorder)")
     p.add_argument("--in-process", action="store_true",
                    help="simulate and import the events file, without the services")
     p.add_argument("--sample", action="store_true",

@@ -40,6 +40,7 @@ from typing import Any
 
 import zenoh
 
+from common.options import plain_text
 from services.service import Stopper, ZenohOptions, log
 from stockpile import service_cli
 from stockpile.service_cli import SERVICE_MODULES
@@ -211,7 +212,7 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser("run", help="start the services a yard config names (a real site)",
-                              description=__doc__.split("\n\n")[0])
+                              description=plain_text(__doc__.split("\n\n")[0]))
     p.add_argument("--config", required=True, metavar="TOML",
                    help="the yard config (see docs/yard.example.toml)")
     p.add_argument("--check", action="store_true",

@@ -18,6 +18,7 @@ import importlib
 import signal
 from dataclasses import dataclass
 
+from common.options import plain_text
 from stockpile import MissingExtra, add_missing_extra, import_for
 
 
@@ -65,7 +66,7 @@ def _run(args: argparse.Namespace) -> int:
 def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser("service", help="start one service of the yard ("
                               + ", ".join(SERVICE_MODULES) + ")",
-                              description=__doc__.splitlines()[0])
+                              description=plain_text(__doc__.splitlines()[0]))
     sub = p.add_subparsers(dest="service", metavar="NAME", required=True,
                            parser_class=type(p))
     for name, service in SERVICE_MODULES.items():

@@ -4,7 +4,7 @@
 
     zenoh router (this process, loopback)
       <- ledger service      stockpile service ledger --clock events
-      <- localizer           stockpile service localizer --clock site
+      <- localizer           stockpile service localizer --clock events
       <- simulator           stockpile sim --pty --zenoh   (waits for the services)
       <- scanner             stockpile service scanner --device <sim's LMS200 pty>
       <- gnss                stockpile service gnss --device <sim's GNSS pty>
@@ -310,7 +310,7 @@ def _start_services(yard: Supervisor, ledger_path: Path, site: str, record: Path
                           *common])
     yard.wait_live("ledger")
     if record is not None:
-        yard.start("recorder", ["service", "recorder", "--out", str(record), "--clock", "site",
+        yard.start("recorder", ["service", "recorder", "--out", str(record), "--clock", "events",
                                 "--site", site, "--status-period", "1", *yard.client_args])
         yard.wait_live("recorder")
     yard.start("localizer", ["service", "localizer", "--machine", MACHINE, *common])
@@ -327,13 +327,13 @@ def _start_sim_and_sensors(yard: Supervisor, sim_dir: Path, common: list[str], *
                 "--wait-live", f"{live}/scanner/**", "--wait-live", f"{live}/gnss/**",
                 "--wait-live", f"{live}/localizer/**", *yard.client_args]
     if duration_h is not None:
-        sim_args += ["--duration", str(duration_h)]
+        sim_args += ["--duration", f"{duration_h * 3600:g}s"]
     sim = yard.start("sim", sim_args)
     scanner_path = sim.wait_stdout(lambda l: l.startswith("LMS200 scanner on"), 60).split()[-1]
     gnss_path = sim.wait_stdout(lambda l: l.startswith("GNSS receiver"), 60).split()[-1]
-    yard.start("scanner", ["service", "scanner", "--device", scanner_path, "--clock", "site",
+    yard.start("scanner", ["service", "scanner", "--device", scanner_path, "--clock", "events",
                            "--source", f"{MACHINE}.scanner", *common])
-    yard.start("gnss", ["service", "gnss", "--device", gnss_path, "--clock", "site",
+    yard.start("gnss", ["service", "gnss", "--device", gnss_path, "--clock", "events",
                         "--source", f"{MACHINE}.gnss", *common])
     _say(f"   scanner on {scanner_path}, GNSS on {gnss_path}; simulating at {speed:g}x "
          f"({idle_speed:g}x while the yard waits for assays) ...")
@@ -500,7 +500,7 @@ def run_yard_demo(out_dir: Path, *, seed: int = 1, speed: float = 40.0, idle_spe
     (out_dir / "summary.json").write_text(json.dumps(summary, indent=2, default=list))
     _say(f"\n{'all checks hold' if ok else 'CHECKS FAILED'}: exit codes {rc}; "
          f"done in {time.monotonic() - started:.0f} s -> {out_dir}/summary.json")
-    _say(f"Try:\n  .venv/bin/stockpile ledger stats --ledger {ledger_path}\n"
-         f"  .venv/bin/stockpile project --ledger {ledger_path} --pile {model['pile_id']}\n"
-         f"  .venv/bin/stockpile ledger export --ledger {ledger_path} --types reclaim_cut assay")
+    _say(f"Try:\n  stockpile ledger stats --ledger {ledger_path}\n"
+         f"  stockpile project --ledger {ledger_path} --pile {model['pile_id']}\n"
+         f"  stockpile ledger export --ledger {ledger_path} --types reclaim_cut assay")
     return 0 if ok else 1

@@ -37,13 +37,13 @@ def small_yard_sim(tmp_path_factory):
 def process_demo(tmp_path_factory):
     """One short process demo shared by the end-to-end and the recording tests.
 
-    ``stockpile demo --duration 0.2 --speed 30 --seed 3 --record live.mcap``: every service
+    ``stockpile demo --duration 0.2h --speed 30 --seed 3 --record live.mcap``: every service
     a separate process, the recorder beside the ledger.  Returns ``(out_dir, completed)``.
     """
     out = tmp_path_factory.mktemp("process-demo") / "demo"
     run = subprocess.run(
         [sys.executable, "-m", "stockpile.cli", "demo", "--out", str(out), "--seed", "3",
-         "--duration", "0.2", "--speed", "30", "--record", str(out / "live.mcap")],
+         "--duration", "0.2h", "--speed", "30", "--record", str(out / "live.mcap")],
         capture_output=True, text=True, timeout=600)
     return out, run
 

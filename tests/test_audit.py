@@ -279,12 +279,17 @@ def test_bad_input_is_one_line_and_exit_2(ledger_and_info, tmp_path, capsys):
     assert "Traceback" not in proc.stderr and not missing.exists()
     for argv, needle in (
             (["audit", "cuts", "--ledger", str(path), "--pile", "NOPE"], "pile 'NOPE'"),
-            (["audit", "history", "--ledger", str(path), "--pile", PILE, "--every", "0s"],
-             "positive"),
-            (["audit", "history", "--ledger", str(path), "--pile", PILE, "--every", "soon"],
-             "not a duration"),
             (["audit", "cuts", "--ledger", str(path), "--pile", PILE, "--truth",
               str(tmp_path / "none.json")], "no truth file")):
         assert cli.main(argv) == 2
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and err[0].startswith("stockpile: error:") and needle in err[0]
+    # a bad duration is a usage error of the subcommand (common.options.DurationAction)
+    for every, needle in (("0s", "must be positive"), ("soon", "is not a duration"),
+                          ("3600", "needs a unit")):
+        with pytest.raises(SystemExit) as exited:
+            cli.main(["audit", "history", "--ledger", str(path), "--pile", PILE, "--every", every])
+        assert exited.value.code == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith("stockpile audit history: error: --every ")
+        assert needle in err[0]

@@ -45,7 +45,7 @@ def test_bad_usage_is_one_line_and_exit_2(tmp_path):
     missing = run("ledger", "stats", "--ledger", str(tmp_path / "nope.duckdb"))
     assert missing.returncode == 2
     assert missing.stderr.strip().splitlines() == [f"stockpile: error: no ledger at {tmp_path / 'nope.duckdb'}"]
-    bad_time = run("ledger", "export", "--ledger", str(tmp_path / "x.duckdb"), "--as-of-valid", "yesterday")
+    bad_time = run("ledger", "export", "--ledger", str(tmp_path / "x.duckdb"), "--valid-time", "yesterday")
     assert bad_time.returncode == 2 and "Traceback" not in bad_time.stderr
 
 
@@ -88,9 +88,9 @@ def test_export_filters_types_and_as_of(tmp_path, sample_file):
     late = max(assays, key=lambda a: a["recorded_time_ns"] - a["valid_time_ns"])
     v = late["valid_time_ns"]
     known_then = run("ledger", "export", "--ledger", str(ledger), "--types", "assay",
-                     "--as-of-valid", str(v), "--as-of-known", str(late["recorded_time_ns"] - 1))
+                     "--valid-time", str(v), "--known-time", str(late["recorded_time_ns"] - 1))
     known_now = run("ledger", "export", "--ledger", str(ledger), "--types", "assay",
-                    "--as-of-valid", str(v), "--as-of-known", str(late["recorded_time_ns"]))
+                    "--valid-time", str(v), "--known-time", str(late["recorded_time_ns"]))
     ids_then = {json.loads(l)["body"]["assay_id"] for l in known_then.stdout.splitlines()}
     ids_now = {json.loads(l)["body"]["assay_id"] for l in known_now.stdout.splitlines()}
     assert late["body"]["assay_id"] in ids_now - ids_then
@@ -103,9 +103,9 @@ def test_export_filters_types_and_as_of(tmp_path, sample_file):
 def test_iso_times_are_accepted(tmp_path, sample_file):
     ledger = tmp_path / "l.duckdb"
     run("ledger", "import", str(sample_file), "--ledger", str(ledger), "--clock", "events")
-    iso = run("ledger", "export", "--ledger", str(ledger), "--as-of-valid", "2026-11-01T00:10:00Z",
+    iso = run("ledger", "export", "--ledger", str(ledger), "--valid-time", "2026-11-01T00:10:00Z",
               "--types", "clock")
-    ns = run("ledger", "export", "--ledger", str(ledger), "--as-of-valid", "1793491800000000000",
+    ns = run("ledger", "export", "--ledger", str(ledger), "--valid-time", "1793491800000000000",
              "--types", "clock")
     assert iso.returncode == 0 and iso.stdout == ns.stdout
     assert len(iso.stdout.splitlines()) == 61  # a tick every 10 s from 00:00:00 to 00:10:00

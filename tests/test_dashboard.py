@@ -224,11 +224,11 @@ def test_log_and_latest_state_only(offline):
 
 def test_bad_input_is_one_line_and_exit_2(ledger, tmp_path, capsys):
     for argv, needle in (
-            (["dashboard", "--ledger", str(tmp_path / "none.duckdb"), "--rrd",
+            (["dashboard", "--ledger", str(tmp_path / "none.duckdb"), "--out",
               str(tmp_path / "x.rrd")], "no ledger at"),
-            (["dashboard", "--ledger", str(ledger), "--pile", "NOPE", "--rrd",
+            (["dashboard", "--ledger", str(ledger), "--pile", "NOPE", "--out",
               str(tmp_path / "x.rrd")], "pile 'NOPE' is not declared"),
-            (["dashboard", "--ledger", str(ledger)], "--rrd")):
+            (["dashboard", "--ledger", str(ledger)], "--out")):
         assert cli.main(argv) == 2
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and err[0].startswith("stockpile: error:") and needle in err[0]
@@ -307,7 +307,7 @@ def test_live_service_follows_the_ledger_service(ledger, tmp_path):
     try:
         wait_liveliness(router, f"stockpile/{SITE}/@live/ledger/**", 30)
         dashboard = stockpile("service", "dashboard", "--pile", PILE, "--site", SITE,
-                              "--rrd", str(out), "--every", "10min", "--update-period-s", "0",
+                              "--out", str(out), "--every", "10min", "--update-period-s", "0",
                               "--status-period", "0.2", *client_args(endpoint),
                               stderr_path=tmp_path / "dashboard.log")
         _wait_token(router, f"stockpile/{SITE}/@live/dashboard/**", dashboard, 90)
@@ -368,7 +368,7 @@ def test_a_live_service_waiting_for_the_ledger_stops_at_once_on_sigterm(service,
     # polls the stopper, so SIGTERM ends the wait rather than the query's 30 s timeout
     import time
 
-    extra = ["--rrd", str(tmp_path / "live.rrd")] if service == "dashboard" else []
+    extra = ["--out", str(tmp_path / "live.rrd")] if service == "dashboard" else []
     with service_on_a_stuck_ledger(service, tmp_path / "service.log",
                                    "--pile", PILE, *extra) as process:
         t0 = time.monotonic()

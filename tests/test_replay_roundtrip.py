@@ -123,7 +123,7 @@ def test_the_live_recording_holds_exactly_the_events_of_the_live_ledger(demo):
 @pytest.fixture(scope="module")
 def exported(yard, tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("export") / "session.mcap"
-    code = stockpile(["export-mcap", "--ledger", str(yard["ledger"]), str(out), "--site", SITE,
+    code = stockpile(["export-mcap", "--ledger", str(yard["ledger"]), "--out", str(out), "--site", SITE,
                       "--no-progress"])
     assert code == 0
     return out
@@ -349,7 +349,7 @@ def test_bad_usage_and_missing_files_are_one_line_errors(exported, tmp_path, cap
         ("replay", str(exported)),  # neither --publish nor --ledger
         ("replay", str(exported), "--ledger", str(tmp_path / "l.duckdb"), "--max"),
         ("replay", str(exported), "--publish", "--rate", "0"),
-        ("export-mcap", "--ledger", str(tmp_path / "nope.duckdb"), str(tmp_path / "x.mcap")),
+        ("export-mcap", "--ledger", str(tmp_path / "nope.duckdb"), "--out", str(tmp_path / "x.mcap")),
         ("record", "--recover", str(tmp_path / "nope.mcap"), str(tmp_path / "fixed.mcap")),
         ("record",),
     ]
@@ -359,7 +359,7 @@ def test_bad_usage_and_missing_files_are_one_line_errors(exported, tmp_path, cap
         assert len(err.strip().splitlines()) == 1 and err.startswith("stockpile"), (args, err)
     assert not (tmp_path / "x.mcap").exists()
     # a recorder never overwrites a recording
-    code, _out, err = run(capsys, "record", str(exported), "--duration", "1")
+    code, _out, err = run(capsys, "record", "--out", str(exported), "--duration", "1s")
     assert code == 2 and "exists" in err
     assert McapScan(exported).report.path == str(exported)  # still there, untouched
 

@@ -1,7 +1,7 @@
 """The dashboard's options: the :class:`Config` shared by the live service and the offline
 renderer, its defaults, and the command-line arguments of ``stockpile service dashboard``
 (:func:`add_arguments`, :func:`config_from_args`) plus those both commands share
-(:func:`add_common_arguments`, :func:`duration_s`).
+(:func:`add_common_arguments`; durations through common.options.add_duration).
 """
 
 from __future__ import annotations
@@ -9,8 +9,7 @@ from __future__ import annotations
 import argparse
 from dataclasses import dataclass, field
 
-from audit.cli import parse_duration_ns
-from schemas.times import NS_PER_S
+from common.options import add_duration, add_out
 from services.service import DEFAULT_SITE, ZenohOptions
 
 SERVICE = "dashboard"
@@ -111,7 +110,8 @@ def add_common_arguments(parser: argparse.ArgumentParser) -> None:
     """The options ``stockpile service dashboard`` and ``stockpile dashboard`` share."""
     parser.add_argument("--serve", action="store_true",
                         help="serve the Rerun web viewer and a gRPC server on loopback")
-    parser.add_argument("--rrd", metavar="PATH", help="archive the stream to this .rrd file")
+    add_out(parser, metavar="PATH", deprecated=("--rrd",),
+            help="archive the stream to this Rerun recording (.rrd) file")
     parser.add_argument("--grpc-port", type=int, default=DEFAULT_GRPC_PORT,
                         help="gRPC port with --serve (default %(default)s)")
     parser.add_argument("--web-port", type=int, default=DEFAULT_WEB_PORT,
@@ -135,9 +135,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     """``stockpile service dashboard`` options (the shared ones are added by service_cli)."""
     parser.add_argument("--pile", dest="pile_id", required=True, help="pile id to show")
     add_common_arguments(parser)
-    parser.add_argument("--every", default="5min", metavar="DURATION",
-                        help="valid time between history points while catching up "
-                        "(default %(default)s)")
+    add_duration(parser, "--every", default=DEFAULT_EVERY_S,
+                 help="valid (site) time between history points while catching up, with a "
+                 "unit (default 5min)")
     parser.add_argument("--update-period-s", type=float, default=DEFAULT_UPDATE_PERIOD_S,
                         help="shortest wall time between live updates (default %(default)s)")
     parser.add_argument("--geometry-period-s", type=float, default=5.0,
@@ -148,15 +148,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def config_from_args(args: argparse.Namespace) -> Config:
     """The live service's :class:`Config` from its parsed arguments."""
     return Config(pile_id=args.pile_id, site=args.site, zenoh=ZenohOptions.from_args(args),
-                  serve=args.serve, rrd=args.rrd, grpc_port=args.grpc_port,
-                  web_port=args.web_port, every_s=duration_s(args.every),
+                  serve=args.serve, rrd=args.out, grpc_port=args.grpc_port,
+                  web_port=args.web_port, every_s=args.every,
                   update_period_s=args.update_period_s,
                   geometry_period_s=args.geometry_period_s, analyte=args.analyte,
                   layers=args.layers, layer_step_m=args.layer_step_m,
                   delta_threshold_pp=args.delta_threshold_pp, reorder_s=args.reorder_s,
                   status_period_s=args.status_period)
-
-
-def duration_s(text: str) -> float:
-    """A duration argument (``"5min"``, ``"90s"``, ...) in seconds."""
-    return parse_duration_ns(text) / NS_PER_S

@@ -4,7 +4,7 @@
 catches up on everything committed (updates at recorded-time boundaries, then "as known
 now" at the head), then goes live (:class:`Follower`): each committed head is read,
 updates come at most every ``update_period_s`` of wall time, and the ledger's gaps and
-quarantine counts are polled.  ``--serve`` hosts the web viewer, ``--rrd`` archives the
+quarantine counts are polled.  ``--serve`` hosts the web viewer, ``--out`` archives the
 stream.
 """
 
@@ -32,7 +32,7 @@ def main(config: Config, *, stopper: Stopper | None = None) -> int:
     if not config.pile_id:
         raise ValueError("--pile is required")
     if not config.serve and not config.rrd:
-        raise ValueError("give --serve and/or --rrd PATH")
+        raise ValueError("give --serve and/or --out PATH.rrd")
     heads = Inbox()
     runtime = ServiceRuntime(SERVICE, config.site, config.zenoh, name=config.pile_id,
                              status_period_s=config.status_period_s, stopper=stopper)

@@ -12,18 +12,18 @@ from __future__ import annotations
 
 import argparse
 import math
-import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
-from common.progress import Progress, progress as progress_bar
+from common.options import add_duration, add_progress
+from common.progress import Progress, enabled_from_args, progress as progress_bar
 from ledger import open_ledger
 from planner.cli import make_plan, plan_args
 from projector.query import CANONICAL_ANALYTES
 from schemas.events import decode_payload
-from services.dashboard.config import READ_CHUNK, Config, add_common_arguments, duration_s
+from services.dashboard.config import DEFAULT_EVERY_S, READ_CHUNK, Config, add_common_arguments
 from services.dashboard.core import Dashboard, feed, rebuild_from
 from services.dashboard.viewer import WebViewer, close_recording, make_recording
 from services.service import Stopper, log
@@ -217,18 +217,16 @@ def _progress_printer(bar: Progress) -> Callable[[int, int], None]:
 
 def cmd_dashboard(args: argparse.Namespace) -> int:
     """``stockpile dashboard``: render, print a one-line summary."""
-    if not args.rrd and not args.serve:
-        raise ValueError("give --rrd OUT and/or --serve")
-    config = Config(pile_id=args.pile, serve=args.serve, rrd=args.rrd, grpc_port=args.grpc_port,
-                    web_port=args.web_port, every_s=duration_s(args.every),
+    if not args.out and not args.serve:
+        raise ValueError("give --out OUT.rrd and/or --serve")
+    config = Config(pile_id=args.pile, serve=args.serve, rrd=args.out, grpc_port=args.grpc_port,
+                    web_port=args.web_port, every_s=args.every,
                     analyte=args.analyte, layers=args.layers, layer_step_m=args.layer_step_m,
                     delta_threshold_pp=args.delta_threshold_pp, reorder_s=args.reorder_s,
                     plan_machine=args.plan_machine, plan_cuts=args.plan_cuts)
     t0 = time.monotonic()
     stopper = Stopper() if args.serve else None
-    # on (a bar on a terminal, plain lines otherwise): the command has no --no-progress yet,
-    # and its --progress (a store_true: False = not given) asks for what is now the default
-    with progress_bar(unit="records", desc="dashboard", enabled=True) as bar:
+    with progress_bar(unit="records", desc="dashboard", enabled=enabled_from_args(args)) as bar:
         result = render_ledger(args.ledger, args.pile, config, progress=_progress_printer(bar),
                                keep_serving=stopper)
     print(f"dashboard: pile {result.pile_id}: {result.records:,} records, {result.updates} "
@@ -241,7 +239,7 @@ def cmd_dashboard(args: argparse.Namespace) -> int:
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    """``stockpile dashboard --ledger PATH --rrd OUT``: render a finished ledger."""
+    """``stockpile dashboard --ledger PATH --out OUT.rrd``: render a finished ledger."""
     p = subparsers.add_parser(
         "dashboard", help="render a ledger to a Rerun dashboard (.rrd and/or the web viewer)",
         description="Render a finished ledger offline to the operators' Rerun dashboard: the "
@@ -249,10 +247,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--ledger", required=True, help="ledger file (opened read-only)")
     p.add_argument("--pile", help="pile id (default: the only pile the ledger declares)")
     add_common_arguments(p)
-    p.add_argument("--every", default="5min", metavar="DURATION",
-                   help="valid time between history points (default %(default)s)")
-    p.add_argument("--progress", action="store_true",
-                   help="progress lines on stderr even when it is not a terminal")
+    add_duration(p, "--every", default=DEFAULT_EVERY_S,
+                 help="valid (site) time between history points, with a unit (default 5min)")
+    add_progress(p)
     p.add_argument("--plan-machine", metavar="ID",
                    help="also plan the next bench of this reclaimer and show its cuts as "
                    "footprints coloured by predicted grade")
