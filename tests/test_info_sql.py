@@ -54,7 +54,7 @@ def files(tmp_path_factory):
     assert run.returncode == 0, run.stderr
     ledger = out / "ledger.duckdb"
     mcap = out / "session.mcap"
-    run = stockpile("export-mcap", "--ledger", str(ledger), str(mcap), "--no-progress")
+    run = stockpile("export-mcap", "--ledger", str(ledger), "--out", str(mcap), "--no-progress")
     assert run.returncode == 0, run.stderr
     stats = stockpile("ledger", "stats", "--ledger", str(ledger), "--json")
     assert stats.returncode == 0, stats.stderr

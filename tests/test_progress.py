@@ -88,7 +88,7 @@ def test_piped_ledger_import_writes_plain_lines_with_the_final_counts(tmp_path, 
 
 def test_piped_export_mcap_ends_with_the_exported_count(tmp_path, ledger):
     done = subprocess.run([STOCKPILE, "export-mcap", "--ledger", str(ledger),
-                           str(tmp_path / "out.mcap")], capture_output=True, text=True,
+                           "--out", str(tmp_path / "out.mcap")], capture_output=True, text=True,
                           timeout=300)
     assert done.returncode == 0, done.stderr
     exported = int(re.match(r"exported ([\d,]+) events", done.stdout)[1].replace(",", ""))
@@ -150,7 +150,7 @@ def test_ledger_import_on_a_terminal_redraws_a_bar(tmp_path, sample_file):
 
 def test_replay_on_a_terminal_redraws_a_bar(tmp_path, ledger):
     mcap = tmp_path / "out.mcap"
-    code, out, tty = run_on_pty(["export-mcap", "--ledger", str(ledger), str(mcap)])
+    code, out, tty = run_on_pty(["export-mcap", "--ledger", str(ledger), "--out", str(mcap)])
     assert code == 0, tty
     assert "\r" in tty and "export:" in tty and "100%" in tty
     code, out, tty = run_on_pty(["replay", str(mcap), "--ledger", str(tmp_path / "c.duckdb")])
@@ -164,7 +164,7 @@ def test_replay_on_a_terminal_redraws_a_bar(tmp_path, ledger):
 
 def test_no_progress_writes_nothing_even_on_a_terminal(tmp_path, ledger):
     mcap = tmp_path / "out.mcap"
-    code, out, tty = run_on_pty(["export-mcap", "--ledger", str(ledger), str(mcap),
+    code, out, tty = run_on_pty(["export-mcap", "--ledger", str(ledger), "--out", str(mcap),
                                  "--no-progress"])
     assert code == 0 and out.startswith("exported ")
     assert tty == ""
