@@ -75,6 +75,16 @@ def add_service_arguments(parser: argparse.ArgumentParser) -> None:
     add_zenoh_arguments(parser)
 
 
+def open_session(options: ZenohOptions) -> zenoh.Session:
+    """A Zenoh session for these options; :class:`OSError` with zenoh's one-line reason when
+    it cannot be opened (an endpoint that refuses, a bad config file)."""
+    try:
+        return zenoh.open(options.to_config())
+    except zenoh.ZError as exc:
+        reason = str(exc).split("  at ")[0].strip()
+        raise OSError(f"cannot open the Zenoh session: {reason}") from None
+
+
 @dataclass
 class ServiceRuntime:
     """What a running service holds: its session, liveliness token, status and stopper.
@@ -104,7 +114,7 @@ class ServiceRuntime:
         "token present" means "serving".
         """
         self.stopper = self.stopper or Stopper()
-        self.session = zenoh.open(self.zenoh_options.to_config())
+        self.session = open_session(self.zenoh_options)
         self.status = StatusReporter(self.service, period_s=self.status_period_s,
                                      rate_of=rate_of, backlog=backlog, error_keys=error_keys)
         self.log("started", site=self.site, pid=os.getpid(), zid=str(self.session.zid()))

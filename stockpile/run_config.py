@@ -38,10 +38,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import zenoh
-
 from common.options import plain_text
-from services.service import Stopper, ZenohOptions, log
+from services.service import Stopper, ZenohOptions, log, open_session
 from stockpile import service_cli
 from stockpile.service_cli import SERVICE_MODULES
 
@@ -148,7 +146,7 @@ def run(config: YardConfig, *, stopper: Stopper | None = None) -> int:
     stopper = stopper or Stopper()
     router = None
     if config.router_listen:
-        router = zenoh.open(ZenohOptions(mode="router", listen=tuple(config.router_listen)).to_config())
+        router = open_session(ZenohOptions(mode="router", listen=tuple(config.router_listen)))
         log("run", "router", listen=",".join(config.router_listen))
     children: dict[str, subprocess.Popen] = {}
     delays = {e.name: config.restart_delay_s for e in config.services}

@@ -166,3 +166,13 @@ def test_version_is_the_installed_distributions():
     assert version == importlib.metadata.version("stockpile-ledger")
     assert re.fullmatch(r"\d+\.\d+\.\d+", version)
     assert "--version" in run("--help").stdout
+
+
+def test_a_zenoh_endpoint_that_refuses_is_one_line(tmp_path):
+    # port 1 on loopback: nothing listens there, the connection is refused at once
+    out = run("service", "ledger", "--ledger", str(tmp_path / "l.duckdb"), "--mode", "client",
+              "--connect", "tcp/127.0.0.1:1")
+    assert out.returncode == 2, out.stderr
+    lines = out.stderr.strip().splitlines()
+    assert lines[-1].startswith("stockpile: error: cannot open the Zenoh session: ")
+    assert "Traceback" not in out.stderr and "tcp/127.0.0.1:1" in lines[-1]
