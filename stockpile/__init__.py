@@ -23,11 +23,10 @@ says which one to install (:func:`import_for`, :func:`add_missing_extra`).
 from __future__ import annotations
 
 import argparse
-import importlib
 import importlib.util
 from importlib import metadata
 from types import ModuleType
-from typing import NoReturn, Sequence
+from typing import Callable, NoReturn, Sequence
 
 #: the distribution's name on PyPI (``pip install stockpile-ledger``)
 DISTRIBUTION = "stockpile-ledger"
@@ -82,8 +81,10 @@ def _installed(name: str) -> bool:
         return False
 
 
-def import_for(module: str, command: str, extras: Sequence[str]) -> ModuleType:
-    """Import the module that implements ``command``.
+def import_for(load: Callable[[], ModuleType], command: str,
+               extras: Sequence[str]) -> ModuleType:
+    """Import the module that implements ``command``: ``load()`` runs the import statement
+    (a real one, so that the layering contract sees it).
 
     Raises :class:`MissingExtra` when a package of ``extras`` is not installed (even one
     the command imports only when it runs); any other missing module is a bug and
@@ -92,7 +93,7 @@ def import_for(module: str, command: str, extras: Sequence[str]) -> ModuleType:
     if not all(_installed(name) for extra in extras for name in EXTRA_IMPORTS[extra]):
         raise MissingExtra(command, extras)
     try:
-        return importlib.import_module(module)
+        return load()
     except ModuleNotFoundError as exc:
         if is_missing_extra(exc, extras):
             raise MissingExtra(command, extras) from exc

@@ -11,7 +11,8 @@ from __future__ import annotations
 import argparse
 import sys
 from dataclasses import dataclass
-from typing import Sequence
+from types import ModuleType
+from typing import Callable, Sequence
 
 from common.logs import add_logging_options, configure_from_args
 from ledger.errors import LedgerError
@@ -24,42 +25,107 @@ EXIT_USAGE = 2
 class CommandModule:
     """A module whose ``register(subparsers)`` adds top-level commands."""
 
-    module: str
+    #: imports the module (a deferred import statement: its extras may be missing)
+    load: Callable[[], ModuleType]
     #: the extras whose packages its imports need (empty: the base install)
     extras: tuple[str, ...]
     #: the commands it registers -> their one-line summary (shown when an extra is missing)
     commands: dict[str, str]
 
 
+# Each loader imports one command module.  The imports are real statements, deferred
+# into functions so that a missing extra leaves the other commands working, and visible
+# to the layering contract (a module named by a string would not be).
+
+def _stockpile_demo() -> ModuleType:
+    from stockpile import demo  # deferred: see COMMAND_MODULES
+    return demo
+
+
+def _ledger_cli() -> ModuleType:
+    from ledger import cli  # deferred: see COMMAND_MODULES
+    return cli
+
+
+def _projector_cli() -> ModuleType:
+    from projector import cli  # deferred: see COMMAND_MODULES
+    return cli
+
+
+def _sim_cli() -> ModuleType:
+    from sim import cli  # deferred: see COMMAND_MODULES
+    return cli
+
+
+def _stockpile_service_cli() -> ModuleType:
+    from stockpile import service_cli  # deferred: see COMMAND_MODULES
+    return service_cli
+
+
+def _stockpile_run_config() -> ModuleType:
+    from stockpile import run_config  # deferred: see COMMAND_MODULES
+    return run_config
+
+
+def _planner_cli() -> ModuleType:
+    from planner import cli  # deferred: see COMMAND_MODULES
+    return cli
+
+
+def _replay_cli() -> ModuleType:
+    from replay import cli  # deferred: see COMMAND_MODULES
+    return cli
+
+
+def _audit_cli() -> ModuleType:
+    from audit import cli  # deferred: see COMMAND_MODULES
+    return cli
+
+
+def _services_dashboard() -> ModuleType:
+    from services import dashboard  # deferred: see COMMAND_MODULES
+    return dashboard
+
+
+def _stockpile_info() -> ModuleType:
+    from stockpile import info  # deferred: see COMMAND_MODULES
+    return info
+
+
+def _ledger_sql() -> ModuleType:
+    from ledger import sql  # deferred: see COMMAND_MODULES
+    return sql
+
+
 #: every top-level command, in ``stockpile --help`` order.  A module is imported only
 #: when the parser is built, so the base install (no extras) runs the commands it can
 #: and names the extra for the others.
 COMMAND_MODULES: tuple[CommandModule, ...] = (
-    CommandModule("stockpile.demo", ("edge", "ledger", "projector", "sim"),
+    CommandModule(_stockpile_demo, ("edge", "ledger", "projector", "sim"),
                   {"demo": "simulate the demo yard and ledger it (the main job)"}),
-    CommandModule("ledger.cli", (),
+    CommandModule(_ledger_cli, (),
                   {"ledger": "import, export, verify and summarise an event ledger"}),
-    CommandModule("projector.cli", ("projector",),
+    CommandModule(_projector_cli, ("projector",),
                   {"project": "the pile as of a valid time, as known at a known time"}),
-    CommandModule("sim.cli", ("sim",),
+    CommandModule(_sim_cli, ("sim",),
                   {"sim": "run the yard simulator (ground truth + emulated hardware)"}),
-    CommandModule("stockpile.service_cli", (),
+    CommandModule(_stockpile_service_cli, (),
                   {"service": "start one service of the yard"}),
-    CommandModule("stockpile.run_config", ("ledger",),
+    CommandModule(_stockpile_run_config, ("ledger",),
                   {"run": "start the services a yard config names (a real site)"}),
-    CommandModule("planner.cli", ("projector",),
+    CommandModule(_planner_cli, ("projector",),
                   {"plan": "plan reclaim work before the wheel touches the pile"}),
-    CommandModule("replay.cli", ("ledger",),
+    CommandModule(_replay_cli, ("ledger",),
                   {"record": "record the site's events to MCAP",
                    "replay": "replay an MCAP file onto Zenoh or into a ledger",
                    "export-mcap": "write a ledger's events as an MCAP file"}),
-    CommandModule("audit.cli", ("projector",),
+    CommandModule(_audit_cli, ("projector",),
                   {"audit": "audit and reconciliation reports (cuts, history, assays)"}),
-    CommandModule("services.dashboard", ("dashboard",),
+    CommandModule(_services_dashboard, ("dashboard",),
                   {"dashboard": "render a ledger to a Rerun dashboard"}),
-    CommandModule("stockpile.info", (),
+    CommandModule(_stockpile_info, (),
                   {"info": "what an MCAP session or a ledger holds: span, counts, gaps"}),
-    CommandModule("ledger.sql", (),
+    CommandModule(_ledger_sql, (),
                   {"sql": "SQL on a ledger's views, read-only"}),
 )
 
@@ -86,7 +152,7 @@ def build_parser() -> argparse.ArgumentParser:
         # deferred: each command's module is imported here, not at the top, so that a
         # missing extra (an optional dependency) leaves the other commands working
         try:
-            module = import_for(entry.module, f"stockpile {next(iter(entry.commands))}",
+            module = import_for(entry.load, f"stockpile {next(iter(entry.commands))}",
                                 entry.extras)
         except MissingExtra:
             for name, summary in entry.commands.items():

@@ -14,9 +14,10 @@ from __future__ import annotations
 
 import argparse
 import faulthandler
-import importlib
 import signal
 from dataclasses import dataclass
+from types import ModuleType
+from typing import Callable
 
 from common.options import plain_text
 from stockpile import MissingExtra, add_missing_extra, import_for
@@ -26,32 +27,68 @@ from stockpile import MissingExtra, add_missing_extra, import_for
 class Service:
     """One entry of the registry: where a service lives and what it needs."""
 
-    #: the module that runs it (``add_arguments``, ``config_from_args``, ``main``)
-    module: str
+    #: imports the module that runs it (``add_arguments``, ``config_from_args``, ``main``)
+    #: with a deferred import statement: its extra may be missing
+    load: Callable[[], ModuleType]
     #: the extra that installs its third-party packages
     extra: str
     #: one line for ``stockpile service --help``
     summary: str
 
 
+def _services_scanner() -> ModuleType:
+    from services import scanner  # deferred: its extra may be missing
+    return scanner
+
+
+def _services_gnss() -> ModuleType:
+    from services import gnss  # deferred: its extra may be missing
+    return gnss
+
+
+def _services_localizer() -> ModuleType:
+    from services import localizer  # deferred: its extra may be missing
+    return localizer
+
+
+def _services_ledger_service() -> ModuleType:
+    from services import ledger_service  # deferred: its extra may be missing
+    return ledger_service
+
+
+def _services_projector_service() -> ModuleType:
+    from services import projector_service  # deferred: its extra may be missing
+    return projector_service
+
+
+def _services_dashboard() -> ModuleType:
+    from services import dashboard  # deferred: its extra may be missing
+    return dashboard
+
+
+def _replay_record() -> ModuleType:
+    from replay import record  # deferred: its extra may be missing
+    return record
+
+
 #: ``stockpile service NAME`` -> the service
 SERVICE_MODULES: dict[str, Service] = {
-    "scanner": Service("services.scanner", "edge",
+    "scanner": Service(_services_scanner, "edge",
                        "read LMS200 telegrams from a serial port, publish scans"),
-    "gnss": Service("services.gnss", "edge",
+    "gnss": Service(_services_gnss, "edge",
                     "read NMEA GGA from a serial port, publish location fixes"),
-    "localizer": Service("services.localizer", "edge",
+    "localizer": Service(_services_localizer, "edge",
                          "fuse joint readings and GNSS fixes (UKF), publish joint estimates "
                          "and poses"),
-    "ledger": Service("services.ledger_service", "ledger",
+    "ledger": Service(_services_ledger_service, "ledger",
                       "the single writer of the ledger: subscribe, append in batches, serve "
                       "reads"),
-    "projector": Service("services.projector_service", "projector",
+    "projector": Service(_services_projector_service, "projector",
                          "follow the ledger service and keep a live projection of one pile"),
-    "dashboard": Service("services.dashboard", "dashboard",
+    "dashboard": Service(_services_dashboard, "dashboard",
                          "follow the ledger service and log one pile to Rerun (web viewer, "
                          ".rrd)"),
-    "recorder": Service("replay.record", "ledger",
+    "recorder": Service(_replay_record, "ledger",
                         "record the site's events to MCAP files, rotating by size or time"),
 }
 
@@ -59,7 +96,7 @@ SERVICE_MODULES: dict[str, Service] = {
 def _run(args: argparse.Namespace) -> int:
     if hasattr(signal, "SIGUSR1"):
         faulthandler.register(signal.SIGUSR1, all_threads=True)
-    module = importlib.import_module(SERVICE_MODULES[args.service].module)
+    module = SERVICE_MODULES[args.service].load()
     return int(module.main(module.config_from_args(args)) or 0)
 
 
@@ -72,7 +109,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     for name, service in SERVICE_MODULES.items():
         command = f"stockpile service {name}"
         try:
-            module = import_for(service.module, command, (service.extra,))
+            module = import_for(service.load, command, (service.extra,))
         except MissingExtra as missing:
             add_missing_extra(sub, name, service.summary, missing)
             continue
