@@ -43,7 +43,7 @@ from schemas.events import decode_payload
 from schemas.times import NS_PER_H
 
 from projector import fold as F
-from projector.grades import AssayRecord, coerce_time_ns, effective_assays
+from projector.grades import AssayRecord, grade_from_map, coerce_time_ns, effective_assays
 from projector.query import FAR_FUTURE_NS, PileState, project, summarise
 
 __all__ = ["CutAudit", "CutsReport", "HistoryPoint", "HistoryReport", "LabLateness",
@@ -236,7 +236,7 @@ class _Grades:
             msg = decode_payload(event.type, event.payload)
             if event.type == "lot_declared":
                 self.lots.append((event.valid_time_ns, event.recorded_time_ns, msg.lot_id,
-                                  dict(msg.planned_grade)))
+                                  grade_from_map(msg.planned_grade)))
             else:
                 self.assays.append((event.valid_time_ns,
                                     AssayRecord.from_message(msg, event.recorded_time_ns)))

@@ -14,19 +14,22 @@
 - :mod:`ledger.clock`: site clocks, where recorded time comes from
 - :mod:`ledger.chain`: the payload hash and the hash chain
 - :mod:`ledger.views`: SQL views for auditors
-- :mod:`ledger.wire`: a compact binary form of records, for reads over the network
+- :mod:`ledger.wire`: the forms reads take over the network (record chunks, JSON)
+- :mod:`ledger.holder`: who holds a ledger file, and reading it through them
 - :mod:`ledger.cli`: ``stockpile ledger import|export|verify|stats``
 """
 
 from __future__ import annotations
 
 import os
+from pathlib import Path
 
 from ledger.clock import EventClock, ManualClock, SiteClock, WallClock, clock_by_name
 from ledger.errors import (
     DatabaseError,
     DataError,
     IntegrityError,
+    LedgerLocked,
     InterfaceError,
     InternalError,
     LedgerError,
@@ -45,6 +48,7 @@ from ledger.records import (
     StreamInfo,
     VerifyReport,
 )
+from ledger.holder import open_held, read_holder
 from ledger.memory import MemoryStore
 from ledger.store import LedgerStore
 
@@ -53,7 +57,11 @@ MEMORY = ":memory:"
 
 def open_ledger(path: str | os.PathLike[str], clock: SiteClock | None = None, *,
                 read_only: bool = False) -> LedgerStore:
-    """Open (or create) a ledger: a DuckDB file, or ``":memory:"`` for the in-memory store."""
+    """Open (or create) a ledger: a DuckDB file, or ``":memory:"`` for the in-memory store.
+
+    Read-only, a file that a running ledger service holds is read through that service
+    (:mod:`ledger.holder`) when the application registered a reader for it.
+    """
     if str(path) == MEMORY:
         if read_only:
             raise InterfaceError("an in-memory ledger cannot be opened read-only")
@@ -62,13 +70,22 @@ def open_ledger(path: str | os.PathLike[str], clock: SiteClock | None = None, *,
     # package (the edge services) never open a DuckDB file (see docs/design-notes.md)
     from ledger.duckdb_store import DuckDBStore
 
-    return DuckDBStore(path, clock, read_only=read_only)
+    try:
+        return DuckDBStore(path, clock, read_only=read_only)
+    except LedgerLocked as locked:
+        if read_only:
+            return open_held(Path(path), locked)
+        holder = read_holder(path)
+        if holder is not None and holder.pid == locked.holder_pid:
+            raise LedgerLocked(f"{path} is held by {holder.describe()}: publish to it, "
+                               "or stop it first", holder.pid) from None
+        raise
 
 
 __all__ = [
     "AppendOutcome", "AppendResult", "DataError", "DatabaseError", "EventClock", "Gap", "Head",
     "IntegrityError", "InterfaceError", "InternalError", "LedgerError", "LedgerStats",
-    "LedgerStore", "MEMORY", "ManualClock", "NotSupportedError", "OperationalError",
+    "LedgerLocked", "LedgerStore", "MEMORY", "ManualClock", "NotSupportedError", "OperationalError",
     "ProgrammingError", "QuarantineEntry", "RecordedEvent", "SiteClock", "StreamInfo",
     "VerifyReport", "WallClock", "clock_by_name", "open_ledger",
 ]

@@ -8,7 +8,6 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from dataclasses import asdict
 from pathlib import Path
 from typing import IO, Callable, Iterable, Iterator
 
@@ -23,6 +22,7 @@ from ledger import open_ledger
 from ledger.clock import clock_by_name
 from ledger.records import STATUSES, LedgerStats
 from ledger.store import LedgerStore
+from ledger.wire import stats_to_json
 from schemas.times import format_time_ns, parse_time_ns
 
 DEFAULT_BATCH = DEFAULT_BATCH_SIZE
@@ -119,12 +119,6 @@ def format_stats(stats: LedgerStats, path: str) -> str:
     flags = ", ".join(f"{f} {n}" for f, n in stats.flagged.items()) or "-"
     lines.append(f"  flagged     {flags}")
     return "\n".join(lines)
-
-
-def stats_to_json(stats: LedgerStats) -> dict:
-    data = asdict(stats)
-    data["head"]["chain_sha256"] = stats.head.chain_sha256.hex()
-    return data
 
 
 # -- commands -------------------------------------------------------------------------------

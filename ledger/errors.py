@@ -7,8 +7,8 @@
     │                                a second writer on one file in one process
     └── DatabaseError                the backend could not do what was asked
         ├── DataError                a value the backend cannot store
-        ├── OperationalError         not now: file locked by another process, missing file,
-        │                            disk full, I/O error
+        ├── OperationalError         not now: missing file, disk full, I/O error
+        │   └── LedgerLocked         the file is open for writing by another process
         ├── IntegrityError           stored data contradicts the ledger's invariants
         ├── InternalError            an unexpected backend failure
         ├── ProgrammingError         schema version or SQL mismatch (a bug or an old file)
@@ -21,6 +21,7 @@ Bad *events* are not exceptions: they are quarantined and reported per event in
 from __future__ import annotations
 
 import contextlib
+import re
 from typing import Iterator
 
 
@@ -42,6 +43,17 @@ class DataError(DatabaseError):
 
 class OperationalError(DatabaseError):
     """Not possible now: locked by another process, missing file, disk full, I/O."""
+
+
+class LedgerLocked(OperationalError):
+    """The ledger file is open for writing by another process.
+
+    ``holder_pid`` is that process's id when the backend names it, else None.
+    """
+
+    def __init__(self, message: str, holder_pid: int | None = None) -> None:
+        super().__init__(message)
+        self.holder_pid = holder_pid
 
 
 class IntegrityError(DatabaseError):
@@ -109,10 +121,11 @@ def map_backend_error(exc: BaseException) -> LedgerError:
     for backend_cls, ours in _MAPPING:
         if isinstance(exc, backend_cls):
             if ours is OperationalError and "lock" in message.lower():
-                message = (
+                pid = re.search(r"\(PID (\d+)\)", message)
+                return LedgerLocked(
                     "the ledger is open for writing by another process "
-                    f"(one writer or many readers, never both): {message}"
-                )
+                    f"(one writer or many readers, never both): {message}",
+                    int(pid.group(1)) if pid else None)
             return ours(message)
     return InternalError(f"{type(exc).__name__}: {message}")
 

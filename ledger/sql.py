@@ -26,6 +26,8 @@ from typing import Any, Iterable, Sequence, TextIO
 
 import duckdb
 
+from ledger.holder import read_holder
+
 from ledger.errors import InterfaceError
 
 EXIT_OK, EXIT_USAGE = 0, 2
@@ -100,6 +102,11 @@ def connect_read_only(path: str | Path) -> duckdb.DuckDBPyConnection:
     try:
         con = duckdb.connect(str(path), read_only=True)
     except duckdb.Error as exc:
+        holder = read_holder(path)
+        if holder is not None and "lock" in str(exc).lower():
+            raise SqlError(f"{path} is held by {holder.describe()}, and SQL needs the file "
+                           f"itself: stop the service, or query a copy (stockpile ledger export "
+                           f"--ledger {path} | stockpile ledger import - --ledger COPY)") from None
         raise SqlError(f"cannot open {path} read-only with DuckDB v{duckdb.__version__}: "
                        f"{one_line(exc)}") from None
     try:

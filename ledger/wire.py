@@ -1,4 +1,4 @@
-"""A compact binary form of ledger records, for reads served over the network.
+"""The forms ledger reads take over the network: record chunks, and JSON for the rest.
 
 The ledger service answers catch-up and as-of queries with chunks of records in
 this form (JSON would cost more than the ledger itself for scans).  A chunk is::
@@ -13,14 +13,21 @@ and a record, all integers little-endian::
 
 :func:`decode_records` raises :class:`ValueError` on anything malformed, never
 returns a partial chunk.
+
+Heads, gaps, streams, quarantine entries and stats travel as JSON objects:
+``*_to_json`` gives a JSON-ready dict (bytes as hex, or base64 for raw inputs) and
+``*_from_json`` the record back; these raise :class:`ValueError` on a missing or
+mistyped field.
 """
 
 from __future__ import annotations
 
+import base64
+import dataclasses
 import struct
-from typing import Iterable
+from typing import Any, Iterable
 
-from ledger.records import RecordedEvent
+from ledger.records import Gap, Head, LedgerStats, QuarantineEntry, RecordedEvent, StreamInfo
 
 MAGIC = b"SLR1"
 _CHUNK = struct.Struct("<4sI")
@@ -82,3 +89,76 @@ def decode_records(data: bytes) -> list[RecordedEvent]:
     if pos != len(view):
         raise ValueError(f"record chunk has {len(view) - pos} bytes after its {count} records")
     return out
+
+
+# -- JSON forms ------------------------------------------------------------------------------
+
+
+def head_to_json(head: Head) -> dict[str, Any]:
+    """``{"global_seq", "recorded_time_ns", "chain_sha256"}`` (the chain as hex)."""
+    return {"global_seq": head.global_seq, "recorded_time_ns": head.recorded_time_ns,
+            "chain_sha256": head.chain_sha256.hex()}
+
+
+def head_from_json(data: dict[str, Any]) -> Head:
+    return _build(Head, data, chain_sha256=lambda v: bytes.fromhex(v))
+
+
+def gap_to_json(gap: Gap) -> dict[str, Any]:
+    return dataclasses.asdict(gap)
+
+
+def gap_from_json(data: dict[str, Any]) -> Gap:
+    return _build(Gap, data)
+
+
+def stream_to_json(stream: StreamInfo) -> dict[str, Any]:
+    return dataclasses.asdict(stream)
+
+
+def stream_from_json(data: dict[str, Any]) -> StreamInfo:
+    return _build(StreamInfo, data)
+
+
+def quarantine_to_json(entry: QuarantineEntry) -> dict[str, Any]:
+    """The entry as a dict, its raw bytes as base64."""
+    data = dataclasses.asdict(entry)
+    data["raw"] = base64.b64encode(entry.raw).decode("ascii")
+    return data
+
+
+def quarantine_from_json(data: dict[str, Any]) -> QuarantineEntry:
+    return _build(QuarantineEntry, data, raw=lambda v: base64.b64decode(v, validate=True))
+
+
+def stats_to_json(stats: LedgerStats) -> dict[str, Any]:
+    """The stats as ``stockpile ledger stats --json`` prints them."""
+    data = dataclasses.asdict(stats)
+    data["head"] = head_to_json(stats.head)
+    return data
+
+
+def stats_from_json(data: dict[str, Any]) -> LedgerStats:
+    def span(value):
+        return None if value is None else (int(value[0]), int(value[1]))
+
+    return _build(LedgerStats, data, head=head_from_json, valid_time_range_ns=span,
+                  recorded_time_range_ns=span)
+
+
+def _build(cls, data: dict[str, Any], **convert):
+    """``cls(**fields)`` from ``data``, each field through ``convert[name]`` if given."""
+    if not isinstance(data, dict):
+        raise ValueError(f"{cls.__name__}: expected a JSON object, got {type(data).__name__}")
+    fields = {}
+    for f in dataclasses.fields(cls):
+        if f.name not in data:
+            if f.default is not dataclasses.MISSING or f.default_factory is not dataclasses.MISSING:
+                continue
+            raise ValueError(f"{cls.__name__}: missing field {f.name!r}")
+        value = data[f.name]
+        try:
+            fields[f.name] = convert[f.name](value) if f.name in convert else value
+        except (TypeError, ValueError, IndexError) as exc:
+            raise ValueError(f"{cls.__name__}.{f.name}: {exc}") from None
+    return cls(**fields)

@@ -61,7 +61,7 @@ from projector.cuts import (fit_buried_boundaries, fit_top_for_cut, predict_heig
                             slump_face, undo_digging_rises)
 from projector.envelope import cut_floor
 from projector.follow import follow_height
-from projector.grades import AssayRecord
+from projector.grades import AssayRecord, grade_from_map
 from projector.grid import GridGeometry
 from projector.kinematics import Reclaimer
 from projector.layers import DepositInfo, LayerStack
@@ -83,7 +83,7 @@ GEOMETRY_TYPES = ("pile_declared", "machine_declared", "stack_started", "stack_e
 #: module paths).  Snapshots are keyed by it as well as by the config, so those of another
 #: version are never used (:class:`projector.query.SnapshotStore`, which reads it from this
 #: module, and ``SnapshotStore.drop_other_versions`` deletes them).
-FOLD_VERSION = 23
+FOLD_VERSION = 24
 
 DEFAULT_CELL_M = 0.25
 DEFAULT_VOXEL_M = 1.0
@@ -147,7 +147,7 @@ def _on_machine(state: ProjectorState, event, msg) -> None:
 
 
 def _on_lot(state: ProjectorState, event, msg) -> None:
-    state.lots[msg.lot_id] = dict(msg.planned_grade)
+    state.lots[msg.lot_id] = grade_from_map(msg.planned_grade)
 
 
 def _on_stack_started(state: ProjectorState, event, msg) -> None:

@@ -36,7 +36,17 @@ import numpy as np
 from schemas.times import NS_PER_S
 
 __all__ = ["AssayRecord", "GradeClasses", "effective_assays", "grade_at", "grade_classes",
-           "coerce_time_ns", "STATUSES"]
+           "coerce_time_ns", "grade_from_map", "STATUSES"]
+
+
+def grade_from_map(grades: Mapping[str, float]) -> dict[str, float]:
+    """A grade (analyte -> %) from a protobuf map field, in analyte-name order.
+
+    A protobuf map iterates in an order that differs from one process to the next; every
+    grade the projector builds from a message goes through here, so that sums over
+    analytes, and the reports, come out the same in every process.
+    """
+    return {name: float(grades[name]) for name in sorted(grades)}
 
 #: Assay statuses, in increasing precedence.
 STATUSES: tuple[str, ...] = ("PROVISIONAL", "FINAL")
@@ -121,7 +131,7 @@ class AssayRecord:
         return cls(assay_id=str(msg.assay_id), lot_id=str(msg.lot_id),
                    window_start_ns=coerce_time_ns(msg.window_start),
                    window_end_ns=coerce_time_ns(msg.window_end),
-                   analytes=dict(msg.analytes),
+                   analytes=grade_from_map(msg.analytes),
                    bulk_density_t_m3=float(getattr(msg, "bulk_density_t_m3", 0.0) or 0.0),
                    status=status, supersedes=str(getattr(msg, "supersedes", "") or ""),
                    recorded_ns=int(recorded_ns))

@@ -33,7 +33,7 @@ import zstandard
 from schemas.events import decode_payload
 
 from projector import fold as F
-from projector.grades import (AssayRecord, GradeClasses, effective_assays,
+from projector.grades import (AssayRecord, grade_from_map, GradeClasses, effective_assays,
                                      grade_classes)
 from projector.grid import GridGeometry
 from projector.voxels import ClassWeights, integrate
@@ -157,7 +157,7 @@ def grade_inputs(store, valid_time_ns: int, known_time_ns: int
                              types=["lot_declared", "assay"]):
         msg = decode_payload(event.type, event.payload)
         if event.type == "lot_declared":
-            lots[msg.lot_id] = dict(msg.planned_grade)
+            lots[msg.lot_id] = grade_from_map(msg.planned_grade)
         else:
             assays.append(AssayRecord.from_message(msg, event.recorded_time_ns))
     return lots, assays

@@ -29,13 +29,25 @@ Data flow::
   ===============  ==========================================  ====================
   key              query payload (JSON)                         reply
   ===============  ==========================================  ====================
-  ``q/events``     ``start``, ``stop``, ``types``, ``sources``  record chunks
+  ``q/events``     ``start``, ``stop``, ``types``, ``sources``,  record chunks
+                   ``limit``
   ``q/as_of``      ``valid_time_ns``, ``known_time_ns``,        record chunks
-                   ``types``
+                   ``types``, ``after`` ([valid_ns, global_seq]),
+                   ``max_global_seq``, ``limit``
   ``q/stats``      (none)                                       JSON
   ``q/head``       (none)                                       JSON
   ``q/gaps``       ``open_only``                                JSON list
+  ``q/quarantine`` (none)                                       JSON list
+  ``q/streams``    (none)                                       JSON list
   ===============  ==========================================  ====================
+
+  ``limit`` caps the records of one answer (a client pages with ``start`` or
+  ``after``); ``max_global_seq`` keeps the events committed up to a head the client
+  pinned.  The JSON forms are :mod:`ledger.wire`'s.
+- **Holder file.** While it runs, the service leaves ``<ledger>.service.json`` beside
+  the file (:mod:`ledger.holder`): its site, pid and the endpoints a reader on this
+  machine connects to, so that ``stockpile audit`` and the other read commands given
+  the file read through these queryables instead of failing on DuckDB's lock.
 
   Record chunks are :mod:`ledger.wire` bytes of up to ``chunk_bytes``; each reply's
   attachment is ``u32 chunk index | u8 last | u64 total records`` so a client can
@@ -45,7 +57,9 @@ Data flow::
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
+import os
 import queue
 import struct
 import threading
@@ -59,18 +73,24 @@ import zenoh.ext as zext
 
 from common.options import add_batch_size, add_clock
 from ledger import clock_by_name, open_ledger
-from ledger.cli import stats_to_json
+from ledger.wire import stats_to_json
 from ledger.errors import LedgerError
+from ledger.holder import LedgerHolder, remove_holder, this_host, write_holder
 from ledger.store import LedgerStore
-from ledger.wire import encode_records
+from ledger.wire import (encode_records, gap_to_json, head_to_json, quarantine_to_json,
+                         stream_to_json)
 from schemas.events import Malformed, decode_attachment, event_from_sample
 from services.service import ServiceRuntime, Stopper, ZenohOptions, log
+from services.zenoh_config import reader_endpoints
 
 SERVICE = "ledger"
 DEFAULT_BATCH_SIZE = 2_000
 DEFAULT_BATCH_INTERVAL_S = 0.05
 DEFAULT_QUEUE_SIZE = 200_000
 DEFAULT_CHUNK_BYTES = 1 << 20
+
+#: what the ledger's queryables answer (``stockpile/<site>/@ledger/q/<what>``)
+QUERIES = ("events", "as_of", "stats", "head", "gaps", "quarantine", "streams")
 
 #: attachment of every record-chunk reply: chunk index, last flag, total records
 CHUNK_ATTACHMENT = struct.Struct("<IBQ")
@@ -82,7 +102,7 @@ def head_key(site: str) -> str:
 
 
 def query_key(site: str, what: str) -> str:
-    """The queryable serving ``what`` (events, as_of, stats, head, gaps)."""
+    """The queryable serving ``what`` (one of :data:`QUERIES`)."""
     return f"stockpile/{site}/@ledger/q/{what}"
 
 
@@ -361,23 +381,37 @@ class Reader:
     def _serve(self, what: str, query) -> None:
         params = self._params(query)
         key = query_key(self.site, what)
+        limit = _opt_int(params.get("limit"))
         if what == "events":
             rows = self.store.read(int(params.get("start", 0)), _opt_int(params.get("stop")),
                                    types=params.get("types"), sources=params.get("sources"))
-            self._reply_records(query, key, rows)
+            self._reply_records(query, key, itertools.islice(rows, limit))
         elif what == "as_of":
+            after = params.get("after")
             rows = self.store.as_of(int(params["valid_time_ns"]), int(params["known_time_ns"]),
-                                    types=params.get("types"))
-            self._reply_records(query, key, rows)
+                                    types=params.get("types"),
+                                    after=None if after is None else (int(after[0]), int(after[1])))
+            pinned = _opt_int(params.get("max_global_seq"))
+            if pinned is not None:
+                rows = (r for r in rows if r.global_seq <= pinned)
+            self._reply_records(query, key, itertools.islice(rows, limit))
         elif what == "stats":
-            query.reply(key, json.dumps(stats_to_json(self.store.stats())).encode())
+            self._reply_json(query, key, stats_to_json(self.store.stats()))
         elif what == "head":
-            query.reply(key, json.dumps(head_json(self.store)).encode())
+            self._reply_json(query, key, head_json(self.store))
         elif what == "gaps":
             gaps = self.store.gaps(open_only=bool(params.get("open_only", False)))
-            query.reply(key, json.dumps([_gap_json(g) for g in gaps]).encode())
+            self._reply_json(query, key, [gap_to_json(g) for g in gaps])
+        elif what == "quarantine":
+            self._reply_json(query, key, [quarantine_to_json(q) for q in self.store.quarantine()])
+        elif what == "streams":
+            self._reply_json(query, key, [stream_to_json(s) for s in self.store.streams()])
         else:  # pragma: no cover - only declared keys arrive
             raise ValueError(f"unknown query {what!r}")
+
+    @staticmethod
+    def _reply_json(query, key: str, data) -> None:
+        query.reply(key, json.dumps(data).encode())
 
     def _reply_records(self, query, key: str, rows) -> None:
         index, total, pending, size = 0, 0, [], 0
@@ -397,17 +431,28 @@ def _opt_int(value: object) -> int | None:
     return None if value is None else int(value)  # type: ignore[arg-type]
 
 
-def _gap_json(gap) -> dict[str, Any]:
-    return {"gap_id": gap.gap_id, "source": gap.source, "epoch": gap.epoch,
-            "first_seq": gap.first_seq, "last_seq": gap.last_seq,
-            "opened_recorded_ns": gap.opened_recorded_ns,
-            "closed_recorded_ns": gap.closed_recorded_ns}
-
-
 def head_json(store: LedgerStore) -> dict[str, Any]:
-    head = store.head()
-    return {"global_seq": head.global_seq, "recorded_time_ns": head.recorded_time_ns,
-            "chain_sha256": head.chain_sha256.hex()}
+    return head_to_json(store.head())
+
+
+def _write_holder(config: Config) -> LedgerHolder | None:
+    """Leave the holder file beside the ledger file (none for an in-memory ledger)."""
+    if config.ledger_path == ":memory:":
+        return None
+    holder = LedgerHolder(site=config.site, pid=os.getpid(),
+                          endpoints=reader_endpoints(config.zenoh.to_config()),
+                          started_ns=time.time_ns(), host=this_host())
+    try:
+        path = write_holder(config.ledger_path, holder)
+    except OSError as exc:
+        log(SERVICE, "cannot write the holder file: read commands given the ledger file "
+            "will fail on its lock", level="warning", error=str(exc))
+        return None
+    log(SERVICE, "holder file written", path=str(path), endpoints=list(holder.endpoints))
+    if not holder.endpoints:
+        log(SERVICE, "no fixed endpoint to read the ledger through: read commands given the "
+            "file cannot reach this service (give --listen or --connect)", level="warning")
+    return holder
 
 
 # -- main ---------------------------------------------------------------------------------
@@ -458,7 +503,7 @@ def _serve(config: Config, store: LedgerStore, samples: queue.Queue,
     queryables = [
         session.declare_queryable(query_key(config.site, what),
                                   lambda q, what=what: reader.queries.put((what, q)))
-        for what in ("events", "as_of", "stats", "head", "gaps")
+        for what in QUERIES
     ]
 
     def on_sample(sample) -> None:
@@ -480,9 +525,13 @@ def _serve(config: Config, store: LedgerStore, samples: queue.Queue,
                 subscribe=f"stockpile/{config.site}/@v1/**",
                 queries=query_key(config.site, "*"), head_key=head_key(config.site))
     publish_head()
+    holder = _write_holder(config)
     runtime.announce()
-
-    runtime.stopper.wait()
+    try:
+        runtime.stopper.wait()
+    finally:
+        if holder is not None:
+            remove_holder(config.ledger_path, os.getpid())
     # clean stop: no new samples, drain what was queued, then stop the threads
     miss_listener.undeclare()
     subscriber.undeclare()

@@ -29,7 +29,7 @@ import time
 from dataclasses import dataclass, field
 
 from projector import fold as F
-from projector.grades import AssayRecord
+from projector.grades import AssayRecord, grade_from_map
 from projector.query import PileState, summarise
 from schemas.events import decode_payload
 from schemas.jsonl import json_safe
@@ -128,8 +128,8 @@ class LiveProjection:
         self.ledger_seq = max(self.ledger_seq, record.global_seq)
         self.known_ns = max(self.known_ns, record.recorded_time_ns)
         if record.type == "lot_declared":
-            self.lots[decode_payload(record.type, record.payload).lot_id] = dict(
-                decode_payload(record.type, record.payload).planned_grade)
+            msg = decode_payload(record.type, record.payload)
+            self.lots[msg.lot_id] = grade_from_map(msg.planned_grade)
         elif record.type == "assay":
             self.assays.append(AssayRecord.from_message(
                 decode_payload(record.type, record.payload), record.recorded_time_ns))

@@ -93,3 +93,32 @@ def config_from_args(args: argparse.Namespace) -> zenoh.Config:
         listen = [default] if default else []
     return zenoh_config(mode=args.mode, connect=args.connect, listen=listen,
                         config_file=args.zenoh_config, scouting=args.scouting)
+
+
+_LOOPBACK_FOR = {"0.0.0.0": "127.0.0.1", "[::]": "[::1]"}
+
+
+def reader_endpoints(config: zenoh.Config) -> tuple[str, ...]:
+    """Endpoints through which another process on this machine reaches a session of ``config``.
+
+    Its listen endpoints with a fixed port (an unspecified address becomes loopback),
+    then the endpoints it connects to (a router there forwards queries to it).
+    """
+    mode = json.loads(config.get_json("mode")) or "peer"
+
+    def endpoints(key: str) -> list[str]:
+        value = json.loads(config.get_json(key))
+        if isinstance(value, dict):
+            value = value.get(mode, [])
+        return [str(e) for e in value or ()]
+
+    out: list[str] = []
+    for endpoint in endpoints("listen/endpoints") if mode != "client" else ():
+        locator = endpoint.split("#", 1)[0]
+        proto, _, address = locator.partition("/")
+        host, _, port = address.rpartition(":")
+        if not port or port == "0":
+            continue
+        out.append(f"{proto}/{_LOOPBACK_FOR.get(host, host)}:{port}")
+    out.extend(e for e in endpoints("connect/endpoints") if e not in out)
+    return tuple(out)

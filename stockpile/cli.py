@@ -14,9 +14,13 @@ from dataclasses import dataclass
 from types import ModuleType
 from typing import Callable, Sequence
 
+from pathlib import Path
+
 from common.logs import add_logging_options, configure_from_args
-from ledger.errors import LedgerError
-from stockpile import MissingExtra, add_missing_extra, import_for, is_missing_extra, version
+from ledger.errors import LedgerError, LedgerLocked
+from ledger.holder import LedgerHolder, set_remote_reader
+from ledger.store import LedgerStore
+from stockpile import DISTRIBUTION, MissingExtra, add_missing_extra, import_for, is_missing_extra, version
 
 EXIT_USAGE = 2
 
@@ -166,10 +170,27 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def read_through_service(path: Path, holder: LedgerHolder) -> LedgerStore:
+    """Read a ledger file that a running ledger service holds through that service's
+    queryables (:mod:`ledger.holder`); says so in one line on stderr."""
+    try:
+        from services.ledger_client import open_remote_ledger
+    except ModuleNotFoundError as exc:
+        if is_missing_extra(exc, ("ledger",)):
+            raise LedgerLocked(f"{path} is held by {holder.describe()}; reading through it "
+                               f"needs the [ledger] extra: pip install '{DISTRIBUTION}[ledger]'",
+                               holder.pid) from None
+        raise
+    print(f"stockpile: {path} is held by {holder.describe()}; reading through its "
+          f"queryables at {', '.join(holder.endpoints) or '(no endpoint)'}", file=sys.stderr)
+    return open_remote_ledger(holder)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     configure_from_args(args)
+    set_remote_reader(read_through_service)
     try:
         return int(args.func(args) or 0)
     except KeyboardInterrupt:

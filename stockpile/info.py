@@ -23,7 +23,7 @@ from pathlib import Path
 from typing import Any, TextIO
 
 from ledger import open_ledger
-from ledger.cli import stats_to_json
+from ledger.wire import stats_to_json
 from ledger.errors import LedgerError
 from ledger.sql import created_by_version, is_duckdb_file, one_line
 from replay.mcap_entries import read_entries

@@ -144,7 +144,7 @@ def test_a_second_process_cannot_write_while_the_writer_runs(tmp_path):
         assert holder.stdout.readline().strip() == "open"
         out = run("ledger", "stats", "--ledger", str(ledger))
         assert out.returncode == 2
-        assert "open for writing by another process" in out.stderr
+        assert f"open for writing by process {holder.pid}, which serves no reads" in out.stderr
         assert len(out.stderr.strip().splitlines()) == 1
     finally:
         holder.stdin.close()
