@@ -130,14 +130,32 @@ def _as_list(value: Any, where: str) -> list[str]:
     raise ConfigError(f"{where} must be a string or a list of strings")
 
 
+class _Refused(Exception):
+    """argparse's complaint about a service's options (instead of usage and exit)."""
+
+
+class _QuietParser(argparse.ArgumentParser):
+    """A parser (and, through add_subparsers, its subparsers) that raises instead of
+    printing its usage and exiting."""
+
+    def error(self, message: str):  # type: ignore[override]
+        raise _Refused(message)
+
+
 def check_arguments(config: YardConfig) -> None:
-    """Parse every service's command line now, so a typo fails before anything starts."""
-    parser = argparse.ArgumentParser(prog="stockpile")
+    """Parse every service's command line now, so a typo fails before anything starts.
+
+    Raises :class:`ConfigError` naming the service and argparse's reason, one line
+    (``--batch-interval`` is the TOML key ``batch_interval``).
+    """
+    parser = _QuietParser(prog="stockpile", add_help=False)
     service_cli.register(parser.add_subparsers(dest="command", required=True))
     for entry in config.services:
         argv = entry.argv(config.site, config.zenoh_argv)
         try:
             parser.parse_args(argv)
+        except _Refused as exc:
+            raise ConfigError(f"services.{entry.name}: {exc} (options {entry.options})") from None
         except SystemExit:
             raise ConfigError(f"services.{entry.name}: bad options {entry.options}") from None
 
