@@ -1,0 +1,154 @@
+"""The router's access control, generated from the site's roles.
+
+Zenoh's ACL (``access_control`` in a router's config) decides per message and per
+direct link: its subject is the common name of the connected client's certificate, and
+a rule matches a message only when one of the rule's key expressions *contains* the
+message's key.  ``**`` never matches a chunk that starts with ``@``, so every rule here
+names ``@v1``, ``@ledger``, ``@live`` and ``@adv`` explicitly.  Everything not allowed
+is denied.
+
+:func:`access_control` builds the block from ``{certificate name: role}``; what each
+role may do is :data:`ROLE_GRANTS`, drawn as key templates (``{site}``: the site,
+``{name}``: the certificate's common name, which is also the source name of the events
+that certificate publishes).
+
+Message kinds (zenoh 1.x): ``put``, ``delete``, ``declare_subscriber``, ``query``,
+``reply``, ``declare_queryable``, ``liveliness_token``, ``liveliness_query``,
+``declare_liveliness_subscriber``.  Flows: ``ingress`` is from the client to the
+router, ``egress`` from the router to the client.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Iterable, Mapping
+
+#: the roles a site certificate can carry (see :mod:`security.pki`)
+ROLES = ("router", "scanner", "gnss", "plc", "localizer", "lab", "ledger", "projector",
+         "recorder", "dashboard", "auditor", "replay")
+
+#: event types each publishing role may put, under its own name as the source
+PUBLISHES: dict[str, tuple[str, ...]] = {
+    "scanner": ("scan",),
+    "gnss": ("location_fix",),
+    "plc": ("joint_reading", "stack_started", "stack_ended", "reclaim_cut", "clock"),
+    "localizer": ("joint_estimate", "frame_transform"),
+    "lab": ("assay", "lot_declared"),
+}
+
+#: event types each subscribing role reads live
+SUBSCRIBES: dict[str, tuple[str, ...]] = {
+    "localizer": ("joint_reading", "location_fix", "clock", "site_declared", "machine_declared"),
+}
+
+
+@dataclass(frozen=True)
+class Grant:
+    """Messages a role may exchange on some keys, in some directions."""
+
+    messages: tuple[str, ...]
+    flows: tuple[str, ...]
+    keys: tuple[str, ...]  # templates with {site}, {name}, {type}
+
+
+EVENT = "stockpile/{site}/@v1/{type}/{name}"
+EVENT_ADV = "stockpile/{site}/@v1/{type}/{name}/@adv/**"
+ALL_EVENTS = "stockpile/{site}/@v1/**"
+ALL_ADV = "stockpile/{site}/@v1/*/*/@adv/**"
+LEDGER_Q = "stockpile/{site}/@ledger/q/*"
+LEDGER_HEAD = "stockpile/{site}/@ledger/head"
+LIVE_OWN = "stockpile/{site}/@live/*/{name}"
+LIVE_ANY = "stockpile/{site}/@live/**"
+
+
+def _publisher(types: tuple[str, ...]) -> list[Grant]:
+    """An AdvancedPublisher of ``types`` under its own name: puts, its cache queryable and
+    liveliness token under ``@adv``, answers to history queries, and the sight of the
+    subscribers that want its events (without which a publisher's puts go nowhere)."""
+    own = tuple(EVENT.replace("{type}", t) for t in types)
+    own_adv = tuple(EVENT_ADV.replace("{type}", t) for t in types)
+    return [
+        Grant(("put",), ("ingress",), own),
+        Grant(("declare_queryable", "liveliness_token", "reply"), ("ingress",), own_adv),
+        Grant(("query",), ("egress",), own_adv),
+        Grant(("declare_subscriber",), ("egress",), (ALL_EVENTS,) + own),
+        Grant(("declare_liveliness_subscriber",), ("egress",), (ALL_ADV,) + own_adv),
+    ]
+
+
+def _event_reader(keys: tuple[str, ...], adv: tuple[str, ...]) -> list[Grant]:
+    """An AdvancedSubscriber with history on ``keys``: the events, and the publishers'
+    caches and liveliness under ``@adv``."""
+    return [
+        Grant(("declare_subscriber",), ("ingress",), keys),
+        Grant(("put",), ("egress",), keys),
+        Grant(("query", "liveliness_query", "declare_liveliness_subscriber"), ("ingress",), adv),
+        Grant(("reply", "liveliness_token"), ("egress",), adv),
+    ]
+
+
+def _ledger_reader() -> list[Grant]:
+    """Queries of the ledger service, and its head."""
+    return [
+        Grant(("query",), ("ingress",), (LEDGER_Q,)),
+        Grant(("reply",), ("egress",), (LEDGER_Q,)),
+        Grant(("declare_subscriber",), ("ingress",), (LEDGER_HEAD,)),
+        Grant(("put",), ("egress",), (LEDGER_HEAD,)),
+    ]
+
+
+_LIVE = [Grant(("liveliness_token",), ("ingress",), (LIVE_OWN,))]
+
+ROLE_GRANTS: dict[str, list[Grant]] = {
+    **{role: _publisher(types) + _LIVE for role, types in PUBLISHES.items()},
+    "ledger": _event_reader((ALL_EVENTS,), (ALL_ADV,)) + [
+        Grant(("declare_queryable",), ("ingress",), (LEDGER_Q,)),
+        Grant(("query",), ("egress",), (LEDGER_Q,)),
+        Grant(("reply",), ("ingress",), (LEDGER_Q,)),
+        Grant(("put",), ("ingress",), (LEDGER_HEAD,)),
+        Grant(("declare_subscriber",), ("egress",), (LEDGER_HEAD,)),
+    ] + _LIVE,
+    "recorder": _event_reader((ALL_EVENTS,), (ALL_ADV,)) + _LIVE,
+    "auditor": _ledger_reader(),
+    "dashboard": _ledger_reader() + _LIVE,
+    "projector": _ledger_reader() + _LIVE,
+}
+ROLE_GRANTS["localizer"] = ROLE_GRANTS["localizer"] + _event_reader(
+    tuple(f"stockpile/{{site}}/@v1/{t}/*" for t in SUBSCRIBES["localizer"]),
+    tuple(f"stockpile/{{site}}/@v1/{t}/*/@adv/**" for t in SUBSCRIBES["localizer"]))
+
+
+def _fill(template: str, site: str, name: str) -> str:
+    return template.replace("{site}", site).replace("{name}", name)
+
+
+def access_control(site: str, members: Mapping[str, str]) -> dict:
+    """The router's ``access_control`` block for ``{certificate name: role}``.
+
+    Deny by default; each certificate name is a subject with its role's grants.  Raises
+    ValueError for an unknown role.
+    """
+    rules, subjects, policies = [], [], []
+    for name, role in sorted(members.items()):
+        if role not in ROLES:
+            raise ValueError(f"{name}: unknown role {role!r} (known: {', '.join(ROLES)})")
+        grants = ROLE_GRANTS.get(role, [])
+        if not grants:
+            continue
+        subject = f"cert:{name}"
+        subjects.append({"id": subject, "cert_common_names": [name]})
+        ids = []
+        for i, grant in enumerate(grants):
+            rule_id = f"{name}:{role}:{i}"
+            rules.append({"id": rule_id, "permission": "allow", "flows": list(grant.flows),
+                          "messages": list(grant.messages),
+                          "key_exprs": sorted({_fill(k, site, name) for k in grant.keys})})
+            ids.append(rule_id)
+        policies.append({"id": f"policy:{name}", "rules": ids, "subjects": [subject]})
+    return {"enabled": True, "default_permission": "deny", "rules": rules,
+            "subjects": subjects, "policies": policies}
+
+
+def members_from_index(entries: Iterable[Mapping]) -> dict[str, str]:
+    """``{name: role}`` of the certificates in a PKI index that are not revoked."""
+    return {str(e["name"]): str(e["role"]) for e in entries if not e.get("revoked")}
