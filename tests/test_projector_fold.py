@@ -43,6 +43,14 @@ def _stamp(msg, name: str, t_ns: int):
     return msg
 
 
+class _Yard(dict):
+    """The yard's events and times; its repr is short (Hypothesis prints a failing case's
+    arguments, and the events' repr runs to megabytes)."""
+
+    def __repr__(self) -> str:
+        return f"<yard: {len(self['events'])} events>"
+
+
 @pytest.fixture(scope="module")
 def yard(small_yard_sim) -> dict:
     out = small_yard_sim
@@ -84,9 +92,9 @@ def yard(small_yard_sim) -> dict:
                         epoch=1, seq=1)]
     pile = next(decode_payload(e.type, e.payload) for e in events if e.type == "pile_declared")
     assert pile.default_bulk_density_t_m3 not in DENSITY.values()
-    return {"events": events + extra, "cut_end": t_end + 130 * S, "lot": lot,
-            "t_end": t_end, "stack_started": first.valid_time_ns,
-            "default_density": pile.default_bulk_density_t_m3}
+    return _Yard(events=events + extra, cut_end=t_end + 130 * S, lot=lot, t_end=t_end,
+                 stack_started=first.valid_time_ns,
+                 default_density=pile.default_bulk_density_t_m3)
 
 
 def _ledger(events: list[Event], delays_ns: list[int], path: str | Path = ":memory:"):
