@@ -105,6 +105,10 @@ class PileState:
 
     def voxel_grades(self):
         """``(tonnes (nvx, nvy, nvz), grade (nvx, nvy, nvz, A) %, voxel grid)``."""
+        if self.state.stack.n_deposits == 0:   # nothing deposited yet: empty voxels
+            grid = integrate(self.state.stack, self.state.pile.voxel_m, None)
+            tonnes = np.zeros(grid.volume_m3.shape)
+            return tonnes, np.full(tonnes.shape + (len(self.analytes),), np.nan), grid
         weights = None if self._join is None else _deposit_weights(self.state, self._join)
         grid = integrate(self.state.stack, self.state.pile.voxel_m, weights)
         tonnes = grid.weighted[..., 0]
