@@ -54,11 +54,16 @@ class Grant:
 EVENT = "stockpile/{site}/@v1/{type}/{name}"
 EVENT_ADV = "stockpile/{site}/@v1/{type}/{name}/@adv/**"
 ALL_EVENTS = "stockpile/{site}/@v1/**"
-ALL_ADV = "stockpile/{site}/@v1/*/*/@adv/**"
+#: every AdvancedPublisher's and AdvancedSubscriber's cache, liveliness and history keys
+ALL_ADV = "stockpile/{site}/@v1/**/@adv/**"
 LEDGER_Q = "stockpile/{site}/@ledger/q/*"
 LEDGER_HEAD = "stockpile/{site}/@ledger/head"
-LIVE_OWN = "stockpile/{site}/@live/*/{name}"
-LIVE_ANY = "stockpile/{site}/@live/**"
+LIVE_OF = "stockpile/{site}/@live/{service}/**"
+
+#: the service name in a role's liveliness token (``stockpile/<site>/@live/<service>/...``)
+ROLE_SERVICE = {"scanner": "scanner", "gnss": "gnss", "plc": "plc", "localizer": "localizer",
+                "lab": "lab", "ledger": "ledger", "projector": "projector",
+                "recorder": "recorder", "dashboard": "dashboard"}
 
 
 def _publisher(types: tuple[str, ...]) -> list[Grant]:
@@ -70,9 +75,9 @@ def _publisher(types: tuple[str, ...]) -> list[Grant]:
     return [
         Grant(("put",), ("ingress",), own),
         Grant(("declare_queryable", "liveliness_token", "reply"), ("ingress",), own_adv),
-        Grant(("query",), ("egress",), own_adv),
-        Grant(("declare_subscriber",), ("egress",), (ALL_EVENTS,) + own),
-        Grant(("declare_liveliness_subscriber",), ("egress",), (ALL_ADV,) + own_adv),
+        Grant(("query", "liveliness_token"), ("egress",), (ALL_ADV,)),
+        Grant(("liveliness_query", "declare_liveliness_subscriber"), ("ingress",), (ALL_ADV,)),
+        Grant(("declare_subscriber",), ("egress",), (ALL_EVENTS,)),
     ]
 
 
@@ -82,7 +87,8 @@ def _event_reader(keys: tuple[str, ...], adv: tuple[str, ...]) -> list[Grant]:
     return [
         Grant(("declare_subscriber",), ("ingress",), keys),
         Grant(("put",), ("egress",), keys),
-        Grant(("query", "liveliness_query", "declare_liveliness_subscriber"), ("ingress",), adv),
+        Grant(("query", "liveliness_query", "declare_liveliness_subscriber", "liveliness_token"),
+              ("ingress",), adv),
         Grant(("reply", "liveliness_token"), ("egress",), adv),
     ]
 
@@ -97,25 +103,26 @@ def _ledger_reader() -> list[Grant]:
     ]
 
 
-_LIVE = [Grant(("liveliness_token",), ("ingress",), (LIVE_OWN,))]
-
 ROLE_GRANTS: dict[str, list[Grant]] = {
-    **{role: _publisher(types) + _LIVE for role, types in PUBLISHES.items()},
+    **{role: _publisher(types) for role, types in PUBLISHES.items()},
     "ledger": _event_reader((ALL_EVENTS,), (ALL_ADV,)) + [
         Grant(("declare_queryable",), ("ingress",), (LEDGER_Q,)),
         Grant(("query",), ("egress",), (LEDGER_Q,)),
         Grant(("reply",), ("ingress",), (LEDGER_Q,)),
         Grant(("put",), ("ingress",), (LEDGER_HEAD,)),
         Grant(("declare_subscriber",), ("egress",), (LEDGER_HEAD,)),
-    ] + _LIVE,
-    "recorder": _event_reader((ALL_EVENTS,), (ALL_ADV,)) + _LIVE,
+    ],
+    "recorder": _event_reader((ALL_EVENTS,), (ALL_ADV,)),
     "auditor": _ledger_reader(),
-    "dashboard": _ledger_reader() + _LIVE,
-    "projector": _ledger_reader() + _LIVE,
+    "dashboard": _ledger_reader(),
+    "projector": _ledger_reader(),
 }
 ROLE_GRANTS["localizer"] = ROLE_GRANTS["localizer"] + _event_reader(
-    tuple(f"stockpile/{{site}}/@v1/{t}/*" for t in SUBSCRIBES["localizer"]),
-    tuple(f"stockpile/{{site}}/@v1/{t}/*/@adv/**" for t in SUBSCRIBES["localizer"]))
+    tuple(f"stockpile/{{site}}/@v1/{t}/**" for t in SUBSCRIBES["localizer"]),
+    tuple(f"stockpile/{{site}}/@v1/{t}/**/@adv/**" for t in SUBSCRIBES["localizer"]))
+for _role, _service in ROLE_SERVICE.items():
+    ROLE_GRANTS[_role] = ROLE_GRANTS.get(_role, []) + [
+        Grant(("liveliness_token",), ("ingress",), (LIVE_OF.replace("{service}", _service),))]
 
 
 def _fill(template: str, site: str, name: str) -> str:
@@ -150,5 +157,12 @@ def access_control(site: str, members: Mapping[str, str]) -> dict:
 
 
 def members_from_index(entries: Iterable[Mapping]) -> dict[str, str]:
-    """``{name: role}`` of the certificates in a PKI index that are not revoked."""
-    return {str(e["name"]): str(e["role"]) for e in entries if not e.get("revoked")}
+    """``{name: role}`` of the certificate names in a PKI index.
+
+    The ACL matches a certificate's common name, not its serial, and Zenoh checks no
+    revocation list: so a name with any revoked certificate gets no rights at all (a
+    replacement is issued under a new name).
+    """
+    entries = list(entries)
+    revoked = {str(e["name"]) for e in entries if e.get("revoked")}
+    return {str(e["name"]): str(e["role"]) for e in entries if str(e["name"]) not in revoked}

@@ -75,11 +75,12 @@ def add_service_arguments(parser: argparse.ArgumentParser) -> None:
     add_zenoh_arguments(parser)
 
 
-def open_session(options: ZenohOptions) -> zenoh.Session:
-    """A Zenoh session for these options; :class:`OSError` with zenoh's one-line reason when
-    it cannot be opened (an endpoint that refuses, a bad config file)."""
+def open_session(options: ZenohOptions, config: zenoh.Config | None = None) -> zenoh.Session:
+    """A Zenoh session for these options (or for ``config``, made from them); :class:`OSError`
+    with zenoh's one-line reason when it cannot be opened (an endpoint that refuses, a bad
+    config file)."""
     try:
-        return zenoh.open(options.to_config())
+        return zenoh.open(config if config is not None else options.to_config())
     except zenoh.ZError as exc:
         reason = str(exc).split("  at ")[0].strip()
         raise OSError(f"cannot open the Zenoh session: {reason}") from None
@@ -105,16 +106,18 @@ class ServiceRuntime:
     _token: Any = None
 
     def open(self, *, rate_of: str = "published", backlog: Callable[[], int] | None = None,
-             error_keys: Sequence[str] = ("errors",), announce: bool = True) -> ServiceRuntime:
+             error_keys: Sequence[str] = ("errors",), announce: bool = True,
+             zenoh_config: zenoh.Config | None = None) -> ServiceRuntime:
         """Open the session and start the status line.
 
         With ``announce`` (default) the liveliness token is declared at once; a
         service that must set up subscribers or queryables first passes
         ``announce=False`` and calls :meth:`announce` when it is ready, so that
-        "token present" means "serving".
+        "token present" means "serving".  ``zenoh_config`` replaces the config made
+        from the options (the router adds its access control to it).
         """
         self.stopper = self.stopper or Stopper()
-        self.session = open_session(self.zenoh_options)
+        self.session = open_session(self.zenoh_options, zenoh_config)
         self.status = StatusReporter(self.service, period_s=self.status_period_s,
                                      rate_of=rate_of, backlog=backlog, error_keys=error_keys)
         self.log("started", site=self.site, pid=os.getpid(), zid=str(self.session.zid()))

@@ -66,6 +66,11 @@ def _services_dashboard() -> ModuleType:
     return dashboard
 
 
+def _services_router() -> ModuleType:
+    from services import router  # deferred: its extra may be missing
+    return router
+
+
 def _replay_record() -> ModuleType:
     from replay import record  # deferred: its extra may be missing
     return record
@@ -73,6 +78,8 @@ def _replay_record() -> ModuleType:
 
 #: ``stockpile service NAME`` -> the service
 SERVICE_MODULES: dict[str, Service] = {
+    "router": Service(_services_router, "ledger",
+                      "the site's Zenoh router: mutual TLS only, access control by role"),
     "scanner": Service(_services_scanner, "edge",
                        "read LMS200 telegrams from a serial port, publish scans"),
     "gnss": Service(_services_gnss, "edge",

@@ -73,8 +73,8 @@ class WebViewer:
 
     It is the ``rerun`` viewer binary shipped with rerun-sdk, run as a child process with
     ``--web-viewer --bind 127.0.0.1`` so it listens on loopback only (the Python API's
-    ``serve_web_viewer`` binds every interface); without that command it falls back to
-    the Python API.  :meth:`close` stops the child.
+    ``serve_web_viewer`` binds every interface, so it is never used: without the binary
+    the web viewer is refused).  :meth:`close` stops the child.
     """
 
     def __init__(self, config: Config, uri: str) -> None:
@@ -90,8 +90,9 @@ class WebViewer:
                 self.close()
                 raise OSError(f"the Rerun web viewer did not start on port {config.web_port}")
         else:   # pragma: no cover - rerun-sdk ships the command
-            rr().serve_web_viewer(web_port=int(config.web_port), open_browser=False,
-                                  connect_to=uri)
+            # the Python API's serve_web_viewer would listen on every interface
+            raise OSError("no Rerun viewer binary (rerun_cli/rerun or rerun on the PATH): "
+                          "the web viewer is served only by it, bound to 127.0.0.1")
 
     def close(self) -> None:
         """Stop the viewer (terminate, then kill after 10 s)."""

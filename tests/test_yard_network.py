@@ -1,0 +1,153 @@
+"""The yard network: the router over mutual TLS on loopback, access control by role.
+
+Real processes: ``stockpile service router`` with the ACL generated from the site PKI
+(``stockpile pki``), the ledger service connected to it as a client with its
+certificate, and client sessions holding the lab's, a scanner's, an auditor's and a
+foreign CA's certificates.  Each case is checked on the router's log and on the ledger
+file afterwards.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import shutil
+import subprocess
+from pathlib import Path
+
+import pytest
+import zenoh
+
+from ledger import open_ledger
+from schemas.events import encode_attachment, key_expr, set_timestamp_ns
+from schemas.stockpile.v1 import events_pb2 as pb
+from services.ledger_client import LedgerClient, LedgerUnavailable
+from services.publishing import EventPublisher
+from services.service import ZenohOptions, open_session
+from zenoh_helpers import PYTHON, free_port, log_lines, stockpile, stop, wait_until
+
+SITE = "yard"
+T0_NS = 1_790_000_000 * 1_000_000_000
+NAMES = {"router": "router", "ledger": "ledger", "lab1": "lab", "scan1": "scanner",
+         "audit1": "auditor"}
+
+
+def _pki(*args: str) -> None:
+    done = subprocess.run([PYTHON, "-m", "stockpile.cli", "pki", *args], capture_output=True,
+                          text=True, timeout=60)
+    assert done.returncode == 0, done.stderr
+
+
+@contextlib.contextmanager
+def running_yard(base: Path):
+    """A site PKI, a foreign CA, the router and the ledger service over mTLS; on exit
+    both processes are stopped (and must exit 0)."""
+    pki, foreign, mixed = base / "pki", base / "foreign", base / "mixed"
+    _pki("init", "--site", SITE, "--out", str(pki))
+    for name, role in NAMES.items():
+        _pki("issue", "--ca", str(pki), "--role", role, "--name", name)
+    _pki("init", "--site", "elsewhere", "--out", str(foreign))
+    _pki("issue", "--ca", str(foreign), "--role", "lab", "--name", "lab1")
+    # trusts the site CA, but holds a lab1 certificate the site CA never signed
+    mixed.mkdir()
+    shutil.copy(pki / "ca.pem", mixed / "ca.pem")
+    for suffix in (".pem", ".key"):
+        shutil.copy(foreign / f"lab1{suffix}", mixed / f"lab1{suffix}")
+    endpoint = f"tls/127.0.0.1:{free_port()}"
+    router_log, ledger_log = base / "router.log", base / "ledger.log"
+    router = stockpile("service", "router", "--site", SITE, "--listen", endpoint,
+                       "--tls-dir", str(pki), "--tls-name", "router", stderr_path=router_log)
+    ledger = None
+    try:
+        wait_until(lambda: any(l.get("msg") == "routing" for l in log_lines(router_log)), 30,
+                   "the router to listen")
+        ledger = stockpile("service", "ledger", "--site", SITE, "--ledger",
+                           str(base / "yard.duckdb"), "--mode", "client", "--connect", endpoint,
+                           "--tls-dir", str(pki), "--tls-name", "ledger", stderr_path=ledger_log)
+        auditor = _client(endpoint, pki, "audit1")
+        wait_until(lambda: _answers(auditor), 60, "the ledger to answer the auditor")
+        yield {"endpoint": endpoint, "pki": pki, "mixed": mixed, "router_log": router_log,
+               "ledger_path": base / "yard.duckdb", "auditor": auditor}
+        auditor.close()
+    finally:
+        codes = [stop(p) for p in (ledger, router) if p is not None]
+    assert codes == [0] * len(codes)
+
+
+def _client(endpoint: str, tls_dir: Path, name: str) -> zenoh.Session:
+    return open_session(ZenohOptions(mode="client", connect=(endpoint,), tls_dir=str(tls_dir),
+                                     tls_name=name))
+
+
+def _answers(session: zenoh.Session) -> bool:
+    try:
+        LedgerClient(session, SITE, timeout_s=2).head()
+        return True
+    except LedgerUnavailable:
+        return False
+
+
+def _assay(assay_id: str, fe: float) -> pb.Assay:
+    msg = pb.Assay(assay_id=assay_id, lot_id="LOT-1", status=pb.FINAL, lab_id="lab1")
+    msg.analytes.update({"Fe": fe})
+    set_timestamp_ns(msg.window_start, T0_NS)
+    set_timestamp_ns(msg.window_end, T0_NS + 60 * 10**9)
+    set_timestamp_ns(msg.reported_time, T0_NS + 3600 * 10**9)
+    return msg
+
+
+def _refused(router_log: Path, subject: str, message: str, key: str) -> bool:
+    return any(l.get("msg") == "refused" and l.get("subject") == subject
+               and l.get("message") == message and l.get("key") == key
+               for l in log_lines(router_log))
+
+
+def test_the_lab_appends_and_nobody_else_can(tmp_path):
+    with running_yard(tmp_path) as yard:
+        _attempts(yard)
+    # the file, read directly once the service has stopped: the lab's result only
+    with open_ledger(tmp_path / "yard.duckdb", read_only=True) as store:
+        records = list(store.read())
+        assert [(r.type, r.source, r.epoch, r.seq) for r in records] == [("assay", "lab1", 7, 0)]
+        msg = pb.Assay.FromString(records[0].payload)
+        assert msg.assay_id == "AS-0001" and msg.analytes["Fe"] == 62.5
+        assert store.quarantine() == [] and store.verify().ok
+
+
+def _attempts(yard: dict) -> None:
+    endpoint, pki = yard["endpoint"], yard["pki"]
+    auditor = LedgerClient(yard["auditor"], SITE, timeout_s=10)
+    forged = _assay("AS-FORGED", 70.0).SerializeToString()
+    assay_key = key_expr(SITE, "assay", "lab1")
+
+    # a scanner's certificate: its put on the lab's key is refused by the router, and it
+    # cannot read the ledger either
+    scanner = _client(endpoint, pki, "scan1")
+    scanner.put(assay_key, forged, attachment=encode_attachment(1, 0, T0_NS))
+    wait_until(lambda: _refused(yard["router_log"], "scan1", "put", assay_key), 30,
+               "the router to log the scanner's refused put")
+    with pytest.raises(LedgerUnavailable):
+        LedgerClient(scanner, SITE, timeout_s=2).head()
+    assert _refused(yard["router_log"], "scan1", "query", f"stockpile/{SITE}/@ledger/q/head")
+
+    # an auditor reads the ledger, and cannot publish
+    yard["auditor"].put(assay_key, forged, attachment=encode_attachment(1, 1, T0_NS))
+    wait_until(lambda: _refused(yard["router_log"], "audit1", "put", assay_key), 30,
+               "the router to log the auditor's refused put")
+
+    # a certificate from another CA, and plain TCP: no link at all
+    with pytest.raises(OSError, match="cannot open the Zenoh session"):
+        _client(endpoint, yard["mixed"], "lab1")
+    plain = "tcp/" + endpoint.split("/", 1)[1]
+    with pytest.raises(OSError, match="cannot open the Zenoh session"):
+        open_session(ZenohOptions(mode="client", connect=(plain,)))
+
+    # the lab's genuine result goes in
+    lab = _client(endpoint, pki, "lab1")
+    publisher = EventPublisher(lab, SITE, "lab1", epoch=7)
+    publisher.publish(_assay("AS-0001", 62.5))
+    auditor.wait_for(lambda h: h["global_seq"] >= 0, 30)
+    scanner.close()
+    lab.close()
+    stats = auditor.stats()
+    assert stats["events"] == 1 and stats["per_source"] == {"lab1": 1}
+    assert stats["quarantined"] == 0
