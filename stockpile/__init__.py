@@ -33,7 +33,8 @@ DISTRIBUTION = "stockpile-ledger"
 
 #: the top-level import names of the base install's third-party packages
 BASE_IMPORTS = frozenset({"google", "foxglove_schemas_protobuf", "numpy", "duckdb", "pyarrow",
-                          "mcap", "mcap_protobuf", "zstandard", "tqdm", "structlog"})
+                          "mcap", "mcap_protobuf", "zstandard", "tqdm", "structlog",
+                          "cryptography"})
 
 #: extra -> the top-level import names of the third-party packages it adds to the base
 #: install (pyproject.toml's optional-dependencies install them)

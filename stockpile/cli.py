@@ -101,6 +101,11 @@ def _ledger_sql() -> ModuleType:
     return sql
 
 
+def _security_cli() -> ModuleType:
+    from security import cli  # deferred: see COMMAND_MODULES
+    return cli
+
+
 #: every top-level command, in ``stockpile --help`` order.  A module is imported only
 #: when the parser is built, so the base install (no extras) runs the commands it can
 #: and names the extra for the others.
@@ -131,6 +136,8 @@ COMMAND_MODULES: tuple[CommandModule, ...] = (
                   {"info": "what an MCAP session or a ledger holds: span, counts, gaps"}),
     CommandModule(_ledger_sql, (),
                   {"sql": "SQL on a ledger's views, read-only"}),
+    CommandModule(_security_cli, (),
+                  {"pki": "the site PKI: a site CA, a certificate per service, revocation"}),
 )
 
 

@@ -1,0 +1,689 @@
+"""The site PKI: a certificate authority that a yard runs itself, and a certificate per
+service.
+
+Keys are ECDSA on P-256, certificates are signed with ECDSA-SHA256: the key type Zenoh's
+TLS (rustls) accepts everywhere.  Keys are written as unencrypted PKCS#8 PEM (a service
+reads its key unattended), with mode 0600 from the moment the file is created; nothing
+here prints or logs key material.  The functions return what they wrote; the command
+line (:mod:`security.cli`) prints it.
+
+A certificate's subject is ``CN=<name>, OU=<role>, O=<site>``: the common name identifies
+the service (Zenoh's access control matches it), the organisational unit records its role
+(one of :data:`ROLES`).  Every certificate is for TLS client authentication; a ``router``
+certificate is also for server authentication and names the hosts it answers on
+(default ``localhost`` and ``127.0.0.1``).
+
+Layout of the CA directory (``init_ca``; ``issue`` writes there unless given ``out_dir``)::
+
+    ca.pem        the site CA's certificate (public: every service needs it)
+    ca.key        the site CA's private key (0600; keep it on the CA machine)
+    crl.pem       the certificate revocation list, signed by the CA (public)
+    index.json    every certificate issued: name, role, serial, validity, revocation
+    NAME.pem      the certificate issued to NAME
+    NAME.key      NAME's private key (0600)
+
+``issue(..., out_dir=DIR)`` writes ``NAME.pem``, ``NAME.key`` and a copy of ``ca.pem`` to
+DIR instead: a directory a service is given as its TLS directory (``ca.pem``,
+``NAME.pem``, ``NAME.key``), without the CA's key.  The CA directory stays the record:
+``index.json`` lists the certificate either way.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import ipaddress
+import json
+import os
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Iterable, Sequence
+
+from cryptography import x509
+from cryptography.exceptions import InvalidSignature
+from cryptography.hazmat.primitives import hashes, serialization
+from cryptography.hazmat.primitives.asymmetric import ec
+from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
+
+#: the roles the product knows; a certificate records one (its subject's OU)
+ROLES: tuple[str, ...] = ("router", "scanner", "gnss", "plc", "localizer", "lab", "ledger",
+                          "projector", "recorder", "dashboard", "auditor", "replay")
+
+#: roles whose certificate is also a TLS server certificate (with host names)
+SERVER_ROLES: tuple[str, ...] = ("router",)
+
+#: a router certificate's hosts when none are given
+DEFAULT_ROUTER_SANS: tuple[str, ...] = ("localhost", "127.0.0.1")
+
+CA_CERT = "ca.pem"
+CA_KEY = "ca.key"
+CRL = "crl.pem"
+INDEX = "index.json"
+
+#: file names of the CA directory, which an issued name may not take
+RESERVED_NAMES = frozenset({"ca", "crl", "index"})
+
+DEFAULT_CA_VALID_DAYS = 3650
+DEFAULT_CERT_VALID_DAYS = 365
+#: how long a CRL is valid after it is signed (``init_ca`` and every ``revoke`` sign one)
+DEFAULT_CRL_VALID_DAYS = 365
+#: a certificate is valid from this long before it was issued (clocks of the yard differ)
+NOT_BEFORE_SKEW_S = 300
+
+#: the revocation reasons ``revoke`` takes (RFC 5280 names, with dashes)
+REVOCATION_REASONS: dict[str, x509.ReasonFlags] = {
+    "unspecified": x509.ReasonFlags.unspecified,
+    "key-compromise": x509.ReasonFlags.key_compromise,
+    "ca-compromise": x509.ReasonFlags.ca_compromise,
+    "affiliation-changed": x509.ReasonFlags.affiliation_changed,
+    "superseded": x509.ReasonFlags.superseded,
+    "cessation-of-operation": x509.ReasonFlags.cessation_of_operation,
+    "privilege-withdrawn": x509.ReasonFlags.privilege_withdrawn,
+}
+
+_EKU_NAMES = {ExtendedKeyUsageOID.CLIENT_AUTH: "clientAuth",
+              ExtendedKeyUsageOID.SERVER_AUTH: "serverAuth"}
+_NAME_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,63}")
+_SECONDS_PER_DAY = 86_400
+_PUBLIC_MODE = 0o644
+_PRIVATE_MODE = 0o600
+_DIR_MODE = 0o700
+
+
+# -- records ---------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class CertificateInfo:
+    """What a certificate says (read back by :func:`certificate_info`)."""
+
+    path: Path
+    common_name: str | None
+    role: str | None
+    site: str | None
+    serial: str
+    not_before: dt.datetime
+    not_after: dt.datetime
+    subject: str
+    issuer: str
+    is_ca: bool
+    dns_names: tuple[str, ...] = ()
+    ip_addresses: tuple[str, ...] = ()
+    extended_key_usages: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
+class CaResult:
+    """What :func:`init_ca` wrote."""
+
+    site: str
+    ca_dir: Path
+    cert_path: Path
+    key_path: Path
+    crl_path: Path
+    index_path: Path
+    serial: str
+    not_after: dt.datetime
+
+
+@dataclass(frozen=True)
+class IssuedCertificate:
+    """What :func:`issue` wrote (``ca_copy_path``: the copy of ``ca.pem`` in ``out_dir``,
+    None when it was written to the CA directory)."""
+
+    name: str
+    role: str
+    serial: str
+    not_after: dt.datetime
+    cert_path: Path
+    key_path: Path
+    ca_copy_path: Path | None
+    dns_names: tuple[str, ...] = ()
+    ip_addresses: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
+class Revocation:
+    """What :func:`revoke` did: the certificates it revoked (index entries) and the files
+    it rewrote."""
+
+    revoked: tuple[dict, ...]
+    reason: str
+    crl_path: Path
+    index_path: Path
+    crl_number: int
+
+
+@dataclass
+class Index:
+    """``index.json``: the site, the CA's certificate and every certificate issued."""
+
+    site: str
+    ca: dict
+    crl_number: int = 0
+    certificates: list[dict] = field(default_factory=list)
+
+    def to_json(self) -> dict:
+        return {"site": self.site, "ca": self.ca, "crl_number": self.crl_number,
+                "certificates": self.certificates}
+
+
+# -- helpers ---------------------------------------------------------------------------------
+
+
+def _utc_now(now: dt.datetime | None) -> dt.datetime:
+    if now is None:
+        return dt.datetime.now(dt.timezone.utc).replace(microsecond=0)
+    if now.tzinfo is None:
+        raise ValueError("now must be timezone-aware (UTC)")
+    return now.astimezone(dt.timezone.utc).replace(microsecond=0)
+
+
+def iso_utc(moment: dt.datetime) -> str:
+    """``2026-11-28T20:00:00Z``."""
+    return moment.astimezone(dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ")
+
+
+def serial_hex(serial: int) -> str:
+    """A serial number as upper-case hex with an even number of digits (as openssl shows
+    it)."""
+    text = format(serial, "X")
+    return text if len(text) % 2 == 0 else "0" + text
+
+
+def parse_serial(text: str) -> int:
+    """A serial number from hex (``0x`` and ``:`` separators allowed); ValueError if it is
+    not hex."""
+    cleaned = text.strip().lower().removeprefix("0x").replace(":", "")
+    if not cleaned or not re.fullmatch(r"[0-9a-f]+", cleaned):
+        raise ValueError(f"not a serial number (hex): {text!r}")
+    return int(cleaned, 16)
+
+
+def check_name(name: str) -> str:
+    """A certificate name is also a file name: letters, digits, ``.``, ``_``, ``-`` (up
+    to 64), not starting with a punctuation mark, and not ``ca``, ``crl`` or ``index``."""
+    if not isinstance(name, str) or not _NAME_RE.fullmatch(name):
+        raise ValueError(f"name must be 1-64 letters, digits, '.', '_' or '-' starting with a "
+                         f"letter or digit, got {name!r}")
+    if name.lower() in RESERVED_NAMES:
+        raise ValueError(f"name {name!r} is taken by the CA's own files "
+                         f"({', '.join(sorted(RESERVED_NAMES))})")
+    return name
+
+
+def check_role(role: str) -> str:
+    """``role`` if it is one of :data:`ROLES`, else ValueError listing them."""
+    if role not in ROLES:
+        raise ValueError(f"unknown role {role!r}: choose from {', '.join(ROLES)}")
+    return role
+
+
+def _check_valid_days(valid_days: int) -> int:
+    if isinstance(valid_days, bool) or not isinstance(valid_days, int) or valid_days <= 0:
+        raise ValueError(f"valid days must be a positive whole number of days, got {valid_days!r}")
+    return valid_days
+
+
+def _write_private(path: Path, data: bytes, *, force: bool) -> None:
+    """Write a private key with mode 0600 from creation: a new file is created exclusively;
+    with ``force`` a temporary file (also created 0600) replaces the old one."""
+    if not force:
+        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, _PRIVATE_MODE)
+        _write_fd(fd, data)
+        return
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, _PRIVATE_MODE)
+    try:
+        _write_fd(fd, data)
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
+def _write_public(path: Path, data: bytes) -> None:
+    """Write a public file (certificate, CRL, index) atomically: a temporary file, then
+    rename."""
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, _PUBLIC_MODE)
+    try:
+        _write_fd(fd, data)
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
+def _write_fd(fd: int, data: bytes) -> None:
+    with os.fdopen(fd, "wb") as handle:
+        handle.write(data)
+        handle.flush()
+        os.fsync(handle.fileno())
+
+
+def _refuse_existing(paths: Iterable[Path], what: str) -> None:
+    existing = [str(p) for p in paths if p.exists()]
+    if existing:
+        raise FileExistsError(f"{what} exists: {', '.join(existing)} (use --force to replace)")
+
+
+def _new_key() -> ec.EllipticCurvePrivateKey:
+    return ec.generate_private_key(ec.SECP256R1())
+
+
+def _key_pem(key: ec.EllipticCurvePrivateKey) -> bytes:
+    return key.private_bytes(serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8,
+                             serialization.NoEncryption())
+
+
+def _cert_pem(cert: x509.Certificate) -> bytes:
+    return cert.public_bytes(serialization.Encoding.PEM)
+
+
+def _read_cert(path: Path) -> x509.Certificate:
+    try:
+        return x509.load_pem_x509_certificate(Path(path).read_bytes())
+    except FileNotFoundError:
+        raise FileNotFoundError(f"no certificate at {path}") from None
+    except ValueError as exc:
+        raise ValueError(f"{path} is not a PEM certificate ({exc})") from None
+
+
+def _load_ca(ca_dir: Path) -> tuple[x509.Certificate, ec.EllipticCurvePrivateKey, Index]:
+    ca_dir = Path(ca_dir)
+    for name in (CA_CERT, CA_KEY, INDEX):
+        if not (ca_dir / name).is_file():
+            raise FileNotFoundError(f"{ca_dir} is not a site CA directory: no {name} "
+                                    f"(make one with stockpile pki init)")
+    cert = _read_cert(ca_dir / CA_CERT)
+    key = serialization.load_pem_private_key((ca_dir / CA_KEY).read_bytes(), password=None)
+    if not isinstance(key, ec.EllipticCurvePrivateKey):
+        raise ValueError(f"{ca_dir / CA_KEY} is not an EC key")
+    if key.public_key().public_numbers() != cert.public_key().public_numbers():
+        raise ValueError(f"{ca_dir / CA_KEY} is not the key of {ca_dir / CA_CERT}")
+    return cert, key, read_index(ca_dir)
+
+
+def read_index(ca_dir: Path) -> Index:
+    """The CA directory's ``index.json``."""
+    path = Path(ca_dir) / INDEX
+    try:
+        data = json.loads(path.read_text())
+        return Index(site=data["site"], ca=data["ca"], crl_number=int(data["crl_number"]),
+                     certificates=list(data["certificates"]))
+    except FileNotFoundError:
+        raise FileNotFoundError(f"no {INDEX} in {ca_dir}") from None
+    except (KeyError, TypeError, ValueError) as exc:
+        raise ValueError(f"{path} is damaged ({type(exc).__name__}: {exc})") from None
+
+
+def _write_index(ca_dir: Path, index: Index) -> Path:
+    path = Path(ca_dir) / INDEX
+    _write_public(path, (json.dumps(index.to_json(), indent=2) + "\n").encode())
+    return path
+
+
+def _name_attrs(common_name: str, site: str, unit: str | None) -> x509.Name:
+    attrs = [x509.NameAttribute(NameOID.ORGANIZATION_NAME, site)]
+    if unit is not None:
+        attrs.append(x509.NameAttribute(NameOID.ORGANIZATIONAL_UNIT_NAME, unit))
+    attrs.append(x509.NameAttribute(NameOID.COMMON_NAME, common_name))
+    return x509.Name(attrs)
+
+
+def _first(name: x509.Name, oid: x509.ObjectIdentifier) -> str | None:
+    values = name.get_attributes_for_oid(oid)
+    return str(values[0].value) if values else None
+
+
+def _sign_crl(ca_cert: x509.Certificate, ca_key: ec.EllipticCurvePrivateKey, index: Index,
+              now: dt.datetime, *, valid_days: int = DEFAULT_CRL_VALID_DAYS) -> bytes:
+    builder = (x509.CertificateRevocationListBuilder()
+               .issuer_name(ca_cert.subject)
+               .last_update(now)
+               .next_update(now + dt.timedelta(days=valid_days))
+               .add_extension(x509.CRLNumber(index.crl_number), critical=False)
+               .add_extension(x509.AuthorityKeyIdentifier.from_issuer_public_key(
+                   ca_key.public_key()), critical=False))
+    for entry in index.certificates:
+        if not entry.get("revoked"):
+            continue
+        revoked = (x509.RevokedCertificateBuilder()
+                   .serial_number(parse_serial(entry["serial"]))
+                   .revocation_date(dt.datetime.fromisoformat(entry["revoked_at"]))
+                   .add_extension(x509.CRLReason(REVOCATION_REASONS[entry["revocation_reason"]]),
+                                  critical=False)
+                   .build())
+        builder = builder.add_revoked_certificate(revoked)
+    crl = builder.sign(ca_key, hashes.SHA256())
+    return crl.public_bytes(serialization.Encoding.PEM)
+
+
+# -- the CA ----------------------------------------------------------------------------------
+
+
+def init_ca(site: str, out_dir: Path | str, *, valid_days: int = DEFAULT_CA_VALID_DAYS,
+            force: bool = False, now: dt.datetime | None = None) -> CaResult:
+    """Make a site CA in ``out_dir`` (created with mode 0700 if missing): ``ca.pem``,
+    ``ca.key`` (0600), an empty ``crl.pem`` and ``index.json``.
+
+    Refuses (FileExistsError) when ``out_dir`` already holds a CA's certificate or key,
+    unless ``force``: a new CA then replaces it and the index starts empty (certificates
+    of the old CA no longer verify against the new ``ca.pem``).
+    """
+    if not isinstance(site, str) or not _NAME_RE.fullmatch(site):
+        raise ValueError(f"site must be 1-64 letters, digits, '.', '_' or '-', got {site!r}")
+    _check_valid_days(valid_days)
+    now = _utc_now(now)
+    out = Path(out_dir)
+    paths = [out / CA_CERT, out / CA_KEY, out / CRL, out / INDEX]
+    if not force:
+        _refuse_existing(paths[:2], "a site CA")
+    out.mkdir(mode=_DIR_MODE, parents=True, exist_ok=True)
+
+    key = _new_key()
+    name = _name_attrs(f"{site} stockpile site CA", site, None)
+    ski = x509.SubjectKeyIdentifier.from_public_key(key.public_key())
+    cert = (x509.CertificateBuilder()
+            .subject_name(name)
+            .issuer_name(name)
+            .public_key(key.public_key())
+            .serial_number(x509.random_serial_number())
+            .not_valid_before(now - dt.timedelta(seconds=NOT_BEFORE_SKEW_S))
+            .not_valid_after(now + dt.timedelta(days=valid_days))
+            .add_extension(x509.BasicConstraints(ca=True, path_length=0), critical=True)
+            .add_extension(x509.KeyUsage(digital_signature=False, content_commitment=False,
+                                         key_encipherment=False, data_encipherment=False,
+                                         key_agreement=False, key_cert_sign=True, crl_sign=True,
+                                         encipher_only=False, decipher_only=False),
+                           critical=True)
+            .add_extension(ski, critical=False)
+            .sign(key, hashes.SHA256()))
+    serial = serial_hex(cert.serial_number)
+    index = Index(site=site, ca={"subject": cert.subject.rfc4514_string(), "serial": serial,
+                                 "not_before": iso_utc(cert.not_valid_before_utc),
+                                 "not_after": iso_utc(cert.not_valid_after_utc)},
+                  crl_number=0, certificates=[])
+
+    _write_private(out / CA_KEY, _key_pem(key), force=force)
+    _write_public(out / CA_CERT, _cert_pem(cert))
+    _write_public(out / CRL, _sign_crl(cert, key, index, now))
+    _write_index(out, index)
+    return CaResult(site=site, ca_dir=out, cert_path=out / CA_CERT, key_path=out / CA_KEY,
+                    crl_path=out / CRL, index_path=out / INDEX, serial=serial,
+                    not_after=cert.not_valid_after_utc)
+
+
+def _split_sans(sans: Sequence[str]) -> tuple[list[str], list[str]]:
+    dns, ips = [], []
+    for san in sans:
+        text = str(san).strip()
+        try:
+            ips.append(str(ipaddress.ip_address(text)))
+        except ValueError:
+            if not re.fullmatch(r"[A-Za-z0-9*]([A-Za-z0-9.-]*[A-Za-z0-9])?", text):
+                raise ValueError(f"not a host name or IP address: {san!r}") from None
+            dns.append(text)
+    return dns, ips
+
+
+def issue(ca_dir: Path | str, role: str, name: str, *, out_dir: Path | str | None = None,
+          valid_days: int = DEFAULT_CERT_VALID_DAYS, sans: Sequence[str] | None = None,
+          force: bool = False, now: dt.datetime | None = None) -> IssuedCertificate:
+    """Issue ``name`` a certificate for ``role``, signed by the CA in ``ca_dir``: a new
+    key ``NAME.key`` (0600) and ``NAME.pem`` in ``out_dir`` (default: the CA directory;
+    another directory also gets a copy of ``ca.pem``), recorded in ``index.json``.
+
+    ``sans``: host names and IP addresses the certificate is valid for (a ``router``'s
+    default: :data:`DEFAULT_ROUTER_SANS`; other roles: none).  The certificate may not
+    outlive the CA.  Refuses (FileExistsError) to replace an existing ``NAME.key`` or
+    ``NAME.pem``, or a different ``ca.pem`` in ``out_dir``, unless ``force``; a replaced
+    certificate stays valid until it expires or is revoked (:func:`revoke` by serial).
+    """
+    check_role(role)
+    check_name(name)
+    _check_valid_days(valid_days)
+    now = _utc_now(now)
+    ca_dir = Path(ca_dir)
+    ca_cert, ca_key, index = _load_ca(ca_dir)
+    out = ca_dir if out_dir is None else Path(out_dir)
+    separate = out.resolve() != ca_dir.resolve()
+    cert_path, key_path = out / f"{name}.pem", out / f"{name}.key"
+    ca_copy = out / CA_CERT if separate else None
+    ca_pem = _cert_pem(ca_cert)
+    if not force:
+        _refuse_existing([key_path, cert_path], f"a certificate or key for {name!r}")
+        if ca_copy is not None and ca_copy.exists() and ca_copy.read_bytes() != ca_pem:
+            raise FileExistsError(f"{ca_copy} is another CA's certificate (use --force to "
+                                  f"replace)")
+
+    not_before = now - dt.timedelta(seconds=NOT_BEFORE_SKEW_S)
+    not_after = now + dt.timedelta(days=valid_days)
+    if not_after > ca_cert.not_valid_after_utc:
+        left_days = int((ca_cert.not_valid_after_utc - now).total_seconds() // _SECONDS_PER_DAY)
+        raise ValueError(f"the certificate would outlive the site CA (valid until "
+                         f"{iso_utc(ca_cert.not_valid_after_utc)}): give at most {left_days} "
+                         f"valid days")
+    if now > ca_cert.not_valid_after_utc:
+        raise ValueError(f"the site CA expired at {iso_utc(ca_cert.not_valid_after_utc)}")
+    if sans is None:
+        sans = DEFAULT_ROUTER_SANS if role in SERVER_ROLES else ()
+    dns, ips = _split_sans(sans)
+    usages = [ExtendedKeyUsageOID.CLIENT_AUTH]
+    if role in SERVER_ROLES:
+        usages.append(ExtendedKeyUsageOID.SERVER_AUTH)
+
+    key = _new_key()
+    builder = (x509.CertificateBuilder()
+               .subject_name(_name_attrs(name, index.site, role))
+               .issuer_name(ca_cert.subject)
+               .public_key(key.public_key())
+               .serial_number(x509.random_serial_number())
+               .not_valid_before(not_before)
+               .not_valid_after(not_after)
+               .add_extension(x509.BasicConstraints(ca=False, path_length=None), critical=True)
+               .add_extension(x509.KeyUsage(digital_signature=True, content_commitment=False,
+                                            key_encipherment=False, data_encipherment=False,
+                                            key_agreement=False, key_cert_sign=False,
+                                            crl_sign=False, encipher_only=False,
+                                            decipher_only=False), critical=True)
+               .add_extension(x509.ExtendedKeyUsage(usages), critical=False)
+               .add_extension(x509.SubjectKeyIdentifier.from_public_key(key.public_key()),
+                              critical=False)
+               .add_extension(x509.AuthorityKeyIdentifier.from_issuer_public_key(
+                   ca_key.public_key()), critical=False))
+    if dns or ips:
+        names: list[x509.GeneralName] = [x509.DNSName(d) for d in dns]
+        names += [x509.IPAddress(ipaddress.ip_address(i)) for i in ips]
+        builder = builder.add_extension(x509.SubjectAlternativeName(names), critical=False)
+    cert = builder.sign(ca_key, hashes.SHA256())
+    serial = serial_hex(cert.serial_number)
+
+    if separate:
+        out.mkdir(mode=_DIR_MODE, parents=True, exist_ok=True)
+    _write_private(key_path, _key_pem(key), force=force)
+    _write_public(cert_path, _cert_pem(cert))
+    if ca_copy is not None:
+        _write_public(ca_copy, ca_pem)
+    index.certificates.append({
+        "name": name, "role": role, "serial": serial,
+        "not_before": iso_utc(cert.not_valid_before_utc),
+        "not_after": iso_utc(cert.not_valid_after_utc),
+        "dns_names": dns, "ip_addresses": ips,
+        "cert_path": str(cert_path.resolve()),
+        "revoked": False, "revoked_at": None, "revocation_reason": None,
+    })
+    _write_index(ca_dir, index)
+    return IssuedCertificate(name=name, role=role, serial=serial,
+                             not_after=cert.not_valid_after_utc, cert_path=cert_path,
+                             key_path=key_path, ca_copy_path=ca_copy, dns_names=tuple(dns),
+                             ip_addresses=tuple(ips))
+
+
+def revoke(ca_dir: Path | str, name_or_serial: str, reason: str = "unspecified", *,
+           now: dt.datetime | None = None) -> Revocation:
+    """Revoke certificates of the CA in ``ca_dir``: by name, every certificate of that
+    name not yet revoked; by serial (hex), that one.  Re-signs ``crl.pem`` with all the
+    revoked serials and records the revocation in ``index.json``.
+
+    ValueError for an unknown name or serial, one already revoked, an unknown reason
+    (:data:`REVOCATION_REASONS`), or text that is both a name and another certificate's
+    serial.
+    """
+    if reason not in REVOCATION_REASONS:
+        raise ValueError(f"unknown reason {reason!r}: choose from "
+                         f"{', '.join(REVOCATION_REASONS)}")
+    now = _utc_now(now)
+    ca_dir = Path(ca_dir)
+    ca_cert, ca_key, index = _load_ca(ca_dir)
+    by_name = [e for e in index.certificates if e["name"] == name_or_serial]
+    try:
+        wanted = parse_serial(name_or_serial)
+    except ValueError:
+        wanted = None
+    by_serial = [e for e in index.certificates
+                 if wanted is not None and parse_serial(e["serial"]) == wanted]
+    if by_name and by_serial and by_serial[0] not in by_name:
+        raise ValueError(f"{name_or_serial!r} is a name and another certificate's serial: "
+                         f"revoke by --serial or --name")
+    matches = by_name or by_serial
+    if not matches:
+        known = sorted({e["name"] for e in index.certificates})
+        raise ValueError(f"no certificate named or with serial {name_or_serial!r} in "
+                         f"{ca_dir / INDEX} (issued: {', '.join(known) or 'none'})")
+    targets = [e for e in matches if not e["revoked"]]
+    if not targets:
+        serials = ", ".join(e["serial"] for e in matches)
+        raise ValueError(f"{name_or_serial} is already revoked (serial {serials})")
+    for entry in targets:
+        entry.update(revoked=True, revoked_at=iso_utc(now), revocation_reason=reason)
+    index.crl_number += 1
+    crl_path = ca_dir / CRL
+    _write_public(crl_path, _sign_crl(ca_cert, ca_key, index, now))
+    index_path = _write_index(ca_dir, index)
+    return Revocation(revoked=tuple(dict(e) for e in targets), reason=reason,
+                      crl_path=crl_path, index_path=index_path, crl_number=index.crl_number)
+
+
+# -- reading back ----------------------------------------------------------------------------
+
+
+def load_crl(path: Path | str, *, ca_cert_path: Path | str | None = None
+             ) -> x509.CertificateRevocationList:
+    """Parse a PEM CRL; with ``ca_cert_path``, also check that the CA signed it
+    (ValueError if not)."""
+    path = Path(path)
+    try:
+        crl = x509.load_pem_x509_crl(path.read_bytes())
+    except FileNotFoundError:
+        raise FileNotFoundError(f"no CRL at {path}") from None
+    if ca_cert_path is not None:
+        ca = _read_cert(Path(ca_cert_path))
+        if crl.issuer != ca.subject or not crl.is_signature_valid(ca.public_key()):
+            raise ValueError(f"{path} is not signed by the CA of {ca_cert_path}")
+    return crl
+
+
+def is_revoked(crl: x509.CertificateRevocationList,
+               certificate: x509.Certificate | int | str | Path) -> bool:
+    """Whether ``crl`` lists ``certificate`` (a certificate, its serial as an int or hex,
+    or the path of a PEM certificate)."""
+    if isinstance(certificate, x509.Certificate):
+        serial = certificate.serial_number
+    elif isinstance(certificate, Path):
+        serial = _read_cert(certificate).serial_number
+    elif isinstance(certificate, int):
+        serial = certificate
+    else:
+        serial = parse_serial(certificate)
+    return crl.get_revoked_certificate_by_serial_number(serial) is not None
+
+
+def certificate_info(path: Path | str) -> CertificateInfo:
+    """What the PEM certificate at ``path`` says: common name, role (OU), site (O), serial,
+    validity, issuer, host names."""
+    path = Path(path)
+    cert = _read_cert(path)
+    try:
+        basic = cert.extensions.get_extension_for_class(x509.BasicConstraints).value
+        is_ca = basic.ca
+    except x509.ExtensionNotFound:
+        is_ca = False
+    try:
+        san = cert.extensions.get_extension_for_class(x509.SubjectAlternativeName).value
+        dns = tuple(san.get_values_for_type(x509.DNSName))
+        ips = tuple(str(i) for i in san.get_values_for_type(x509.IPAddress))
+    except x509.ExtensionNotFound:
+        dns, ips = (), ()
+    try:
+        eku = cert.extensions.get_extension_for_class(x509.ExtendedKeyUsage).value
+        usages = tuple(_EKU_NAMES.get(u, u.dotted_string) for u in eku)
+    except x509.ExtensionNotFound:
+        usages = ()
+    return CertificateInfo(
+        path=path, common_name=_first(cert.subject, NameOID.COMMON_NAME),
+        role=_first(cert.subject, NameOID.ORGANIZATIONAL_UNIT_NAME),
+        site=_first(cert.subject, NameOID.ORGANIZATION_NAME),
+        serial=serial_hex(cert.serial_number), not_before=cert.not_valid_before_utc,
+        not_after=cert.not_valid_after_utc, subject=cert.subject.rfc4514_string(),
+        issuer=cert.issuer.rfc4514_string(), is_ca=is_ca, dns_names=dns, ip_addresses=ips,
+        extended_key_usages=usages)
+
+
+def verify_certificate(cert_path: Path | str, ca_cert_path: Path | str, *,
+                       crl_path: Path | str | None = None,
+                       now: dt.datetime | None = None) -> CertificateInfo:
+    """Check that the CA at ``ca_cert_path`` signed the certificate at ``cert_path``, that
+    both are valid at ``now`` and (with ``crl_path``) that the CA's CRL does not list it.
+    Returns its :func:`certificate_info`; ValueError naming what failed."""
+    now = _utc_now(now)
+    cert, ca = _read_cert(Path(cert_path)), _read_cert(Path(ca_cert_path))
+    try:
+        cert.verify_directly_issued_by(ca)
+    except (ValueError, TypeError, InvalidSignature):
+        raise ValueError(f"{cert_path} was not issued by the CA of {ca_cert_path}") from None
+    for what, c in (("certificate", cert), ("site CA", ca)):
+        if now < c.not_valid_before_utc:
+            raise ValueError(f"the {what} is not valid before {iso_utc(c.not_valid_before_utc)}")
+        if now > c.not_valid_after_utc:
+            raise ValueError(f"the {what} expired at {iso_utc(c.not_valid_after_utc)}")
+    if crl_path is not None:
+        crl = load_crl(crl_path, ca_cert_path=ca_cert_path)
+        if is_revoked(crl, cert):
+            raise ValueError(f"{cert_path} is revoked (serial {serial_hex(cert.serial_number)})")
+    return certificate_info(cert_path)
+
+
+def _human_span(seconds: float) -> str:
+    seconds = abs(seconds)
+    for unit, size in (("day", 86_400), ("hour", 3600), ("minute", 60)):
+        if seconds >= size:
+            count = int(seconds // size)
+            return f"{count} {unit}{'s' if count != 1 else ''}"
+    return f"{int(seconds)} seconds"
+
+
+def expiry_warning(cert_path: Path | str, warn_before_s: float,
+                   now: dt.datetime | None = None) -> str | None:
+    """A warning line when the certificate at ``cert_path`` expires within
+    ``warn_before_s`` seconds of ``now`` (or has expired), else None:
+    ``certificate NAME (PATH) expires in 12 days (at 2026-12-10T20:00:00Z)``."""
+    now = _utc_now(now)
+    info = certificate_info(cert_path)
+    left_s = (info.not_after - now).total_seconds()
+    if left_s > warn_before_s:
+        return None
+    who = f"certificate {info.common_name} ({cert_path})"
+    if left_s <= 0:
+        return f"{who} expired {_human_span(left_s)} ago (at {iso_utc(info.not_after)})"
+    return f"{who} expires in {_human_span(left_s)} (at {iso_utc(info.not_after)})"
+
+
+def certificate_status(entry: dict, now: dt.datetime | None = None) -> str:
+    """``revoked``, ``expired`` or ``valid`` for an ``index.json`` entry."""
+    if entry.get("revoked"):
+        return "revoked"
+    if dt.datetime.fromisoformat(entry["not_after"]) < _utc_now(now):
+        return "expired"
+    return "valid"
