@@ -23,9 +23,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Iterable, Mapping
 
-#: the roles a site certificate can carry (see :mod:`security.pki`)
-ROLES = ("router", "scanner", "gnss", "plc", "localizer", "lab", "ledger", "projector",
-         "recorder", "dashboard", "auditor", "replay")
+from security.pki import ROLES
+
 
 #: event types each publishing role may put, under its own name as the source
 PUBLISHES: dict[str, tuple[str, ...]] = {

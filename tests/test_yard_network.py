@@ -151,3 +151,29 @@ def _attempts(yard: dict) -> None:
     stats = auditor.stats()
     assert stats["events"] == 1 and stats["per_source"] == {"lab1": 1}
     assert stats["quarantined"] == 0
+
+
+def test_the_generated_acl_denies_by_default_and_drops_revoked_names():
+    from services.acl import access_control, members_from_index
+
+    members = members_from_index([
+        {"name": "lab1", "role": "lab", "revoked": False},
+        {"name": "scan1", "role": "scanner", "revoked": False},
+        {"name": "scan1", "role": "scanner", "revoked": True},   # one revoked: no rights
+        {"name": "audit1", "role": "auditor"},
+    ])
+    assert members == {"lab1": "lab", "audit1": "auditor"}
+    acl = access_control(SITE, members)
+    assert acl["enabled"] is True and acl["default_permission"] == "deny"
+    assert {s["id"]: s["cert_common_names"] for s in acl["subjects"]} == {
+        "cert:audit1": ["audit1"], "cert:lab1": ["lab1"]}
+    lab_puts = [r for r in acl["rules"] if r["id"].startswith("lab1:")
+                and "put" in r["messages"] and r["flows"] == ["ingress"]]
+    assert [sorted(r["key_exprs"]) for r in lab_puts] == [
+        [f"stockpile/{SITE}/@v1/assay/lab1", f"stockpile/{SITE}/@v1/lot_declared/lab1"]]
+    auditor_ingress = {m for r in acl["rules"] if r["id"].startswith("audit1:")
+                       and r["flows"] == ["ingress"] for m in r["messages"]}
+    assert auditor_ingress == {"query", "declare_subscriber"}   # reads only
+    assert all(r["permission"] == "allow" for r in acl["rules"])
+    with pytest.raises(ValueError, match="unknown role 'boss'"):
+        access_control(SITE, {"x": "boss"})
