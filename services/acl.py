@@ -58,6 +58,7 @@ ALL_ADV = "stockpile/{site}/@v1/**/@adv/**"
 LEDGER_Q = "stockpile/{site}/@ledger/q/*"
 LEDGER_HEAD = "stockpile/{site}/@ledger/head"
 LIVE_OF = "stockpile/{site}/@live/{service}/**"
+LIVE_ANY = "stockpile/{site}/@live/**"
 
 #: the service name in a role's liveliness token (``stockpile/<site>/@live/<service>/...``)
 ROLE_SERVICE = {"scanner": "scanner", "gnss": "gnss", "plc": "plc", "localizer": "localizer",
@@ -102,8 +103,30 @@ def _ledger_reader() -> list[Grant]:
     ]
 
 
+def _republisher() -> list[Grant]:
+    """Publishes any event type under any source (a replay of a recording, the
+    simulator), and sees which services are live (it waits for them)."""
+    grants = [Grant(g.messages, g.flows, tuple(k.replace("{name}", "*") for k in g.keys))
+              for g in _publisher(("*",))]
+    return grants + [
+        Grant(("declare_liveliness_subscriber", "liveliness_query"), ("ingress",), (LIVE_ANY,)),
+        Grant(("liveliness_token",), ("egress",), (LIVE_ANY,)),
+    ]
+
+
+#: which services are live (their liveliness tokens): operators' and auditors' view
+LIVE_READ = Grant(("declare_liveliness_subscriber", "liveliness_query"), ("ingress",),
+                  (LIVE_ANY,))
+LIVE_SEEN = Grant(("liveliness_token",), ("egress",), (LIVE_ANY,))
+
+#: the site clock's events: a service on the simulated yard's clock (``--clock events``)
+#: dates what it publishes by them
+CLOCK_READ = [Grant(("declare_subscriber",), ("ingress",), ("stockpile/{site}/@v1/clock/**",)),
+              Grant(("put",), ("egress",), ("stockpile/{site}/@v1/clock/**",))]
+
 ROLE_GRANTS: dict[str, list[Grant]] = {
-    **{role: _publisher(types) for role, types in PUBLISHES.items()},
+    **{role: _publisher(types) + CLOCK_READ for role, types in PUBLISHES.items()},
+    "replay": _republisher(),
     "ledger": _event_reader((ALL_EVENTS,), (ALL_ADV,)) + [
         Grant(("declare_queryable",), ("ingress",), (LEDGER_Q,)),
         Grant(("query",), ("egress",), (LEDGER_Q,)),
@@ -112,8 +135,8 @@ ROLE_GRANTS: dict[str, list[Grant]] = {
         Grant(("declare_subscriber",), ("egress",), (LEDGER_HEAD,)),
     ],
     "recorder": _event_reader((ALL_EVENTS,), (ALL_ADV,)),
-    "auditor": _ledger_reader(),
-    "dashboard": _ledger_reader(),
+    "auditor": _ledger_reader() + [LIVE_READ, LIVE_SEEN],
+    "dashboard": _ledger_reader() + [LIVE_READ, LIVE_SEEN],
     "projector": _ledger_reader(),
 }
 ROLE_GRANTS["localizer"] = ROLE_GRANTS["localizer"] + _event_reader(

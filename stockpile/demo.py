@@ -175,7 +175,8 @@ DEFAULT_SPEED = 40.0
 DEFAULT_IDLE_SPEED = 2000.0
 
 #: options that only the process demo reads (dest -> spelling)
-_PROCESS_ONLY = {"speed": "--speed", "idle_speed": "--idle-speed", "record": "--record"}
+_PROCESS_ONLY = {"speed": "--speed", "idle_speed": "--idle-speed", "record": "--record",
+                 "insecure": "--insecure"}
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
@@ -194,7 +195,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
                          speed=DEFAULT_SPEED if args.speed is None else args.speed,
                          idle_speed=DEFAULT_IDLE_SPEED if args.idle_speed is None else args.idle_speed,
                          duration_h=None if args.duration is None else args.duration / 3600.0,
-                         record=Path(args.record) if args.record else None)
+                         record=Path(args.record) if args.record else None,
+                         insecure=bool(args.insecure))
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -215,6 +217,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--record", metavar="OUT.mcap",
                    help="process demo only: also record the live session to MCAP (stockpile "
                    "service recorder)")
+    p.add_argument("--insecure", action="store_true", default=None,
+                   help="process demo only: plain TCP on loopback instead of mutual TLS with "
+                   "access control by role (a throw-away PKI in OUT/pki)")
     p.add_argument("--in-process", action="store_true",
                    help="simulate and import the events file, without the services")
     p.add_argument("--sample", action="store_true",

@@ -1,7 +1,12 @@
 """Start, watch and stop the yard's processes (``stockpile demo``, ``stockpile run``).
 
 A :class:`Supervisor` owns a loopback Zenoh router (a router-mode session in this
-process, scouting off) and the child processes wired to it as Zenoh clients.  Each
+process, scouting off) and the child processes wired to it as Zenoh clients.  Given
+``members`` (``{certificate name: role}``), the links are mutual TLS: the supervisor
+makes a throw-away site PKI in ``<out>/pki`` (a CA and one certificate per member, valid
+for two days), and its router enforces the access control generated for those roles
+(:mod:`services.acl`); each child then connects with its own certificate
+(:meth:`Supervisor.client_args_for`).  Without ``members``, plain TCP on loopback.  Each
 child's stderr (its log lines) goes to ``<logs>/<name>.log`` and stdout to
 ``<logs>/<name>.out``.  Stopping is orderly: producers first, the ledger last,
 SIGTERM with a deadline, then SIGKILL (reported).
@@ -9,6 +14,7 @@ SIGTERM with a deadline, then SIGKILL (reported).
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import socket
@@ -22,8 +28,13 @@ from typing import Callable
 
 import zenoh
 
+from security.pki import init_ca, issue
+from services.acl import access_control
 from services.logfmt import parse_log_line
 from services.service import ZenohOptions, log
+
+#: validity of the throw-away PKI a supervised yard makes for itself, days
+THROWAWAY_PKI_DAYS = 2
 
 
 def free_loopback_port() -> int:
@@ -84,19 +95,58 @@ class Child:
 class Supervisor:
     """A loopback router plus child processes; a context manager that always cleans up."""
 
-    def __init__(self, out_dir: Path, *, site: str, quiet: bool = False) -> None:
+    def __init__(self, out_dir: Path, *, site: str, quiet: bool = False,
+                 members: dict[str, str] | None = None) -> None:
         self.out_dir = Path(out_dir)
         self.logs = self.out_dir / "logs"
         self.logs.mkdir(parents=True, exist_ok=True)
         self.site = site
         self.quiet = quiet
-        self.endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
-        self.session = zenoh.open(ZenohOptions(mode="router", listen=(self.endpoint,)).to_config())
+        self.members = dict(members or {})
+        self.pki: Path | None = None
+        port = free_loopback_port()
+        if self.members:
+            self.pki = self._make_pki()
+            self.endpoint = f"tls/127.0.0.1:{port}"
+            router = ZenohOptions(mode="router", listen=(self.endpoint,), tls_dir=str(self.pki),
+                                  tls_name="router")
+            config = router.to_config()
+            config.insert_json5("access_control",
+                                json.dumps(access_control(site, self.members)))
+        else:
+            self.endpoint = f"tcp/127.0.0.1:{port}"
+            config = ZenohOptions(mode="router", listen=(self.endpoint,)).to_config()
+        self.session = zenoh.open(config)
         self.children: dict[str, Child] = {}
+
+    def _make_pki(self) -> Path:
+        """A fresh throw-away site PKI in ``<out>/pki``: a CA, the router and every member."""
+        pki = self.out_dir / "pki"
+        init_ca(self.site, pki, valid_days=THROWAWAY_PKI_DAYS, force=True)
+        for name, role in {"router": "router", **self.members}.items():
+            issue(pki, role, name, valid_days=THROWAWAY_PKI_DAYS, force=True)
+        if not self.quiet:
+            log("demo", "throw-away PKI", dir=str(pki), certificates=len(self.members) + 1)
+        return pki
 
     @property
     def client_args(self) -> list[str]:
+        """Zenoh options of a child without a certificate (plain TCP yards only)."""
+        if self.pki is not None:
+            raise ValueError("a TLS yard's children connect with their own certificate: "
+                             "use client_args_for(name)")
         return ZenohOptions(mode="client", connect=(self.endpoint,)).to_argv()
+
+    def client_args_for(self, name: str) -> list[str]:
+        """Zenoh options of the child holding certificate ``name`` (plain TCP yards: the
+        same for every child)."""
+        if self.pki is None:
+            return ZenohOptions(mode="client", connect=(self.endpoint,)).to_argv()
+        if name not in self.members:
+            raise ValueError(f"no certificate {name!r} in this yard (members: "
+                             f"{', '.join(sorted(self.members))})")
+        return ZenohOptions(mode="client", connect=(self.endpoint,), tls_dir=str(self.pki),
+                            tls_name=name).to_argv()
 
     def start(self, name: str, args: list[str]) -> Child:
         """Start ``stockpile ARGS`` (this interpreter) as child ``name``."""

@@ -8,8 +8,11 @@ The config (TOML; a documented example ships as ``docs/yard.example.toml``)::
     mode = "client"
     connect = ["tcp/127.0.0.1:7447"]
 
+    [tls]                        # mutual TLS on every link, access control by role
+    dir = "/srv/stockpile/pki"   # the site PKI (stockpile pki): ca.pem, index.json, NAME.pem/key
+
     [router]                     # optional: run a Zenoh router here, on these endpoints
-    listen = ["tcp/127.0.0.1:7447"]
+    listen = ["tls/127.0.0.1:7447"]
 
     [services.ledger]            # table name = service name, or set service = "..."
     ledger = "/var/lib/stockpile/ledger.duckdb"
@@ -18,7 +21,11 @@ The config (TOML; a documented example ships as ``docs/yard.example.toml``)::
     service = "scanner"
     device = "/dev/ttyUSB0"
 
-Every key of a service table becomes that service's command-line option
+With ``[tls]``, each service connects with the certificate named by its table's
+``tls_name`` (default: the table's name), and the router (``[router] tls_name``, default
+``router``) enforces the access control generated from the PKI's index
+(:mod:`services.acl`).  Every other key of a service table becomes that service's
+command-line option
 (``batch_size = 500`` -> ``--batch-size 500``; ``true`` -> a bare flag; a list
 repeats the option).  Services start in the order ledger, localizer, the rest;
 a service that exits unexpectedly is restarted after ``restart_delay_s`` (default 2 s,
@@ -28,6 +35,7 @@ doubling up to 60 s); SIGINT/SIGTERM stops them in reverse order, the ledger las
 from __future__ import annotations
 
 import argparse
+import json
 import signal
 import subprocess
 import sys
@@ -39,6 +47,8 @@ from pathlib import Path
 from typing import Any
 
 from common.options import plain_text
+from services.acl import access_control
+from services.router import load_members
 from services.service import Stopper, ZenohOptions, log, open_session
 from stockpile import service_cli
 from stockpile.service_cli import SERVICE_MODULES
@@ -57,9 +67,12 @@ class ServiceEntry:
     name: str
     service: str
     options: dict[str, Any] = field(default_factory=dict)
+    tls_name: str = ""   # its certificate's name (with [tls])
 
-    def argv(self, site: str, zenoh_argv: list[str]) -> list[str]:
+    def argv(self, site: str, zenoh_argv: list[str], tls_dir: str | None = None) -> list[str]:
         args = ["service", self.service, "--site", site]
+        if tls_dir:
+            args += ["--tls-dir", tls_dir, "--tls-name", self.tls_name or self.name]
         for key, value in self.options.items():
             flag = "--" + key.replace("_", "-")
             if isinstance(value, bool):
@@ -80,6 +93,8 @@ class YardConfig:
     router_listen: list[str]
     services: list[ServiceEntry]
     restart_delay_s: float = 2.0
+    tls_dir: str | None = None
+    router_tls_name: str = "router"
 
 
 def load_config(path: str | Path) -> YardConfig:
@@ -103,6 +118,10 @@ def load_config(path: str | Path) -> YardConfig:
             zenoh_argv += [f"--{key}", endpoint]
     router = data.get("router", {})
     router_listen = _as_list(router.get("listen", []), "router.listen")
+    tls = data.get("tls", {})
+    if not isinstance(tls, dict) or (tls and not isinstance(tls.get("dir"), str)):
+        raise ConfigError(f"{path}: [tls] needs dir = \"PKI directory\"")
+    tls_dir = tls.get("dir")
     services_table = data.get("services")
     if not isinstance(services_table, dict) or not services_table:
         raise ConfigError(f"{path}: no [services.NAME] tables")
@@ -112,14 +131,16 @@ def load_config(path: str | Path) -> YardConfig:
             raise ConfigError(f"{path}: services.{name} must be a table")
         options = dict(options)
         service = options.pop("service", name)
+        tls_name = str(options.pop("tls_name", name))
         if service not in SERVICE_MODULES:
             raise ConfigError(f"{path}: services.{name}: unknown service {service!r} "
                               f"(known: {', '.join(SERVICE_MODULES)})")
-        entries.append(ServiceEntry(name, service, options))
+        entries.append(ServiceEntry(name, service, options, tls_name))
     entries.sort(key=lambda e: START_ORDER.index(e.service) if e.service in START_ORDER
                  else len(START_ORDER))
     return YardConfig(site, zenoh_argv, router_listen, entries,
-                      float(data.get("restart_delay_s", 2.0)))
+                      float(data.get("restart_delay_s", 2.0)), tls_dir,
+                      str(router.get("tls_name", "router")))
 
 
 def _as_list(value: Any, where: str) -> list[str]:
@@ -151,7 +172,7 @@ def check_arguments(config: YardConfig) -> None:
     parser = _QuietParser(prog="stockpile", add_help=False)
     service_cli.register(parser.add_subparsers(dest="command", required=True))
     for entry in config.services:
-        argv = entry.argv(config.site, config.zenoh_argv)
+        argv = entry.argv(config.site, config.zenoh_argv, config.tls_dir)
         try:
             parser.parse_args(argv)
         except _Refused as exc:
@@ -160,19 +181,34 @@ def check_arguments(config: YardConfig) -> None:
             raise ConfigError(f"services.{entry.name}: bad options {entry.options}") from None
 
 
+def router_options(config: YardConfig) -> tuple[ZenohOptions, Any]:
+    """The supervisor's router: its options, and with ``[tls]`` its config with the access
+    control generated from the PKI's index (else None: the options alone)."""
+    if not config.tls_dir:
+        return ZenohOptions(mode="router", listen=tuple(config.router_listen)), None
+    options = ZenohOptions(mode="router", listen=tuple(config.router_listen),
+                           tls_dir=config.tls_dir, tls_name=config.router_tls_name)
+    zconfig = options.to_config()
+    zconfig.insert_json5("access_control", json.dumps(
+        access_control(config.site, load_members(config.tls_dir))))
+    return options, zconfig
+
+
 def run(config: YardConfig, *, stopper: Stopper | None = None) -> int:
     stopper = stopper or Stopper()
     router = None
     if config.router_listen:
-        router = open_session(ZenohOptions(mode="router", listen=tuple(config.router_listen)))
-        log("run", "router", listen=",".join(config.router_listen))
+        router = open_session(*router_options(config))
+        log("run", "router", listen=",".join(config.router_listen),
+            tls=bool(config.tls_dir))
     children: dict[str, subprocess.Popen] = {}
     delays = {e.name: config.restart_delay_s for e in config.services}
     next_start = {e.name: 0.0 for e in config.services}
     lock = threading.Lock()
 
     def start(entry: ServiceEntry) -> None:
-        argv = [sys.executable, "-m", "stockpile.cli", *entry.argv(config.site, config.zenoh_argv)]
+        argv = [sys.executable, "-m", "stockpile.cli",
+                *entry.argv(config.site, config.zenoh_argv, config.tls_dir)]
         children[entry.name] = subprocess.Popen(argv)
         log("run", "started", name=entry.name, kind=entry.service,
             pid=children[entry.name].pid)
@@ -221,7 +257,8 @@ def cmd_run(args: argparse.Namespace) -> int:
         raise ValueError(str(exc)) from None
     if args.check:
         for entry in config.services:
-            print(" ".join(["stockpile", *entry.argv(config.site, config.zenoh_argv)]))
+            print(" ".join(["stockpile", *entry.argv(config.site, config.zenoh_argv,
+                                                     config.tls_dir)]))
         return 0
     return run(config)
 

@@ -303,20 +303,32 @@ def _wait_done(sim, timeout_s: float, every_s: float = 15.0) -> str:
             _say(f"   {shown}")
 
 
-def _start_services(yard: Supervisor, ledger_path: Path, site: str, record: Path | None,
-                    common: list[str]) -> None:
+#: the process demo's children: certificate name -> role (also the event source they
+#: publish under, for the publishing roles)
+DEMO_MEMBERS = {"ledger": "ledger", "recorder": "recorder", f"{MACHINE}.localizer": "localizer",
+                "sim": "replay", f"{MACHINE}.scanner": "scanner", f"{MACHINE}.gnss": "gnss"}
+
+
+def _common(yard: Supervisor, site: str, name: str) -> list[str]:
+    """Options every service child of the demo takes: site, status period, its link."""
+    return ["--site", site, "--status-period", "5", *yard.client_args_for(name)]
+
+
+def _start_services(yard: Supervisor, ledger_path: Path, site: str, record: Path | None) -> None:
     """Start the ledger, the recorder (when ``record`` is given) and the localizer."""
     yard.start("ledger", ["service", "ledger", "--ledger", str(ledger_path), "--clock", "events",
-                          *common])
+                          *_common(yard, site, "ledger")])
     yard.wait_live("ledger")
     if record is not None:
         yard.start("recorder", ["service", "recorder", "--out", str(record), "--clock", "events",
-                                "--site", site, "--status-period", "1", *yard.client_args])
+                                "--site", site, "--status-period", "1",
+                                *yard.client_args_for("recorder")])
         yard.wait_live("recorder")
-    yard.start("localizer", ["service", "localizer", "--machine", MACHINE, *common])
+    yard.start("localizer", ["service", "localizer", "--machine", MACHINE,
+                             *_common(yard, site, f"{MACHINE}.localizer")])
 
 
-def _start_sim_and_sensors(yard: Supervisor, sim_dir: Path, common: list[str], *, site: str,
+def _start_sim_and_sensors(yard: Supervisor, sim_dir: Path, *, site: str,
                            scenario: str, seed: int, speed: float, idle_speed: float,
                            duration_h: float | None):
     """Start the simulator on pseudo-terminals and the scanner and GNSS services on its ports."""
@@ -325,16 +337,17 @@ def _start_sim_and_sensors(yard: Supervisor, sim_dir: Path, common: list[str], *
                 "--pty", "--zenoh", "--speed", str(speed), "--idle-speed", str(idle_speed),
                 "--wait-subscriber", "60", "--linger", "600",
                 "--wait-live", f"{live}/scanner/**", "--wait-live", f"{live}/gnss/**",
-                "--wait-live", f"{live}/localizer/**", *yard.client_args]
+                "--wait-live", f"{live}/localizer/**", *yard.client_args_for("sim")]
     if duration_h is not None:
         sim_args += ["--duration", f"{duration_h * 3600:g}s"]
     sim = yard.start("sim", sim_args)
     scanner_path = sim.wait_stdout(lambda l: l.startswith("LMS200 scanner on"), 60).split()[-1]
     gnss_path = sim.wait_stdout(lambda l: l.startswith("GNSS receiver"), 60).split()[-1]
     yard.start("scanner", ["service", "scanner", "--device", scanner_path, "--clock", "events",
-                           "--source", f"{MACHINE}.scanner", *common])
+                           "--source", f"{MACHINE}.scanner",
+                           *_common(yard, site, f"{MACHINE}.scanner")])
     yard.start("gnss", ["service", "gnss", "--device", gnss_path, "--clock", "events",
-                        "--source", f"{MACHINE}.gnss", *common])
+                        "--source", f"{MACHINE}.gnss", *_common(yard, site, f"{MACHINE}.gnss")])
     _say(f"   scanner on {scanner_path}, GNSS on {gnss_path}; simulating at {speed:g}x "
          f"({idle_speed:g}x while the yard waits for assays) ...")
     return sim
@@ -457,8 +470,12 @@ def _say_localizer(rmse: dict[str, float], timing: dict[str, float], speed: floa
 
 def run_yard_demo(out_dir: Path, *, seed: int = 1, speed: float = 40.0, idle_speed: float = 2000.0,
                   duration_h: float | None = None, scenario: str = "demo",
-                  site: str = SITE_OF_SCENARIO, record: Path | None = None) -> int:
+                  site: str = SITE_OF_SCENARIO, record: Path | None = None,
+                  insecure: bool = False) -> int:
     """Run the yard end to end; print the summary; return 0 when every check holds.
+
+    The links are mutual TLS with the access control of each child's role, on a
+    throw-away PKI in ``<out>/pki`` (plain TCP on loopback with ``insecure``).
 
     ``record`` (off by default) also runs ``stockpile service recorder`` writing the
     site's events to that MCAP file (site-clock log times); it is stopped once it holds
@@ -470,12 +487,13 @@ def run_yard_demo(out_dir: Path, *, seed: int = 1, speed: float = 40.0, idle_spe
 
     ledger_path = fresh_ledger_path(out_dir / "ledger.duckdb")
     sim_dir = out_dir / "sim"
-    with Supervisor(out_dir, site=site) as yard:
-        _say(f"== the yard as processes: zenoh router on {yard.endpoint} (loopback, scouting off); "
-             f"logs in {yard.logs}")
-        common = ["--site", site, "--status-period", "5", *yard.client_args]
-        _start_services(yard, ledger_path, site, record, common)
-        sim = _start_sim_and_sensors(yard, sim_dir, common, site=site, scenario=scenario,
+    members = {} if insecure else DEMO_MEMBERS
+    with Supervisor(out_dir, site=site, members=members) as yard:
+        link = "plain TCP" if insecure else f"mutual TLS, access by role, PKI in {yard.pki}"
+        _say(f"== the yard as processes: zenoh router on {yard.endpoint} (loopback, scouting "
+             f"off, {link}); logs in {yard.logs}")
+        _start_services(yard, ledger_path, site, record)
+        sim = _start_sim_and_sensors(yard, sim_dir, site=site, scenario=scenario,
                                      seed=seed, speed=speed, idle_speed=idle_speed,
                                      duration_h=duration_h)
         pacing, sim_max_lag_s = _wait_sim_end(sim)

@@ -34,8 +34,11 @@ def test_the_example_config_checks_and_names_every_service_ledger_first():
     assert done.returncode == 0, done.stderr
     commands = done.stdout.splitlines()
     assert [c.split()[2] for c in commands] == ["ledger", "localizer", "scanner", "gnss"]
-    assert all("--site capelambert" in c and "--connect tcp/127.0.0.1:7447" in c
-               for c in commands)
+    assert all("--site capelambert" in c and "--connect tls/127.0.0.1:7447" in c
+               and "--tls-dir /srv/stockpile/pki" in c for c in commands)
+    names = {c.split()[2]: c.split()[c.split().index("--tls-name") + 1] for c in commands}
+    assert names == {"ledger": "ledger", "localizer": "bwr1.localizer",
+                     "scanner": "bwr1.scanner", "gnss": "bwr1.gnss"}
     scanner = next(c for c in commands if c.split()[2] == "scanner")
     assert "--device /dev/ttyUSB0" in scanner and "--baud 500000" in scanner
     assert "--send-start" in scanner.split()
@@ -80,8 +83,19 @@ def test_load_config_keeps_instance_names_and_orders_the_ledger_first(tmp_path):
         raise AssertionError("a non-string endpoint was accepted")
 
 
+def _pki(*args: str) -> None:
+    done = _run("pki", *args)
+    assert done.returncode == 0, done.stderr
+
+
 def test_a_supervised_yard_restarts_a_killed_service_and_stops_cleanly(tmp_path):
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    """Over mutual TLS with the access control generated from the site PKI."""
+    pki = tmp_path / "pki"
+    _pki("init", "--site", "testyard", "--out", str(pki))
+    for role, name in (("router", "router"), ("ledger", "ledger"),
+                       ("localizer", "bwr1.localizer"), ("auditor", "watch1")):
+        _pki("issue", "--ca", str(pki), "--role", role, "--name", name)
+    endpoint = f"tls/127.0.0.1:{free_port()}"
     ledger_path = tmp_path / "ledger.duckdb"
     config = tmp_path / "yard.toml"
     config.write_text(f"""
@@ -90,6 +104,8 @@ restart_delay_s = 0.2
 [zenoh]
 mode = "client"
 connect = ["{endpoint}"]
+[tls]
+dir = "{pki}"
 [router]
 listen = ["{endpoint}"]
 [services.ledger]
@@ -97,13 +113,15 @@ ledger = "{ledger_path}"
 clock = "wall"
 [services.localizer]
 machine = "bwr1"
+tls_name = "bwr1.localizer"
 """)
     log = tmp_path / "run.log"
     process = stockpile("run", "--config", str(config), stderr_path=log)
     try:
         wait_until(lambda: any(r.get("msg") == "router" for r in log_lines(log)), 60,
                    "the supervisor's router")
-        session = zenoh.open(ZenohOptions(mode="client", connect=(endpoint,)).to_config())
+        session = zenoh.open(ZenohOptions(mode="client", connect=(endpoint,), tls_dir=str(pki),
+                                          tls_name="watch1").to_config())
         try:
             wait_liveliness(session, "stockpile/testyard/@live/ledger/**", 60)
             wait_liveliness(session, "stockpile/testyard/@live/localizer/**", 60)

@@ -173,7 +173,9 @@ def test_the_generated_acl_denies_by_default_and_drops_revoked_names():
         [f"stockpile/{SITE}/@v1/assay/lab1", f"stockpile/{SITE}/@v1/lot_declared/lab1"]]
     auditor_ingress = {m for r in acl["rules"] if r["id"].startswith("audit1:")
                        and r["flows"] == ["ingress"] for m in r["messages"]}
-    assert auditor_ingress == {"query", "declare_subscriber"}   # reads only
+    # reads only: the ledger's queries and head, and which services are live
+    assert auditor_ingress == {"query", "declare_subscriber", "declare_liveliness_subscriber",
+                               "liveliness_query"}
     assert all(r["permission"] == "allow" for r in acl["rules"])
     with pytest.raises(ValueError, match="unknown role 'boss'"):
         access_control(SITE, {"x": "boss"})
