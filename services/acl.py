@@ -74,7 +74,9 @@ def _publisher(types: tuple[str, ...]) -> list[Grant]:
     own_adv = tuple(EVENT_ADV.replace("{type}", t) for t in types)
     return [
         Grant(("put",), ("ingress",), own),
-        Grant(("declare_queryable", "liveliness_token", "reply"), ("ingress",), own_adv),
+        Grant(("declare_queryable", "liveliness_token"), ("ingress",), own_adv),
+        # a cache answers a history query with the samples' own keys
+        Grant(("reply",), ("ingress",), own + own_adv),
         Grant(("query", "liveliness_token"), ("egress",), (ALL_ADV,)),
         Grant(("liveliness_query", "declare_liveliness_subscriber"), ("ingress",), (ALL_ADV,)),
         Grant(("declare_subscriber",), ("egress",), (ALL_EVENTS,)),
@@ -89,7 +91,8 @@ def _event_reader(keys: tuple[str, ...], adv: tuple[str, ...]) -> list[Grant]:
         Grant(("put",), ("egress",), keys),
         Grant(("query", "liveliness_query", "declare_liveliness_subscriber", "liveliness_token"),
               ("ingress",), adv),
-        Grant(("reply", "liveliness_token"), ("egress",), adv),
+        Grant(("liveliness_token",), ("egress",), adv),
+        Grant(("reply",), ("egress",), keys + adv),
     ]
 
 

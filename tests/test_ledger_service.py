@@ -20,6 +20,7 @@ from zenoh_helpers import (
     client_args,
     log_lines,
     open_router,
+    site_pki,
     stockpile,
     stop,
     wait_liveliness,
@@ -38,9 +39,11 @@ def _clock(t_ns: int) -> pb.Clock:
     return msg
 
 
-def _start_ledger(path: Path, endpoint: str, log: Path, *extra: str) -> subprocess.Popen:
+def _start_ledger(path: Path, endpoint: str, log: Path, *extra: str,
+                  pki: Path | None = None) -> subprocess.Popen:
     return stockpile("service", "ledger", "--ledger", str(path), "--site", SITE,
-                     "--status-period", "1", *client_args(endpoint), *extra, stderr_path=log)
+                     "--status-period", "1", *client_args(endpoint, pki, "ledger"), *extra,
+                     stderr_path=log)
 
 
 def test_ledger_service_appends_serves_reads_and_quarantines(tmp_path):
@@ -92,7 +95,8 @@ def test_ledger_service_appends_serves_reads_and_quarantines(tmp_path):
 
 
 def _start_loadgens(tmp_path: Path, endpoint: str, *, n: int, rate: float, duration_s: float,
-                    cache: int) -> tuple[list[subprocess.Popen], list[Path]]:
+                    cache: int, pki: Path | None = None
+                    ) -> tuple[list[subprocess.Popen], list[Path]]:
     procs, reports = [], []
     for i in range(n):
         report = tmp_path / f"load{i}.json"
@@ -101,7 +105,7 @@ def _start_loadgens(tmp_path: Path, endpoint: str, *, n: int, rate: float, durat
             [PYTHON, "-m", "services.loadgen", "--site", SITE, "--source", f"load{i}",
              "--rate", str(rate), "--duration", str(duration_s), "--cache", str(cache),
              "--linger", "300", "--wait-subscriber", "60", "--report", str(report),
-             "--seed", str(i), *client_args(endpoint)],
+             "--seed", str(i), *client_args(endpoint, pki, f"load{i}")],
             stderr=open(tmp_path / f"load{i}.log", "w"), stdout=subprocess.DEVNULL))
     return procs, reports
 
@@ -114,10 +118,13 @@ def test_sigkill_mid_run_loses_nothing_or_records_the_exact_gaps(tmp_path, cache
 
     With a publisher cache larger than the outage every event must end in the ledger
     exactly once; with a small cache the unrecoverable ones must be exactly the open
-    gaps, and nothing else may be missing.
+    gaps, and nothing else may be missing.  Over mutual TLS, with the access control
+    generated for the roles (the publishers are PLCs, each its own source).
     """
     n_pub, rate, duration_s = 4, 2000.0, 12.0
-    router, endpoint = open_router()
+    pki = site_pki(tmp_path / "pki", SITE,
+                   {"ledger": "ledger", **{f"load{i}": "plc" for i in range(n_pub)}})
+    router, endpoint = open_router(pki, SITE)
     seen: Counter[str] = Counter()
     lock = threading.Lock()
 
@@ -127,13 +134,14 @@ def test_sigkill_mid_run_loses_nothing_or_records_the_exact_gaps(tmp_path, cache
 
     watcher = router.declare_subscriber(f"stockpile/{SITE}/@v1/**", count)
     path = tmp_path / "ledger.duckdb"
-    ledger = _start_ledger(path, endpoint, tmp_path / "ledger1.log")
+    ledger = _start_ledger(path, endpoint, tmp_path / "ledger1.log", pki=pki)
     loadgens: list[subprocess.Popen] = []
     try:
         wait_liveliness(router, f"stockpile/{SITE}/@live/ledger/**", 30)
         client = LedgerClient(router, SITE, timeout_s=20)
         loadgens, reports = _start_loadgens(tmp_path, endpoint, n=n_pub, rate=rate,
-                                            duration_s=duration_s, cache=cache_samples)
+                                            duration_s=duration_s, cache=cache_samples,
+                                            pki=pki)
         # kill once the first ledger has committed a good part of the run
         client.wait_for(lambda h: h["global_seq"] >= 12_000, 90)
         ledger.kill()
@@ -143,7 +151,7 @@ def test_sigkill_mid_run_loses_nothing_or_records_the_exact_gaps(tmp_path, cache
         # an outage longer than the small cache: 3,000 more events per source
         wait_until(lambda: all(seen[f"load{i}"] >= at_kill.get(f"load{i}", 0) + 3_000
                                for i in range(n_pub)), 90, "3,000 events per source while down")
-        ledger = _start_ledger(path, endpoint, tmp_path / "ledger2.log")
+        ledger = _start_ledger(path, endpoint, tmp_path / "ledger2.log", pki=pki)
         wait_until(lambda: all(r.exists() for r in reports), 120, "the publishers' reports")
         published = {}
         for r in reports:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import signal
 import socket
@@ -24,7 +25,10 @@ from schemas.events import (
     make_event,
     set_timestamp_ns,
 )
+from security.pki import init_ca, issue
+from services.acl import access_control
 from services.ledger_service import query_key
+from services.router import load_members
 from services.service import ZenohOptions, parse_logfmt
 
 PYTHON = sys.executable
@@ -36,15 +40,36 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def open_router() -> tuple[zenoh.Session, str]:
-    """A router-mode session on a free loopback port (scouting off); returns (session, endpoint)."""
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-    session = zenoh.open(ZenohOptions(mode="router", listen=(endpoint,)).to_config())
-    return session, endpoint
+def site_pki(directory: Path, site: str, members: dict[str, str]) -> Path:
+    """A real site PKI in ``directory`` (``security.pki``): a CA, the router's certificate
+    and one per member (``{name: role}``); returns the directory."""
+    init_ca(site, directory)
+    for name, role in {"router": "router", **members}.items():
+        issue(directory, role, name)
+    return Path(directory)
 
 
-def client_args(endpoint: str) -> list[str]:
-    return ["--mode", "client", "--connect", endpoint]
+def open_router(pki: Path | None = None, site: str | None = None) -> tuple[zenoh.Session, str]:
+    """A router-mode session on a free loopback port (scouting off); returns (session, endpoint).
+
+    With ``pki`` (:func:`site_pki`): mutual TLS, and the access control generated for
+    the PKI's certificates on ``site`` (the router's own session is not subject to it).
+    """
+    if pki is None:
+        endpoint = f"tcp/127.0.0.1:{free_port()}"
+        return zenoh.open(ZenohOptions(mode="router", listen=(endpoint,)).to_config()), endpoint
+    endpoint = f"tls/127.0.0.1:{free_port()}"
+    config = ZenohOptions(mode="router", listen=(endpoint,), tls_dir=str(pki),
+                          tls_name="router").to_config()
+    config.insert_json5("access_control", json.dumps(access_control(site, load_members(pki))))
+    return zenoh.open(config), endpoint
+
+
+def client_args(endpoint: str, pki: Path | None = None, name: str | None = None) -> list[str]:
+    """A child's Zenoh options: a client of ``endpoint``, with certificate ``name`` of
+    ``pki`` when given."""
+    tls = ["--tls-dir", str(pki), "--tls-name", name] if pki is not None else []
+    return ["--mode", "client", "--connect", endpoint, *tls]
 
 
 def stockpile(*args: str, stderr_path: Path | None = None, stdout_path: Path | None = None,
