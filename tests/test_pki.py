@@ -385,3 +385,41 @@ def test_zenoh_mutual_tls_accepts_the_site_certificates_only(tmp_path):
             foreign.close()
     finally:
         router.close()
+
+
+def test_revoke_by_name_or_by_serial_only(tmp_path):
+    ca_dir = tmp_path / "ca"
+    pki.init_ca("yard", ca_dir)
+    first = pki.issue(ca_dir, "lab", "lab-1")
+    second = pki.issue(ca_dir, "lab", "lab-1", force=True)          # a rotation
+    with pytest.raises(ValueError, match="not a serial"):
+        pki.revoke(ca_dir, "lab-1", by="serial")
+    with pytest.raises(ValueError, match="no certificate"):
+        pki.revoke(ca_dir, first.serial, by="name")
+    both = pki.revoke(ca_dir, "lab-1", "cessation-of-operation", by="name")
+    assert {e["serial"] for e in both.revoked} == {first.serial, second.serial}
+    crl = pki.load_crl(ca_dir / "crl.pem")
+    assert pki.is_revoked(crl, first.serial) and pki.is_revoked(crl, second.cert_path)
+    assert both.crl_number == 1 and pki.read_index(ca_dir).crl_number == 1
+
+
+def test_concurrent_issues_lose_no_index_entry(tmp_path):
+    import threading
+    ca_dir = tmp_path / "ca"
+    pki.init_ca("yard", ca_dir)
+    errors: list[BaseException] = []
+
+    def one(i: int) -> None:
+        try:
+            pki.issue(ca_dir, "scanner", f"scanner-{i}")
+        except BaseException as exc:     # pragma: no cover - reported below
+            errors.append(exc)
+
+    threads = [threading.Thread(target=one, args=(i,)) for i in range(8)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert not errors
+    assert sorted(e["name"] for e in pki.read_index(ca_dir).certificates) == sorted(
+        f"scanner-{i}" for i in range(8))
