@@ -34,7 +34,8 @@ def _cmd_issue(args: argparse.Namespace) -> int:
 
 
 def _cmd_revoke(args: argparse.Namespace) -> int:
-    result = pki.revoke(args.ca, args.name or args.serial, args.reason)
+    by = "name" if args.name is not None else "serial"
+    result = pki.revoke(args.ca, args.name if by == "name" else args.serial, args.reason, by=by)
     which = ", ".join(f"{e['name']} (serial {e['serial']})" for e in result.revoked)
     print(f"revoked {which}, reason {result.reason}: wrote {result.crl_path} "
           f"(CRL number {result.crl_number}), {result.index_path}")

@@ -19,6 +19,7 @@ Layout of the CA directory (``init_ca``; ``issue`` writes there unless given ``o
     ca.key        the site CA's private key (0600; keep it on the CA machine)
     crl.pem       the certificate revocation list, signed by the CA (public)
     index.json    every certificate issued: name, role, serial, validity, revocation
+    .lock         held while ``issue`` or ``revoke`` rewrites the index
     NAME.pem      the certificate issued to NAME
     NAME.key      NAME's private key (0600)
 
@@ -30,14 +31,16 @@ DIR instead: a directory a service is given as its TLS directory (``ca.pem``,
 
 from __future__ import annotations
 
+import contextlib
 import datetime as dt
+import fcntl
 import ipaddress
 import json
 import os
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterable, Sequence
+from typing import Iterable, Iterator, Sequence
 
 from cryptography import x509
 from cryptography.exceptions import InvalidSignature
@@ -59,6 +62,8 @@ CA_CERT = "ca.pem"
 CA_KEY = "ca.key"
 CRL = "crl.pem"
 INDEX = "index.json"
+#: the lock ``issue`` and ``revoke`` hold while they read and rewrite the index
+LOCK = ".lock"
 
 #: file names of the CA directory, which an issued name may not take
 RESERVED_NAMES = frozenset({"ca", "crl", "index"})
@@ -230,7 +235,11 @@ def _write_private(path: Path, data: bytes, *, force: bool) -> None:
     with ``force`` a temporary file (also created 0600) replaces the old one."""
     if not force:
         fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, _PRIVATE_MODE)
-        _write_fd(fd, data)
+        try:
+            _write_fd(fd, data)
+        except BaseException:
+            path.unlink(missing_ok=True)     # no half-written key left to refuse later
+            raise
         return
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, _PRIVATE_MODE)
@@ -288,6 +297,18 @@ def _read_cert(path: Path) -> x509.Certificate:
         raise FileNotFoundError(f"no certificate at {path}") from None
     except ValueError as exc:
         raise ValueError(f"{path} is not a PEM certificate ({exc})") from None
+
+
+@contextlib.contextmanager
+def _locked(ca_dir: Path) -> Iterator[None]:
+    """Hold the CA directory's lock (an exclusive ``flock`` on ``.lock``): two ``issue``
+    or ``revoke`` runs at once do not lose each other's index entries."""
+    fd = os.open(Path(ca_dir) / LOCK, os.O_RDWR | os.O_CREAT, _PUBLIC_MODE)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        yield
+    finally:
+        os.close(fd)
 
 
 def _load_ca(ca_dir: Path) -> tuple[x509.Certificate, ec.EllipticCurvePrivateKey, Index]:
@@ -410,6 +431,7 @@ def init_ca(site: str, out_dir: Path | str, *, valid_days: int = DEFAULT_CA_VALI
     _write_public(out / CA_CERT, _cert_pem(cert))
     _write_public(out / CRL, _sign_crl(cert, key, index, now))
     _write_index(out, index)
+    (out / LOCK).touch(mode=_PUBLIC_MODE, exist_ok=True)
     return CaResult(site=site, ca_dir=out, cert_path=out / CA_CERT, key_path=out / CA_KEY,
                     crl_path=out / CRL, index_path=out / INDEX, serial=serial,
                     not_after=cert.not_valid_after_utc)
@@ -444,8 +466,16 @@ def issue(ca_dir: Path | str, role: str, name: str, *, out_dir: Path | str | Non
     check_role(role)
     check_name(name)
     _check_valid_days(valid_days)
-    now = _utc_now(now)
     ca_dir = Path(ca_dir)
+    _load_ca(ca_dir)                     # a clear error before the lock file is made
+    with _locked(ca_dir):
+        return _issue_locked(ca_dir, role, name, out_dir=out_dir, valid_days=valid_days,
+                             sans=sans, force=force, now=_utc_now(now))
+
+
+def _issue_locked(ca_dir: Path, role: str, name: str, *, out_dir: Path | str | None,
+                  valid_days: int, sans: Sequence[str] | None, force: bool,
+                  now: dt.datetime) -> IssuedCertificate:
     ca_cert, ca_key, index = _load_ca(ca_dir)
     out = ca_dir if out_dir is None else Path(out_dir)
     separate = out.resolve() != ca_dir.resolve()
@@ -522,10 +552,11 @@ def issue(ca_dir: Path | str, role: str, name: str, *, out_dir: Path | str | Non
 
 
 def revoke(ca_dir: Path | str, name_or_serial: str, reason: str = "unspecified", *,
-           now: dt.datetime | None = None) -> Revocation:
+           by: str | None = None, now: dt.datetime | None = None) -> Revocation:
     """Revoke certificates of the CA in ``ca_dir``: by name, every certificate of that
-    name not yet revoked; by serial (hex), that one.  Re-signs ``crl.pem`` with all the
-    revoked serials and records the revocation in ``index.json``.
+    name not yet revoked; by serial (hex), that one (``by``: ``"name"`` or ``"serial"``
+    to take ``name_or_serial`` only as one; None: either).  Re-signs ``crl.pem`` with all
+    the revoked serials and records the revocation in ``index.json``.
 
     ValueError for an unknown name or serial, one already revoked, an unknown reason
     (:data:`REVOCATION_REASONS`), or text that is both a name and another certificate's
@@ -534,14 +565,28 @@ def revoke(ca_dir: Path | str, name_or_serial: str, reason: str = "unspecified",
     if reason not in REVOCATION_REASONS:
         raise ValueError(f"unknown reason {reason!r}: choose from "
                          f"{', '.join(REVOCATION_REASONS)}")
-    now = _utc_now(now)
+    if by not in (None, "name", "serial"):
+        raise ValueError(f"by must be 'name', 'serial' or None, got {by!r}")
     ca_dir = Path(ca_dir)
+    _load_ca(ca_dir)                     # a clear error before the lock file is made
+    with _locked(ca_dir):
+        return _revoke_locked(ca_dir, name_or_serial, reason, by=by, now=_utc_now(now))
+
+
+def _revoke_locked(ca_dir: Path, name_or_serial: str, reason: str, *, by: str | None,
+                   now: dt.datetime) -> Revocation:
     ca_cert, ca_key, index = _load_ca(ca_dir)
-    by_name = [e for e in index.certificates if e["name"] == name_or_serial]
-    try:
-        wanted = parse_serial(name_or_serial)
-    except ValueError:
+    by_name = [e for e in index.certificates
+               if by != "serial" and e["name"] == name_or_serial]
+    if by == "serial":
+        wanted: int | None = parse_serial(name_or_serial)
+    elif by == "name":
         wanted = None
+    else:
+        try:
+            wanted = parse_serial(name_or_serial)
+        except ValueError:
+            wanted = None
     by_serial = [e for e in index.certificates
                  if wanted is not None and parse_serial(e["serial"]) == wanted]
     if by_name and by_serial and by_serial[0] not in by_name:
