@@ -185,9 +185,11 @@ def members_from_index(entries: Iterable[Mapping]) -> dict[str, str]:
     """``{name: role}`` of the certificate names in a PKI index.
 
     The ACL matches a certificate's common name, not its serial, and Zenoh checks no
-    revocation list: so a name with any revoked certificate gets no rights at all (a
-    replacement is issued under a new name).
+    revocation list.  So a name with a certificate revoked for any reason but
+    ``superseded`` (a rotation: the old key was replaced, not lost) gets no rights at all;
+    its replacement is issued under a new name.
     """
     entries = list(entries)
-    revoked = {str(e["name"]) for e in entries if e.get("revoked")}
-    return {str(e["name"]): str(e["role"]) for e in entries if str(e["name"]) not in revoked}
+    denied = {str(e["name"]) for e in entries
+              if e.get("revoked") and e.get("revocation_reason") != "superseded"}
+    return {str(e["name"]): str(e["role"]) for e in entries if str(e["name"]) not in denied}

@@ -159,8 +159,11 @@ def test_the_generated_acl_denies_by_default_and_drops_revoked_names():
     members = members_from_index([
         {"name": "lab1", "role": "lab", "revoked": False},
         {"name": "scan1", "role": "scanner", "revoked": False},
-        {"name": "scan1", "role": "scanner", "revoked": True},   # one revoked: no rights
+        {"name": "scan1", "role": "scanner", "revoked": True,        # compromised: no rights
+         "revocation_reason": "key-compromise"},
         {"name": "audit1", "role": "auditor"},
+        {"name": "audit1", "role": "auditor", "revoked": True,       # rotated: name kept
+         "revocation_reason": "superseded"},
     ])
     assert members == {"lab1": "lab", "audit1": "auditor"}
     acl = access_control(SITE, members)
