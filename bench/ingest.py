@@ -44,7 +44,7 @@ def _loadgen(yard: Supervisor, name: str, source: str, *, type_name: str, rate: 
     argv = [sys.executable, "-m", "services.loadgen", "--site", SITE, "--source", source,
             "--type", type_name, "--rate", str(rate), "--duration", str(duration_s),
             "--report", str(report), "--wait-subscriber", "60", "--linger", "120",
-            "--stamp-every", str(stamp_every), *yard.client_args]
+            "--stamp-every", str(stamp_every), *yard.client_args_for(source)]
     return subprocess.Popen(argv, stdout=subprocess.DEVNULL,
                             stderr=open(yard.logs / f"{name}.log", "w"))
 
@@ -84,10 +84,17 @@ class HeadWatch:
         self.sub.undeclare()
 
 
-def sustained_scans(rate_total: float, duration_s: float, publishers: int) -> dict:
-    with tempfile.TemporaryDirectory() as tmp, Supervisor(Path(tmp), site=SITE, quiet=True) as yard:
+def sustained_scans(rate_total: float, duration_s: float, publishers: int, *,
+                    tls: bool = False) -> dict:
+    """With ``tls``: mutual TLS and the generated access control (scanner certificates
+    named as the sources, a ledger certificate), else plain TCP on loopback."""
+    members = ({"ledger": "ledger", **{f"scan{i}": "scanner" for i in range(publishers)}}
+               if tls else None)
+    with tempfile.TemporaryDirectory() as tmp, \
+            Supervisor(Path(tmp), site=SITE, quiet=True, members=members) as yard:
         yard.start("ledger", ["service", "ledger", "--ledger", f"{tmp}/ledger.duckdb",
-                              "--site", SITE, "--status-period", "0", *yard.client_args])
+                              "--site", SITE, "--status-period", "0",
+                              *yard.client_args_for("ledger")])
         yard.wait_live("ledger")
         client = LedgerClient(yard.session, SITE, timeout_s=60)
         watch = HeadWatch(client)
@@ -118,7 +125,7 @@ def sustained_scans(rate_total: float, duration_s: float, publishers: int) -> di
 def latency(rate: float, duration_s: float) -> dict:
     with tempfile.TemporaryDirectory() as tmp, Supervisor(Path(tmp), site=SITE, quiet=True) as yard:
         yard.start("ledger", ["service", "ledger", "--ledger", f"{tmp}/ledger.duckdb",
-                              "--site", SITE, "--status-period", "0", *yard.client_args])
+                              "--site", SITE, "--status-period", "0", *yard.client_args_for("ledger")])
         yard.wait_live("ledger")
         client = LedgerClient(yard.session, SITE, timeout_s=60)
         watch = HeadWatch(client)
@@ -212,6 +219,17 @@ def main() -> int:
     bare = bare_zenoh(20_000 if args.quick else 60_000, 3_300)
     print(f"received {bare['received']:,}: {bare['rate']:,.0f} msgs/s; "
           f"ours (best lossless sustained) {best:,.0f}/s = {best / bare['rate']:.2f}x of bare zenoh")
+    print("\n4. Mutual TLS with access control vs plain TCP, same offered load, same run")
+    print("link | offered/s | published | ledgered | gaps | sustained/s")
+    pair = {}
+    for tls in (False, True):
+        r = sustained_scans(5_000, duration, publishers=2, tls=tls)
+        pair[tls] = r
+        print(f"{'mTLS+ACL' if tls else 'plain TCP':<9} | {5_000:>9,} | {r['published']:>9,} | "
+              f"{r['ledgered']:>8,} | {r['gaps']:>4} | {r['sustained']:>11,.0f}"
+              + ("" if r["ledgered"] == r["published"] and r["gaps"] == 0 else "  LOSS"),
+              flush=True)
+    print(f"mTLS / plain sustained: {pair[True]['sustained'] / pair[False]['sustained']:.2f}")
     print("\nTargets: sustained >= 5,000 scans/s: "
           f"{best:,.0f} {'PASS' if best >= 5000 else 'MISS'}; p99 <= 250 ms at 1,000/s: "
           f"{lat['p99_ms']:.0f} ms {'PASS' if lat['p99_ms'] <= 250 else 'MISS'}")

@@ -43,11 +43,13 @@ from __future__ import annotations
 
 import argparse
 import os
+import threading
 from dataclasses import dataclass, field
 from typing import Any, Callable, Sequence
 
 import zenoh
 
+from security.pki import expiry_warning
 from services.inbox import Inbox
 from services.logfmt import log, parse_logfmt
 from services.publishing import EventPublisher, declare_ledger_publisher
@@ -61,6 +63,9 @@ __all__ = [
     "SiteTime", "StatusReporter", "Stopper", "ZenohOptions", "add_service_arguments",
     "declare_ledger_publisher", "log", "parse_logfmt",
 ]
+
+#: how often a running service re-checks its certificate's expiry, seconds (12 h)
+CERT_CHECK_PERIOD_S = 12 * 3600.0
 
 #: the site id when ``--site`` is not given
 DEFAULT_SITE = "demo"
@@ -122,9 +127,27 @@ class ServiceRuntime:
                                      rate_of=rate_of, backlog=backlog, error_keys=error_keys)
         self.log("started", site=self.site, pid=os.getpid(), zid=str(self.session.zid()))
         self.status.start()
+        if self.zenoh_options.certificate is not None:
+            threading.Thread(target=self._watch_certificate, name="certificate-expiry",
+                             daemon=True).start()
         if announce:
             self.announce()
         return self
+
+    def _watch_certificate(self) -> None:
+        """Warn when this process's certificate is within ``--cert-warn`` of expiring:
+        at start, then twice a day."""
+        path = self.zenoh_options.certificate
+        assert path is not None and self.stopper is not None
+        while True:
+            try:
+                warning = expiry_warning(path, self.zenoh_options.cert_warn_s)
+            except (OSError, ValueError) as exc:
+                warning = f"cannot read the certificate {path}: {exc}"
+            if warning:
+                self.log("certificate", level="warning", problem=warning)
+            if self.stopper.event.wait(CERT_CHECK_PERIOD_S):
+                return
 
     @property
     def token_key(self) -> str:

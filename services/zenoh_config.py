@@ -29,7 +29,11 @@ from typing import Sequence
 
 import zenoh
 
+from common.options import add_duration
+
 DEFAULT_LISTEN = "tcp/127.0.0.1:7447"
+#: how long before its certificate expires a process starts warning, seconds (30 days)
+DEFAULT_CERT_WARN_S = 30 * 86_400.0
 #: link protocols that carry data in the clear
 PLAIN_PROTOCOLS = frozenset({"tcp", "udp", "ws", "unixsock-stream", "unixpipe"})
 
@@ -59,6 +63,9 @@ def add_zenoh_arguments(parser: argparse.ArgumentParser, *, listen_default: str 
                        "certificate (default $STOCKPILE_TLS_DIR)")
     group.add_argument("--tls-name", metavar="NAME", default=os.environ.get("STOCKPILE_TLS_NAME"),
                        help="the certificate name in --tls-dir (default $STOCKPILE_TLS_NAME)")
+    add_duration(group, "--cert-warn", default=DEFAULT_CERT_WARN_S,
+                 help="log a warning this long before this process's certificate expires, "
+                 "with a unit, wall time (default 30d)")
     group.add_argument("--insecure", action="store_true",
                        help="allow plain TCP endpoints beyond loopback (no encryption, no "
                        "authentication)")
@@ -77,6 +84,14 @@ class ZenohOptions:
     tls_dir: str | None = None
     tls_name: str | None = None
     insecure: bool = False
+    cert_warn_s: float = DEFAULT_CERT_WARN_S
+
+    @property
+    def certificate(self) -> Path | None:
+        """This process's certificate file (with TLS), else None."""
+        if self.tls_dir and self.tls_name:
+            return Path(self.tls_dir) / f"{self.tls_name}.pem"
+        return None
 
     @classmethod
     def from_args(cls, args: argparse.Namespace) -> ZenohOptions:
@@ -84,7 +99,8 @@ class ZenohOptions:
                    listen=tuple(args.listen or ()), config_file=args.zenoh_config,
                    scouting=bool(args.scouting), tls_dir=getattr(args, "tls_dir", None),
                    tls_name=getattr(args, "tls_name", None),
-                   insecure=bool(getattr(args, "insecure", False)))
+                   insecure=bool(getattr(args, "insecure", False)),
+                   cert_warn_s=float(getattr(args, "cert_warn", None) or DEFAULT_CERT_WARN_S))
 
     def to_config(self) -> zenoh.Config:
         """A ``zenoh.Config`` from these options; :class:`InsecureEndpoint` when they
@@ -110,6 +126,8 @@ class ZenohOptions:
             argv += ["--tls-name", self.tls_name]
         if self.insecure:
             argv.append("--insecure")
+        if self.cert_warn_s != DEFAULT_CERT_WARN_S:
+            argv += ["--cert-warn", f"{self.cert_warn_s:g}s"]
         return argv
 
 

@@ -182,3 +182,22 @@ def test_the_generated_acl_denies_by_default_and_drops_revoked_names():
     assert all(r["permission"] == "allow" for r in acl["rules"])
     with pytest.raises(ValueError, match="unknown role 'boss'"):
         access_control(SITE, {"x": "boss"})
+
+
+def test_a_service_warns_before_its_certificate_expires(tmp_path):
+    pki = tmp_path / "pki"
+    _pki("init", "--site", SITE, "--out", str(pki))
+    _pki("issue", "--ca", str(pki), "--role", "router", "--name", "router", "--valid-days", "1")
+    log = tmp_path / "router.log"
+    router = stockpile("service", "router", "--site", SITE, "--listen",
+                       f"tls/127.0.0.1:{free_port()}", "--tls-dir", str(pki), "--tls-name",
+                       "router", "--cert-warn", "2d", stderr_path=log)
+    try:
+        wait_until(lambda: any(l.get("msg") == "certificate" for l in log_lines(log)), 30,
+                   "the certificate warning")
+    finally:
+        assert stop(router) == 0
+    (line,) = [l for l in log_lines(log) if l.get("msg") == "certificate"]
+    assert line["level"] == "warning"
+    assert line["problem"].startswith(f"certificate router ({pki / 'router.pem'}) expires in")
+    assert "BEGIN" not in log.read_text()   # no key or certificate material in the log
