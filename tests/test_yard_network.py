@@ -27,6 +27,7 @@ from zenoh_helpers import PYTHON, free_port, log_lines, stockpile, stop, wait_un
 
 SITE = "yard"
 T0_NS = 1_790_000_000 * 1_000_000_000
+LAB_EPOCH = 7
 NAMES = {"router": "router", "ledger": "ledger", "lab1": "lab", "scan1": "scanner",
          "audit1": "auditor"}
 
@@ -107,7 +108,10 @@ def test_the_lab_appends_and_nobody_else_can(tmp_path):
     # the file, read directly once the service has stopped: the lab's result only
     with open_ledger(tmp_path / "yard.duckdb", read_only=True) as store:
         records = list(store.read())
-        assert [(r.type, r.source, r.epoch, r.seq) for r in records] == [("assay", "lab1", 7, 0)]
+        # the genuine result holds the lab's (epoch, seq 0); nothing was quarantined as a
+        # conflict with a forgery
+        assert [(r.type, r.source, r.epoch, r.seq) for r in records] == [
+            ("assay", "lab1", LAB_EPOCH, 0)]
         msg = pb.Assay.FromString(records[0].payload)
         assert msg.assay_id == "AS-0001" and msg.analytes["Fe"] == 62.5
         assert store.quarantine() == [] and store.verify().ok
@@ -119,10 +123,12 @@ def _attempts(yard: dict) -> None:
     forged = _assay("AS-FORGED", 70.0).SerializeToString()
     assay_key = key_expr(SITE, "assay", "lab1")
 
-    # a scanner's certificate: its put on the lab's key is refused by the router, and it
-    # cannot read the ledger either
+    # the sequence hijack: a scanner's certificate puts forged results on the lab's key
+    # with the lab's epoch and its next sequence numbers, ahead of the lab.  The router
+    # refuses them (and the scanner cannot read the ledger either)
     scanner = _client(endpoint, pki, "scan1")
-    scanner.put(assay_key, forged, attachment=encode_attachment(1, 0, T0_NS))
+    for seq in range(3):
+        scanner.put(assay_key, forged, attachment=encode_attachment(LAB_EPOCH, seq, T0_NS))
     wait_until(lambda: _refused(yard["router_log"], "scan1", "put", assay_key), 30,
                "the router to log the scanner's refused put")
     with pytest.raises(LedgerUnavailable):
@@ -130,7 +136,7 @@ def _attempts(yard: dict) -> None:
     assert _refused(yard["router_log"], "scan1", "query", f"stockpile/{SITE}/@ledger/q/head")
 
     # an auditor reads the ledger, and cannot publish
-    yard["auditor"].put(assay_key, forged, attachment=encode_attachment(1, 1, T0_NS))
+    yard["auditor"].put(assay_key, forged, attachment=encode_attachment(LAB_EPOCH, 0, T0_NS))
     wait_until(lambda: _refused(yard["router_log"], "audit1", "put", assay_key), 30,
                "the router to log the auditor's refused put")
 
@@ -143,7 +149,7 @@ def _attempts(yard: dict) -> None:
 
     # the lab's genuine result goes in
     lab = _client(endpoint, pki, "lab1")
-    publisher = EventPublisher(lab, SITE, "lab1", epoch=7)
+    publisher = EventPublisher(lab, SITE, "lab1", epoch=LAB_EPOCH)
     publisher.publish(_assay("AS-0001", 62.5))
     auditor.wait_for(lambda h: h["global_seq"] >= 0, 30)
     scanner.close()
