@@ -22,6 +22,7 @@ from ledger import open_ledger
 from ledger.clock import clock_by_name
 from ledger.records import STATUSES, LedgerStats
 from ledger.store import LedgerStore
+from ledger.checkpoint import check_checkpoint, latest_checkpoint, read_checkpoint
 from ledger.wire import stats_to_json
 from schemas.times import format_time_ns, parse_time_ns
 
@@ -174,16 +175,40 @@ def cmd_export(args: argparse.Namespace) -> int:
 
 
 def cmd_verify(args: argparse.Namespace) -> int:
+    checkpoint = _checkpoint_arg(args.checkpoint) if args.checkpoint else None
+    ca_pem = Path(args.ca).read_bytes() if args.ca else None
     with open_ledger(args.ledger, read_only=True) as store:
         report = store.verify()
         head = store.head()
+        found = check_checkpoint(store, checkpoint, ca_pem=ca_pem) if checkpoint else None
+    ok = report.ok
     if report.ok:
         print(f"ok: {report.rows_checked:,} rows verified, head global_seq {head.global_seq}, "
               f"chain {head.chain_sha256.hex()}")
-        return EXIT_OK
-    print(f"FAILED: first bad row global_seq {report.first_bad_seq}: {report.problem} "
-          f"({report.rows_checked:,} rows before it are intact)")
-    return EXIT_VERIFY_FAILED
+    else:
+        print(f"FAILED: first bad row global_seq {report.first_bad_seq}: {report.problem} "
+              f"({report.rows_checked:,} rows before it are intact)")
+    if found is not None:
+        signer = f" (signed by {found.signer})" if found.signer else " (unsigned)"
+        if found.ok:
+            print(f"ok: checkpoint{signer}: {found.detail}")
+        else:
+            print(f"FAILED: checkpoint {found.finding.upper()}{signer}: {found.detail}")
+            ok = False
+    return EXIT_OK if ok else EXIT_VERIFY_FAILED
+
+
+def _checkpoint_arg(path: str):
+    """A checkpoint file, or the latest one of a directory."""
+    target = Path(path)
+    if target.is_dir():
+        latest = latest_checkpoint(target)
+        if latest is None:
+            raise ValueError(f"no checkpoint files in {target}")
+        target = latest
+    elif not target.exists():
+        raise FileNotFoundError(f"no such checkpoint: {target}")
+    return read_checkpoint(target)
 
 
 def cmd_stats(args: argparse.Namespace) -> int:
@@ -223,9 +248,16 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.set_defaults(func=cmd_export)
 
     p = sub.add_parser("verify", help="recompute the hash chain and name the first bad row",
-                       description="Recompute payload hashes and the hash chain. Exit 1 if a "
-                       "row was changed.")
+                       description="Recompute payload hashes and the hash chain, and with "
+                       "--checkpoint prove the ledger still holds a checkpointed prefix (not "
+                       "truncated, not rewritten). Exit 1 if a check fails.")
     p.add_argument("--ledger", required=True, help="ledger file")
+    p.add_argument("--checkpoint", metavar="FILE|DIR",
+                   help="a checkpoint file the ledger service wrote, or a directory of them "
+                   "(the latest is used)")
+    p.add_argument("--ca", metavar="CA.pem",
+                   help="the site CA's certificate: the checkpoint must be signed by one of "
+                   "its certificates")
     p.set_defaults(func=cmd_verify)
 
     p = sub.add_parser("stats", help="counts per type and source, gaps, quarantine, time ranges",

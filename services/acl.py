@@ -57,6 +57,7 @@ ALL_EVENTS = "stockpile/{site}/@v1/**"
 ALL_ADV = "stockpile/{site}/@v1/**/@adv/**"
 LEDGER_Q = "stockpile/{site}/@ledger/q/*"
 LEDGER_HEAD = "stockpile/{site}/@ledger/head"
+LEDGER_CHECKPOINT = "stockpile/{site}/@ledger/checkpoint"
 LIVE_OF = "stockpile/{site}/@live/{service}/**"
 LIVE_ANY = "stockpile/{site}/@live/**"
 
@@ -101,8 +102,8 @@ def _ledger_reader() -> list[Grant]:
     return [
         Grant(("query",), ("ingress",), (LEDGER_Q,)),
         Grant(("reply",), ("egress",), (LEDGER_Q,)),
-        Grant(("declare_subscriber",), ("ingress",), (LEDGER_HEAD,)),
-        Grant(("put",), ("egress",), (LEDGER_HEAD,)),
+        Grant(("declare_subscriber",), ("ingress",), (LEDGER_HEAD, LEDGER_CHECKPOINT)),
+        Grant(("put",), ("egress",), (LEDGER_HEAD, LEDGER_CHECKPOINT)),
     ]
 
 
@@ -134,10 +135,12 @@ ROLE_GRANTS: dict[str, list[Grant]] = {
         Grant(("declare_queryable",), ("ingress",), (LEDGER_Q,)),
         Grant(("query",), ("egress",), (LEDGER_Q,)),
         Grant(("reply",), ("ingress",), (LEDGER_Q,)),
-        Grant(("put",), ("ingress",), (LEDGER_HEAD,)),
-        Grant(("declare_subscriber",), ("egress",), (LEDGER_HEAD,)),
+        Grant(("put",), ("ingress",), (LEDGER_HEAD, LEDGER_CHECKPOINT)),
+        Grant(("declare_subscriber",), ("egress",), (LEDGER_HEAD, LEDGER_CHECKPOINT)),
     ],
-    "recorder": _event_reader((ALL_EVENTS,), (ALL_ADV,)),
+    "recorder": _event_reader((ALL_EVENTS,), (ALL_ADV,)) + [
+        Grant(("declare_subscriber",), ("ingress",), (LEDGER_CHECKPOINT,)),
+        Grant(("put",), ("egress",), (LEDGER_CHECKPOINT,))],
     "auditor": _ledger_reader() + [LIVE_READ, LIVE_SEEN],
     "dashboard": _ledger_reader() + [LIVE_READ, LIVE_SEEN],
     "projector": _ledger_reader(),

@@ -71,9 +71,10 @@ from typing import Any
 import zenoh
 import zenoh.ext as zext
 
-from common.options import add_batch_size, add_clock
+from common.options import add_batch_size, add_clock, add_duration
 from ledger import clock_by_name, open_ledger
 from ledger.wire import stats_to_json
+from ledger.checkpoint import make_checkpoint, write_checkpoint
 from ledger.errors import LedgerError
 from ledger.holder import LedgerHolder, remove_holder, this_host, write_holder
 from ledger.store import LedgerStore
@@ -88,6 +89,7 @@ DEFAULT_BATCH_SIZE = 2_000
 DEFAULT_BATCH_INTERVAL_S = 0.05
 DEFAULT_QUEUE_SIZE = 200_000
 DEFAULT_CHUNK_BYTES = 1 << 20
+DEFAULT_CHECKPOINT_EVERY_S = 3600.0
 
 #: what the ledger's queryables answer (``stockpile/<site>/@ledger/q/<what>``)
 QUERIES = ("events", "as_of", "stats", "head", "gaps", "quarantine", "streams")
@@ -99,6 +101,11 @@ CHUNK_ATTACHMENT = struct.Struct("<IBQ")
 def head_key(site: str) -> str:
     """Where the committed head is published after each batch."""
     return f"stockpile/{site}/@ledger/head"
+
+
+def checkpoint_key(site: str) -> str:
+    """Where each checkpoint of the chain head is published (its file's JSON)."""
+    return f"stockpile/{site}/@ledger/checkpoint"
 
 
 def query_key(site: str, what: str) -> str:
@@ -127,6 +134,11 @@ class Config:
         Ask publishers' caches for what was published before this start.
     chunk_bytes : int
         Target size of one reply chunk of records, bytes.
+    checkpoint_dir : str or None
+        Where checkpoints of the chain head go (:mod:`ledger.checkpoint`); default
+        ``<ledger>.checkpoints`` beside a ledger file, none for an in-memory one.
+    checkpoint_every_s : float
+        Seconds between checkpoints while the head moves; one more at every clean stop.
     """
 
     site: str
@@ -139,6 +151,8 @@ class Config:
     queue_size: int = DEFAULT_QUEUE_SIZE
     history: bool = True
     chunk_bytes: int = DEFAULT_CHUNK_BYTES
+    checkpoint_dir: str | None = None
+    checkpoint_every_s: float = DEFAULT_CHECKPOINT_EVERY_S
 
     def __post_init__(self) -> None:
         if self.batch_size < 1:
@@ -162,13 +176,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help=f"samples buffered before Zenoh is backed up (default {DEFAULT_QUEUE_SIZE})")
     parser.add_argument("--no-history", action="store_true",
                         help="do not ask publishers' caches for earlier events on start")
+    parser.add_argument("--checkpoints", metavar="DIR",
+                        help="where signed checkpoints of the chain head go (default "
+                        "LEDGER.checkpoints; keep a copy away from the ledger file)")
+    add_duration(parser, "--checkpoint-every", default=DEFAULT_CHECKPOINT_EVERY_S,
+                 help="time between checkpoints while the ledger grows, with a unit, wall "
+                 "time (default 1h); one more at every clean stop")
 
 
 def config_from_args(args: argparse.Namespace) -> Config:
     return Config(site=args.site, zenoh=ZenohOptions.from_args(args), ledger_path=args.ledger,
                   status_period_s=args.status_period, clock=args.clock,
                   batch_size=args.batch_size, batch_interval_s=args.batch_interval,
-                  queue_size=args.queue_size, history=not args.no_history)
+                  queue_size=args.queue_size, history=not args.no_history,
+                  checkpoint_dir=args.checkpoints, checkpoint_every_s=args.checkpoint_every)
 
 
 # -- writing ------------------------------------------------------------------------------
@@ -435,6 +456,40 @@ def head_json(store: LedgerStore) -> dict[str, Any]:
     return head_to_json(store.head())
 
 
+class Checkpointer:
+    """Writes (and publishes) a checkpoint of the chain head when it moved, signed with
+    the service's site certificate when it has one (:mod:`ledger.checkpoint`)."""
+
+    def __init__(self, config: Config, store: LedgerStore, session) -> None:
+        self.store, self.site = store, config.site
+        self.directory = config.checkpoint_dir or (
+            None if config.ledger_path == ":memory:" else config.ledger_path + ".checkpoints")
+        certificate = config.zenoh.certificate
+        self.cert_path = certificate
+        self.key_path = None if certificate is None else certificate.with_suffix(".key")
+        self.publisher = session.declare_publisher(checkpoint_key(config.site))
+        self.last_seq: int | None = None
+
+    def take(self) -> None:
+        head = self.store.head().global_seq
+        if self.directory is None or head == self.last_seq:
+            return
+        try:
+            checkpoint = make_checkpoint(self.store, self.site, time.time_ns(),
+                                         key_path=self.key_path, certificate_path=self.cert_path)
+            path = write_checkpoint(checkpoint, self.directory)
+        except (OSError, ValueError) as exc:
+            log(SERVICE, "checkpoint failed", level="error", error=str(exc).splitlines()[0])
+            return
+        self.last_seq = head
+        self.publisher.put(path.read_bytes())
+        log(SERVICE, "checkpoint", global_seq=head, path=str(path),
+            signer=checkpoint.signer or "(unsigned)")
+
+    def close(self) -> None:
+        self.publisher.undeclare()
+
+
 def _write_holder(config: Config) -> LedgerHolder | None:
     """Leave the holder file beside the ledger file (none for an in-memory ledger)."""
     if config.ledger_path == ":memory:":
@@ -526,9 +581,11 @@ def _serve(config: Config, store: LedgerStore, samples: queue.Queue,
                 queries=query_key(config.site, "*"), head_key=head_key(config.site))
     publish_head()
     holder = _write_holder(config)
+    checkpoints = Checkpointer(config, store, session)
     runtime.announce()
     try:
-        runtime.stopper.wait()
+        while not runtime.stopper.wait(config.checkpoint_every_s):
+            checkpoints.take()
     finally:
         if holder is not None:
             remove_holder(config.ledger_path, os.getpid())
@@ -547,5 +604,7 @@ def _serve(config: Config, store: LedgerStore, samples: queue.Queue,
         runtime.log("stopping after a writer failure", level="error",
                     error=f"{type(writer.failed).__name__}: {writer.failed}")
         return 2
+    checkpoints.take()
+    checkpoints.close()
     runtime.log("committed", head=store.head().global_seq, batches=writer.batches)
     return 0

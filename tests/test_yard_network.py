@@ -115,6 +115,16 @@ def test_the_lab_appends_and_nobody_else_can(tmp_path):
         msg = pb.Assay.FromString(records[0].payload)
         assert msg.assay_id == "AS-0001" and msg.analytes["Fe"] == 62.5
         assert store.quarantine() == [] and store.verify().ok
+    # the service's checkpoint at its clean stop, signed with its certificate: the file
+    # holds the checkpointed prefix
+    done = subprocess.run([PYTHON, "-m", "stockpile.cli", "ledger", "verify", "--ledger",
+                           str(tmp_path / "yard.duckdb"), "--checkpoint",
+                           str(tmp_path / "yard.duckdb.checkpoints"), "--ca",
+                           str(tmp_path / "pki" / "ca.pem")], capture_output=True, text=True,
+                          timeout=120)
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert done.stdout.splitlines()[1] == ("ok: checkpoint (signed by ledger): the ledger "
+                                           "holds the checkpointed prefix up to global_seq 0")
 
 
 def _attempts(yard: dict) -> None:
@@ -133,7 +143,9 @@ def _attempts(yard: dict) -> None:
                "the router to log the scanner's refused put")
     with pytest.raises(LedgerUnavailable):
         LedgerClient(scanner, SITE, timeout_s=2).head()
-    assert _refused(yard["router_log"], "scan1", "query", f"stockpile/{SITE}/@ledger/q/head")
+    wait_until(lambda: _refused(yard["router_log"], "scan1", "query",
+                                f"stockpile/{SITE}/@ledger/q/head"), 30,
+               "the router to log the scanner's refused query")
 
     # an auditor reads the ledger, and cannot publish
     yard["auditor"].put(assay_key, forged, attachment=encode_attachment(LAB_EPOCH, 0, T0_NS))

@@ -1,0 +1,135 @@
+"""Checkpoints of the chain head: a truncated and a rewritten ledger are caught.
+
+Each attack is made on a copy of a real DuckDB ledger with DuckDB's own SQL, as someone
+with write access to the file would; the rewrite recomputes the whole chain, so the
+plain chain check passes and only the signed checkpoint, kept elsewhere, tells.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+from pathlib import Path
+
+import duckdb
+import pytest
+
+from ledger import open_ledger
+from ledger.chain import GENESIS, chain_hash, payload_hash
+from ledger.checkpoint import check_checkpoint, make_checkpoint, read_checkpoint, write_checkpoint
+from schemas.events import Event, set_timestamp_ns
+from schemas.stockpile.v1 import events_pb2 as pb
+from security.pki import init_ca, issue
+from zenoh_helpers import PYTHON
+
+SITE = "cp"
+T0_NS = 1_790_000_000 * 1_000_000_000
+N_EVENTS = 40
+
+
+def _clock(seq: int) -> Event:
+    msg = pb.Clock()
+    set_timestamp_ns(msg.time, T0_NS + seq * 10**9)
+    return Event("clock", "sim.clock", 1, seq, T0_NS + seq * 10**9, msg.SerializeToString())
+
+
+@pytest.fixture(scope="module")
+def signed(tmp_path_factory):
+    """A ledger of 40 events, the site PKI, a foreign PKI, and a signed checkpoint."""
+    base = tmp_path_factory.mktemp("checkpoint")
+    pki, foreign = base / "pki", base / "foreign"
+    init_ca(SITE, pki)
+    issue(pki, "ledger", "ledger")
+    init_ca("elsewhere", foreign)
+    issue(foreign, "ledger", "ledger")
+    path = base / "ledger.duckdb"
+    with open_ledger(path) as store:
+        store.append([_clock(i) for i in range(N_EVENTS)])
+        checkpoint = make_checkpoint(store, SITE, T0_NS, key_path=pki / "ledger.key",
+                                     certificate_path=pki / "ledger.pem")
+    cp_file = write_checkpoint(checkpoint, base / "checkpoints")
+    return {"base": base, "pki": pki, "foreign": foreign, "ledger": path, "cp": cp_file}
+
+
+def _verify(ledger: Path, *args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([PYTHON, "-m", "stockpile.cli", "ledger", "verify", "--ledger",
+                           str(ledger), *args], capture_output=True, text=True, timeout=120)
+
+
+def _copy(signed: dict, name: str) -> Path:
+    target = signed["base"] / name
+    shutil.copyfile(signed["ledger"], target)
+    return target
+
+
+def test_an_intact_ledger_holds_its_checkpoint(signed):
+    cp = read_checkpoint(signed["cp"])
+    assert cp.global_seq == N_EVENTS - 1 and cp.signer == "ledger"
+    assert "PRIVATE" not in signed["cp"].read_text()     # the certificate, never the key
+    done = _verify(signed["ledger"], "--checkpoint", str(signed["cp"].parent), "--ca",
+                   str(signed["pki"] / "ca.pem"))
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert done.stdout.splitlines()[1] == (
+        f"ok: checkpoint (signed by ledger): the ledger holds the checkpointed prefix up to "
+        f"global_seq {N_EVENTS - 1}")
+
+
+def test_a_truncated_ledger_passes_the_chain_and_fails_the_checkpoint(signed):
+    ledger = _copy(signed, "truncated.duckdb")
+    with duckdb.connect(str(ledger)) as con:
+        con.execute("DELETE FROM event_log WHERE global_seq >= ?", [N_EVENTS - 10])
+    plain = _verify(ledger)
+    assert plain.returncode == 0 and plain.stdout.startswith("ok: 30 rows verified")
+    done = _verify(ledger, "--checkpoint", str(signed["cp"]), "--ca", str(signed["pki"] / "ca.pem"))
+    assert done.returncode == 1
+    assert done.stdout.splitlines()[1].startswith(
+        f"FAILED: checkpoint TRUNCATED (signed by ledger): the ledger ends at global_seq "
+        f"{N_EVENTS - 11}")
+    assert "10 rows are gone" in done.stdout
+
+
+def test_a_rewritten_and_rechained_ledger_fails_the_checkpoint(signed):
+    ledger = _copy(signed, "rewritten.duckdb")
+    forged = pb.Clock()
+    set_timestamp_ns(forged.time, T0_NS + 999 * 10**9)
+    with duckdb.connect(str(ledger)) as con:
+        rows = con.execute("SELECT global_seq, type, source, epoch, seq, valid_time_ns, "
+                           "recorded_time_ns, payload FROM event_log ORDER BY global_seq"
+                           ).fetchall()
+        previous = GENESIS
+        for g, t, src, ep, sq, v, r, payload in rows:
+            if g == 3:
+                payload = forged.SerializeToString()
+            digest = payload_hash(bytes(payload))
+            previous = chain_hash(previous, g, t, src, ep, sq, v, r, digest)
+            con.execute("UPDATE event_log SET payload = ?, payload_sha256 = ?, chain_sha256 = ? "
+                        "WHERE global_seq = ?", [bytes(payload), digest, previous, g])
+    plain = _verify(ledger)
+    assert plain.returncode == 0, plain.stdout     # the chain alone cannot tell
+    done = _verify(ledger, "--checkpoint", str(signed["cp"]))
+    assert done.returncode == 1
+    assert done.stdout.splitlines()[1].startswith(
+        f"FAILED: checkpoint REWRITTEN (signed by ledger): global_seq {N_EVENTS - 1} has chain")
+
+
+def test_an_altered_or_foreign_checkpoint_is_refused(signed, tmp_path):
+    data = json.loads(signed["cp"].read_text())
+    data["global_seq"] = N_EVENTS - 20          # to pass off a truncated ledger
+    altered = tmp_path / "altered.json"
+    altered.write_text(json.dumps(data))
+    with open_ledger(signed["ledger"], read_only=True) as store:
+        report = check_checkpoint(store, read_checkpoint(altered))
+        assert (report.ok, report.finding) == (False, "bad-signature")
+        assert "does not match" in report.detail
+        # signed by a ledger certificate of another CA
+        foreign = make_checkpoint(store, SITE, T0_NS, key_path=signed["foreign"] / "ledger.key",
+                                  certificate_path=signed["foreign"] / "ledger.pem")
+        site_ca = (signed["pki"] / "ca.pem").read_bytes()
+        report = check_checkpoint(store, foreign, ca_pem=site_ca)
+        assert (report.ok, report.finding) == (False, "bad-signature")
+        assert "not issued by this site CA" in report.detail
+        assert check_checkpoint(store, foreign).ok    # without the CA, only the signature
+        unsigned = make_checkpoint(store, SITE, T0_NS)
+        assert unsigned.signature is None and check_checkpoint(store, unsigned).ok
+        assert not check_checkpoint(store, unsigned, ca_pem=site_ca).ok
