@@ -2,8 +2,8 @@
 brute-force loop, Kalman height fusion and its change gate (stacked layers, cuts, spikes),
 volumes against closed-form integrals, centring heights, plane fits of what was seen, and
 scans of a ridge through every step to its volume; every random test prints its seed (shown
-by pytest on failure, or with ``-s``) and ``PROJECTOR_GEOMETRY_SEED`` reruns it with another
-base seed.
+by pytest on failure, or with ``-s``) and ``--seed N`` (``STOCKPILE_TEST_SEED=N``) reruns it with
+the base seed N.
 """
 
 from __future__ import annotations
@@ -22,6 +22,10 @@ from projector.heightmap import CellObservations, FuseStats, HeightMap, fuse, ra
 from projector.profile import clean_profile
 from projector.surface_fit import plane_fit_of_seen
 from projector_helpers import LOOK_DOWN, NS, T0_NS, cast_profile, make_rng
+
+
+#: the random tests here draw from the run's seed (tests/seeding.py)
+pytestmark = pytest.mark.seeded
 
 
 # -------------------------------------------------------------------- rasterize

@@ -5,14 +5,13 @@ holds a real Zenoh router session on a free loopback port (scouting off) with an
 ``AdvancedSubscriber`` (history and recovery, as the ledger subscribes), and waits on
 conditions (the service's liveliness token, N samples, log lines), never on sleeps.
 
-Random data is seeded: set SCANNER_TEST_SEED to reproduce or vary a run (the seed is
-printed, and pytest shows it when a test fails).
+Random data is seeded from the run's seed (``--seed N`` or ``STOCKPILE_TEST_SEED=N``
+reproduces a run; the seed is printed, and written into a failing test's report).
 """
 
 from __future__ import annotations
 
 import math
-import os
 import select
 import subprocess
 import sys
@@ -43,8 +42,11 @@ from tests.zenoh_helpers import (
     wait_liveliness,
     wait_until,
 )
+from seeding import session_seed
 
-SEED = int(os.environ.get("SCANNER_TEST_SEED", "20261122"))
+SEED = session_seed()
+#: the random tests here draw from the run's seed (tests/seeding.py)
+pytestmark = pytest.mark.seeded
 SITE = "scantest"
 TIMEOUT_S = 20.0  # generous: each wait normally takes well under a second
 #: value count -> (fov deg, step deg) of every LMS200 field
@@ -53,7 +55,7 @@ FIELDS = {401: (100.0, 0.25), 361: (180.0, 0.5), 181: (180.0, 1.0), 201: (100.0,
 
 
 def _rng(test_name: str) -> np.random.Generator:
-    print(f"{test_name}: seed {SEED} (SCANNER_TEST_SEED)")
+    print(f"{test_name}: seed {SEED} (--seed {SEED} reproduces it)")
     return np.random.default_rng(SEED)
 
 
