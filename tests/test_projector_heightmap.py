@@ -115,7 +115,10 @@ def test_fuse_noise_on_a_flat_surface_neither_moves_nor_creates_material():
     assert abs(err.mean()) < 4.0 * sd / math.sqrt(total.sum()) * 1.5
     vol = volume_above(hm.elevation, z0, g.cell_area_m2, fill="none")
     assert abs(vol) < 4.0 * 1.5 * sd / math.sqrt(total.sum()) * g.nx * g.ny * g.cell_area_m2
-    assert changes == 0
+    # no change detected from noise alone, but for a rare false alarm: three agreeing
+    # out-of-gate looks in a row at one of 400 cells over 30 looks (seeds 0-299: none in
+    # 298 runs, one in 2, never two)
+    assert changes <= 1
 
 
 def test_fuse_first_observation_and_one_kalman_step_by_hand():
