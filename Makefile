@@ -14,7 +14,7 @@ DEV_STAMP   := $(VENV)/.installed-dev
 # the process demo: the edge services, the ledger and projector services, the simulator
 DEMO_EXTRAS := edge,ledger,projector,sim
 
-.PHONY: demo test bench schemas clean
+.PHONY: demo test accuracy bench schemas clean
 
 $(PY):
 	$(PYTHON) -m venv $(VENV)
@@ -34,6 +34,11 @@ demo: $(DEMO_STAMP)
 test: $(DEV_STAMP)
 	$(VENV)/bin/lint-imports --no-cache
 	$(PY) -m pytest -q
+
+# The quick accuracy check alone (make test runs it too): the analytic piles of
+# bench/accuracy.py and the demo seed of bench/projector_truth.py against their targets.
+accuracy: $(DEV_STAMP)
+	$(PY) -m pytest -q -m accuracy
 
 bench: $(DEV_STAMP)
 	$(PY) bench/ledger.py

@@ -14,6 +14,71 @@ import pytest  # noqa: E402
 pytest.register_assert_rewrite("bad_input_helpers")
 
 from bad_input_helpers import Backend  # noqa: E402
+import seeding  # noqa: E402
+
+
+# -- the run's random seed (tests/seeding.py) ----------------------------------------------
+
+def pytest_addoption(parser):
+    parser.addoption("--seed", type=int, default=None, metavar="N",
+                     help=f"the seed of every random test (default: ${seeding.ENV}, else a "
+                     "fresh one per run, printed)")
+
+
+def pytest_configure(config):
+    seeding.resolve(config.getoption("--seed"))
+    config.addinivalue_line(
+        "markers", "seeded: draws from the run's random seed (tests/seeding.py); a failure "
+        "says how to re-run it")
+
+
+def pytest_report_header(config):
+    return seeding.rerun_hint()
+
+
+def _is_seeded(item) -> bool:
+    """The test draws from the run's seed: marked, using the ``seed`` fixture (not a
+    parametrized literal ``seed``), or a Hypothesis test."""
+    if item.get_closest_marker("seeded") is not None:
+        return True
+    if getattr(getattr(item, "obj", None), "is_hypothesis_test", False):
+        return True
+    params = getattr(getattr(item, "callspec", None), "params", {})
+    return "seed" in getattr(item, "fixturenames", ()) and "seed" not in params
+
+
+def pytest_collection_modifyitems(config, items):
+    """Hypothesis tests draw their examples from the run's seed (and skip the example
+    database, as ``hypothesis.seed`` does), so ``--seed N`` replays them."""
+    from hypothesis import seed as hypothesis_seed
+
+    for item in items:
+        obj = getattr(item, "obj", None)
+        if getattr(obj, "is_hypothesis_test", False):
+            hypothesis_seed(seeding.session_seed())(obj)
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_makereport(item, call):
+    outcome = yield
+    report = outcome.get_result()
+    if report.failed and _is_seeded(item):
+        if hasattr(report.longrepr, "addsection"):
+            report.longrepr.addsection("random seed", seeding.rerun_hint())
+        else:
+            report.sections.append(("random seed", seeding.rerun_hint()))
+
+
+def pytest_terminal_summary(terminalreporter):
+    terminalreporter.write_line(seeding.rerun_hint())
+
+
+@pytest.fixture(scope="session")
+def seed() -> int:
+    """The run's seed (``--seed`` / ``$STOCKPILE_TEST_SEED`` / fresh), printed."""
+    value = seeding.session_seed()
+    print(f"seed={value}")
+    return value
 
 
 @pytest.fixture(scope="session")

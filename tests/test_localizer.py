@@ -22,6 +22,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+import targets
+
 from schemas import pb
 from schemas.events import Event, make_event, set_timestamp_ns
 from schemas.validate import check_event
@@ -128,13 +130,31 @@ def test_ukf_beats_both_sensors_alone_by_a_clear_margin(hour_run):
     gnss_rmse = rmse(r["fixes"].enu_m - truth)
     ukf_rmse = rmse(r["est"] - truth)
     print(f"seed {SEED}: encoders {enc_rmse:.3f} m, GNSS {gnss_rmse:.3f} m, UKF {ukf_rmse:.3f} m")
-    assert ukf_rmse < 0.5 * enc_rmse
+    # measured: UKF / GNSS 0.133 (0.226 / 1.695 m), tighter than the 1/3 target
     assert ukf_rmse < 0.25 * gnss_rmse
+    assert ukf_rmse < targets.LOCALIZER_RATIO * gnss_rmse
+    # the encoders' 1/3 is missed (measured 0.474): the target is asserted, expected to
+    # fail, by test_ukf_meets_the_target_against_the_encoders; this guards the measured
+    # figure against getting worse
+    assert ukf_rmse < 0.5 * enc_rmse
     assert ukf_rmse < 0.35
     # the reported covariance is honest: normalised estimation error squared near 3 (dof)
     err = (r["est"] - truth)[300:]
     nees = np.einsum("ni,nij,nj->n", err, np.linalg.inv(r["est_cov"][300:]), err)
     assert 0.5 < nees.mean() < 9.0
+
+
+@pytest.mark.xfail(strict=True, reason=(
+    "fidelity (issue 42, the localizer path; issue 44): UKF RMSE / encoders alone measured "
+    "0.474 (0.226 / 0.477 m, seed 20261122) against the 1/3 target of bench/localizer.py"))
+def test_ukf_meets_the_target_against_the_encoders(hour_run):
+    """UKF RMSE <= 1/3 of the encoders' alone (``bench/localizer.py``'s ``TARGET_RATIO``)."""
+    r = hour_run
+    truth = r["truth"]
+    enc_rmse = rmse(wheel_centre(MACHINE, *r["readings"].T) - truth)
+    ukf_rmse = rmse(r["est"] - truth)
+    print(f"UKF / encoders {ukf_rmse / enc_rmse:.3f} (target <= {targets.LOCALIZER_RATIO:.3f})")
+    assert ukf_rmse <= targets.LOCALIZER_RATIO * enc_rmse
 
 
 def test_covariance_stays_symmetric_positive_definite(hour_run):

@@ -26,6 +26,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+import targets
 from ledger import EventClock, open_ledger
 from ledger.cli import import_lines
 from planner.grades import predict_cuts
@@ -122,14 +123,13 @@ def test_invalid_landings_are_refused_for_a_reason(truth_runs):
 
 
 def test_predicted_cuts_match_what_the_simulator_cuts(truth_runs):
-    """Planner on the true layers, grades joined from the lab's assays (all known).
+    """Planner on the true layers, grades joined from the lab's assays (all known): every
+    case (demo and bench-scale), every cut within ``bench/planner_truth.py``'s targets,
+    tonnes 5 % and Fe 0.5 pp.
 
-    Tonnes within 5 % per cut (the target).  Fe within 1.0 pp per cut, which is looser
-    than the 0.5 pp target on purpose: an assay is the mean of a whole sampling window
-    (in these scenarios a whole stacking pass), so a cut that takes mostly the material of
-    a pass's first or last minutes (the landing at a pile's end) can differ from it by
-    more than 0.5 pp whatever the planner does.  ``bench/planner_truth.py`` reports the
-    0.5 pp figure per cut, with the lab's assays and with error-free window means.
+    Measured: tonnes -2.00 .. +2.80 %, Fe -0.20 .. +0.12 pp.  (The Fe tolerance was 1.0 pp
+    while an assay was the mean of a whole stacking pass; the lab's windows are now one
+    minute in the demo and 30 s in the laboratory pile, docs/planner.md.)
     """
     lines, misses = [], []
     for r in truth_runs:
@@ -140,7 +140,8 @@ def test_predicted_cuts_match_what_the_simulator_cuts(truth_runs):
                          f"{p.tonnes:>11.5g} {d.tonnes:>11.5g} {err:+6.2f} % "
                          f"Fe {p.grade['Fe']:6.2f} {d.grade['Fe']:6.2f} "
                          f"{p.grade['Fe'] - d.grade['Fe']:+5.2f}")
-            if r["case"] == "demo" and (abs(err) > 5.0 or abs(p.grade["Fe"] - d.grade["Fe"]) > 1.0):
+            if (abs(err) > targets.PLANNED_TONNES_PCT
+                    or abs(p.grade["Fe"] - d.grade["Fe"]) > targets.PLANNED_FE_PP):
                 misses.append(lines[-1])
             p_t, p_fe = p_t + p.tonnes, p_fe + p.tonnes * p.grade["Fe"]
             d_t, d_fe = d_t + d.tonnes, d_fe + d.tonnes * d.grade["Fe"]
@@ -212,9 +213,20 @@ def test_plan_reclaim_command_from_a_simulated_ledger(yard):
     plan = [SimpleNamespace(**c) for c in cuts]
     driven = drive_bench(copy.deepcopy(sim.world), sim.machine, plan, yard["end_ns"])
     assert not sum((_collisions([d]) for d in driven), [])
+    # the plan from the ledger (the projector's error included) against what the simulator
+    # cuts: tonnes within the planner's target (measured -2.6 .. -1.0 %).  Its Fe is not
+    # judged: no assay is in the ledger yet, so the plan's grades are the lots' planned
+    # grades, and the Fe target holds once assays are known (bench/planner_truth.py's
+    # ledger section, docs/planner.md: demo seed 1, -0.10 .. +0.28 pp)
+    misses = []
     for c, d in zip(cuts, driven):
-        print(f"cut {c['cut']}: predicted {c['tonnes']:.1f} t, simulator {d.tonnes:.1f} t")
+        err = (c["tonnes"] / d.tonnes - 1) * 100
+        print(f"cut {c['cut']}: predicted {c['tonnes']:.1f} t, simulator {d.tonnes:.1f} t "
+              f"({err:+.2f} %)")
         assert d.tonnes > 0
+        if abs(err) > targets.PLANNED_TONNES_PCT:
+            misses.append(f"cut {c['cut']}: {err:+.2f} %")
+    assert not misses, misses
 
 
 def test_plan_reclaim_as_of_a_valid_time(yard, capsys):

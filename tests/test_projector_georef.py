@@ -2,7 +2,7 @@
 scipy's Rotation and Slerp, coverage and gaps, and scanner returns turned into site points
 against the simulator's own scan geometry and a round trip from site points; every random
 test prints its seed (shown by pytest on failure, or with ``-s``) and
-``PROJECTOR_GEOMETRY_SEED`` reruns it with another base seed.
+``--seed N`` (``STOCKPILE_TEST_SEED=N``) reruns it with the base seed N.
 """
 
 from __future__ import annotations
@@ -16,6 +16,10 @@ from scipy.spatial.transform import Rotation, Slerp
 from projector.georef import georeference, interpolate_poses, sensor_points
 from projector.kinematics import quaternion_to_matrix
 from projector_helpers import LOOK_DOWN, NS, T0_NS, make_rng
+
+
+#: the random tests here draw from the run's seed (tests/seeding.py)
+pytestmark = pytest.mark.seeded
 
 
 def rotation_angle_between(q_a, q_b) -> np.ndarray:

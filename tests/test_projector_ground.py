@@ -20,6 +20,8 @@ from ledger.records import RecordedEvent
 from schemas.events import Event, decode_payload
 from schemas.jsonl import decode_line
 
+import targets
+
 SD = 0.015          # point height noise (m)
 SE_FACTOR = 1.2533  # median's standard error over the mean's for Gaussian noise
 
@@ -126,7 +128,10 @@ def _fold_volume_m3(events: list[Event], **config) -> tuple[float, dict[str, int
     return state.stack.total_volume_m3(), state.counters
 
 
-def test_a_drifting_scanner_height_is_corrected_by_the_ground_it_sees(small_yard_sim):
+@pytest.fixture(scope="module")
+def drift_folds(small_yard_sim) -> dict:
+    """The short yard folded three times: poses with a drifting height error, as posed and
+    referenced to the ground, and the true poses; each volume's error against the truth's."""
     events = [decode_line(line)
               for line in (small_yard_sim / "events.jsonl").read_text().splitlines()]
     truth_m3 = json.loads((small_yard_sim / "truth.json").read_text())["world"]["volume_m3"]
@@ -138,12 +143,31 @@ def test_a_drifting_scanner_height_is_corrected_by_the_ground_it_sees(small_yard
     err = {k: 100 * (v / truth_m3 - 1) for k, v in
            (("as posed", as_posed), ("referenced", referenced), ("true poses", posed_true))}
     print({k: f"{v:+.2f} %" for k, v in err.items()})
+    return {"err": err, "counters": counters, "true_counters": true_counters}
+
+
+def test_a_drifting_scanner_height_is_corrected_by_the_ground_it_sees(drift_folds):
+    err, counters = drift_folds["err"], drift_folds["counters"]
+    true_counters = drift_folds["true_counters"]
+    print({k: f"{v:+.2f} %" for k, v in err.items()})
     assert err["as posed"] > 10.0                # every point 2-14 cm high
-    assert abs(err["referenced"]) <= 1.5
-    assert abs(err["true poses"]) <= 1.5
+    # the volume target of a noisy scan (bench/accuracy.py: 0.3 %); measured +0.07 %
+    assert abs(err["referenced"]) <= targets.VOLUME_NOISY_PCT
+    # the true poses miss that target (measured -0.77 %, asserted in the xfail below);
+    # this guards the measured figure against getting worse
+    assert abs(err["true poses"]) <= 1.0
     fused = counters["scans_fused"]
     assert counters["scans_ground_referenced"] >= 0.8 * fused
     # the offsets applied are the error added: 8 cm on average
     assert 0.07 <= counters["ground_offset_abs_sum_mm"] / 1e3 / fused <= 0.09
     # true poses: nothing applied (the deadband)
     assert true_counters.get("ground_offset_abs_sum_mm", 0) <= 0.002 * 1e3 * fused
+
+
+@pytest.mark.xfail(strict=True, reason=(
+    "fidelity (issue 42): the short yard's volume from the true scanner poses measured "
+    "-0.77 % against the 0.3 % volume target of bench/accuracy.py"))
+def test_the_true_poses_volume_meets_the_target(drift_folds):
+    err = drift_folds["err"]["true poses"]
+    print(f"true poses: {err:+.2f} % (target <= {targets.VOLUME_NOISY_PCT} %)")
+    assert abs(err) <= targets.VOLUME_NOISY_PCT

@@ -2,8 +2,8 @@
 brute-force loop, Kalman height fusion and its change gate (stacked layers, cuts, spikes),
 volumes against closed-form integrals, centring heights, plane fits of what was seen, and
 scans of a ridge through every step to its volume; every random test prints its seed (shown
-by pytest on failure, or with ``-s``) and ``PROJECTOR_GEOMETRY_SEED`` reruns it with another
-base seed.
+by pytest on failure, or with ``-s``) and ``--seed N`` (``STOCKPILE_TEST_SEED=N``) reruns it with
+the base seed N.
 """
 
 from __future__ import annotations
@@ -22,6 +22,10 @@ from projector.heightmap import CellObservations, FuseStats, HeightMap, fuse, ra
 from projector.profile import clean_profile
 from projector.surface_fit import plane_fit_of_seen
 from projector_helpers import LOOK_DOWN, NS, T0_NS, cast_profile, make_rng
+
+
+#: the random tests here draw from the run's seed (tests/seeding.py)
+pytestmark = pytest.mark.seeded
 
 
 # -------------------------------------------------------------------- rasterize
@@ -111,7 +115,10 @@ def test_fuse_noise_on_a_flat_surface_neither_moves_nor_creates_material():
     assert abs(err.mean()) < 4.0 * sd / math.sqrt(total.sum()) * 1.5
     vol = volume_above(hm.elevation, z0, g.cell_area_m2, fill="none")
     assert abs(vol) < 4.0 * 1.5 * sd / math.sqrt(total.sum()) * g.nx * g.ny * g.cell_area_m2
-    assert changes == 0
+    # no change detected from noise alone, but for a rare false alarm: three agreeing
+    # out-of-gate looks in a row at one of 400 cells over 30 looks (seeds 0-299: none in
+    # 298 runs, one in 2, never two)
+    assert changes <= 1
 
 
 def test_fuse_first_observation_and_one_kalman_step_by_hand():
@@ -287,8 +294,9 @@ def test_volume_of_a_plane_with_holes_and_an_unseen_margin():
     assert volume_above(z, 0.0, g.cell_area_m2) == pytest.approx(exact, rel=1e-12)
     rng = make_rng(7)
     holey = z.copy()
-    inner = np.argwhere(inside)
-    # holes: single cells, and whole unseen cross-pile columns between beams
+    # holes off the footprint's edge cells (an edge hole has no seen cell beyond it to
+    # interpolate from): single cells, and whole unseen cross-pile columns between beams
+    inner = np.argwhere((x > 3.5) & (x < 16.5) & (y > 2.5) & (y < 27.5))
     pick = inner[rng.choice(len(inner), 150, replace=False)]
     holey[pick[:, 0], pick[:, 1]] = np.nan
     holey[10, 5:56] = np.nan

@@ -2,7 +2,7 @@
 noise-free, noisy, stepped and grazing piles (rays cast by bisection onto a known surface),
 the spikes and mixed pixels it removes, its line fit against np.polyfit, and above_ground;
 every random test prints its seed (shown by pytest on failure, or with ``-s``) and
-``PROJECTOR_GEOMETRY_SEED`` reruns it with another base seed.
+``--seed N`` (``STOCKPILE_TEST_SEED=N``) reruns it with the base seed N.
 """
 
 from __future__ import annotations
@@ -14,6 +14,10 @@ import pytest
 
 from projector.profile import above_ground, clean_profile
 from projector_helpers import cast_profile, make_rng
+
+
+#: the random tests here draw from the run's seed (tests/seeding.py)
+pytestmark = pytest.mark.seeded
 
 
 BEAMS = np.radians(np.arange(-50.0, 50.0001, 0.25))       # 401 beams

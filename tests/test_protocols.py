@@ -2,14 +2,14 @@
 
 Known vectors come from published telegrams (SICK LMS2xx host commands) and the classic GGA
 example; everything else is round trips, including through a real pseudo-terminal read with
-pyserial. Random data is seeded: set PROTOCOLS_TEST_SEED to reproduce or vary a run (the seed
-is printed, and shown by pytest when a test fails).
+pyserial. Random data is seeded
+from the run's seed (``--seed N`` or ``STOCKPILE_TEST_SEED=N`` reproduces a run; the seed is
+printed, and written into a failing test's report).
 """
 
 from __future__ import annotations
 
 import math
-import os
 import threading
 import time
 
@@ -21,12 +21,16 @@ from devices import lms200 as L
 from devices import nmea as N
 from sim.pty import PtyDevice
 
-SEED = int(os.environ.get("PROTOCOLS_TEST_SEED", "20240611"))
+from seeding import session_seed
+
+SEED = session_seed()
+#: the random tests here draw from the run's seed (tests/seeding.py)
+pytestmark = pytest.mark.seeded
 IO_DEADLINE_S = 20.0  # generous: a run normally takes well under a second
 
 
 def _rng(test_name: str) -> np.random.Generator:
-    print(f"{test_name}: seed {SEED} (PROTOCOLS_TEST_SEED)")
+    print(f"{test_name}: seed {SEED} (--seed {SEED} reproduces it)")
     return np.random.default_rng(SEED)
 
 

@@ -89,9 +89,7 @@ def _last_status(log: Path) -> dict[str, str]:
 
 
 def test_replay_publishes_exact_identities_idempotently_and_the_recorder_keeps_them(
-        tmp_path, capsys):
-    seed = random.randrange(2**32)
-    print(f"seed {seed}")
+        tmp_path, capsys, seed):
     session = tmp_path / "session.mcap"
     events = _session(session, seed)
     n = len(events)

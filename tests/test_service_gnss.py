@@ -6,14 +6,14 @@ holds a real Zenoh router session on a free loopback port (scouting off) with an
 conditions (the service's liveliness token, N samples, log lines), never on sleeps.
 ``--clock site`` is driven by ``clock`` events the test publishes like the simulator does.
 
-Random data is seeded: set GNSS_TEST_SEED to reproduce or vary a run (the seed is printed,
-and pytest shows it when a test fails).
+Random data is seeded
+from the run's seed (``--seed N`` or ``STOCKPILE_TEST_SEED=N`` reproduces a run; the seed is
+printed, and written into a failing test's report).
 """
 
 from __future__ import annotations
 
 import math
-import os
 import subprocess
 import sys
 import time
@@ -44,7 +44,11 @@ from tests.zenoh_helpers import (
     wait_until,
 )
 
-SEED = int(os.environ.get("GNSS_TEST_SEED", "20261122"))
+from seeding import session_seed
+
+SEED = session_seed()
+#: the random tests here draw from the run's seed (tests/seeding.py)
+pytestmark = pytest.mark.seeded
 SITE = "gnsstest"
 TIMEOUT_S = 20.0  # generous: each wait normally takes well under a second
 NS_PER_CS = 10_000_000
@@ -54,7 +58,7 @@ LIVE_KEY = f"stockpile/{SITE}/@live/gnss/**"
 
 
 def _rng(test_name: str) -> np.random.Generator:
-    print(f"{test_name}: seed {SEED} (GNSS_TEST_SEED)")
+    print(f"{test_name}: seed {SEED} (--seed {SEED} reproduces it)")
     return np.random.default_rng(SEED)
 
 

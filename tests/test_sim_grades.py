@@ -2,18 +2,10 @@
 
 from __future__ import annotations
 
-import random
-
 import numpy as np
 
 from schemas.times import NS_PER_H, NS_PER_S
 from sim.grades import ANALYTES, BeltGrade, LabModel, table_5_4_lots
-
-
-def _seed() -> int:
-    seed = random.randrange(2**32)
-    print(f"seed={seed}")
-    return seed
 
 
 def test_table_5_4_magnitudes():
@@ -22,8 +14,7 @@ def test_table_5_4_magnitudes():
     assert abs(lots[0].sd_pct[0] ** 2 - 6.56) < 1e-9  # the table gives variances
 
 
-def test_belt_grade_is_autocorrelated_around_the_plan():
-    seed = _seed()
+def test_belt_grade_is_autocorrelated_around_the_plan(seed):
     lot = table_5_4_lots()[1]
     belt = BeltGrade(lot, 0, 200 * NS_PER_H, np.random.default_rng(seed), tau_s=1200, step_s=10)
     x = belt.samples_pct[:, 0]
@@ -46,8 +37,7 @@ def test_grade_interpolates_between_samples():
     assert belt.at(np.array([0, 10 * NS_PER_S])).shape == (2, len(ANALYTES))
 
 
-def test_lab_reports_late_with_small_error_and_supersedes_provisionals():
-    seed = _seed()
+def test_lab_reports_late_with_small_error_and_supersedes_provisionals(seed):
     rng = np.random.default_rng(seed)
     lot = table_5_4_lots()[2]
     belt = BeltGrade(lot, 0, 24 * NS_PER_H, rng)

@@ -1,13 +1,12 @@
 """Sensor models of the yard simulator: encoders, GNSS, LMS200 ray casting and noise.
 
 Seeds: every random test prints its seed (shown by pytest on failure, or with ``-s``);
-set ``SIM_SENSORS_SEED`` to rerun with another base seed.
+``--seed N`` (or ``STOCKPILE_TEST_SEED=N``) reruns them with the base seed N.
 """
 
 from __future__ import annotations
 
 import math
-import os
 import time
 from dataclasses import replace
 
@@ -23,8 +22,12 @@ from sim.raycast import raycast_heightmap
 from sim.scanner import (
     BEAM_DROPOUT, BEAM_ERROR_CODE, BEAM_MIXED, BEAM_NO_HIT, BEAM_OK, ScannerModel,
     beam_angles_rad, beam_directions_scanner_frame, rotation_matrix, scan_count)
+from seeding import session_seed
 
-BASE_SEED = int(os.environ.get("SIM_SENSORS_SEED", "20261101"))
+BASE_SEED = session_seed()
+#: the random tests here draw from the run's seed (tests/seeding.py)
+pytestmark = pytest.mark.seeded
+
 T0_NS = 1_793_491_200_000_000_000
 from schemas.times import NS_PER_S as NS  # noqa: E402
 LAT0, LON0, ALT0 = -20.659739, 117.078497, 5.0   # Cape Lambert (thesis §3.3)
