@@ -36,12 +36,15 @@ from typing import Iterator, Sequence
 import duckdb
 import pyarrow as pa
 
+from schemas.events import decode_payload
+from schemas.jsonl import body_json
+
 from ledger import views
 from ledger.chain import GENESIS
 from ledger.clock import SiteClock
 from ledger.errors import InterfaceError, OperationalError, ProgrammingError, backend_errors
-from ledger.records import Gap, LedgerStats, QuarantineEntry, RecordedEvent
-from ledger.store import BatchPlan, Key, LedgerStore, StreamState, WriterState
+from ledger.records import Gap, LedgerStats, QuarantineEntry, RecordedEvent, VerifyReport
+from ledger.store import BODY_TYPES, BatchPlan, Key, LedgerStore, StreamState, WriterState
 
 SCHEMA_VERSION = "1"
 
@@ -97,6 +100,21 @@ _EVENT_SCHEMA = pa.schema([
 ])
 
 _FETCH_ROWS = 65_536
+
+def _body_problem(type_name: str, payload: bytes, body: str | None) -> str | None:
+    """Whether a stored ``body`` is the JSON of its payload (None when it is)."""
+    if type_name not in BODY_TYPES:
+        return "a body stored for a type that has none"
+    if body is None:
+        return "the body is missing"
+    try:
+        expected = json.loads(body_json(decode_payload(type_name, payload)))
+    except Exception:  # noqa: BLE001 - a stored payload always decoded; say so if not
+        return "payload does not decode"
+    if json.loads(body) != expected:
+        return "stored body does not match the payload (what the SQL views read was edited)"
+    return None
+
 
 # one writer per file per process: a second DuckDBStore on the same file would hold a
 # stale copy of the writer state
@@ -306,6 +324,29 @@ class DuckDBStore(LedgerStore):
             if row.type == "assay" and body:
                 found.update(json.loads(body).get("analytes", {}))
         return found - self._analytes
+
+    # -- verifying -------------------------------------------------------------------------
+
+    def verify(self) -> VerifyReport:
+        """The chain and flags (:meth:`LedgerStore.verify`), then every stored JSON ``body``
+        (what the SQL views and the auditors read) against its row's payload."""
+        report = super().verify()
+        if not report.ok:
+            return report
+        with self._lock:
+            self._check_open()
+            with backend_errors():
+                cur = self._con.cursor()
+                reader = cur.sql("SELECT global_seq, type, payload, body FROM event_log "
+                                 "WHERE body IS NOT NULL OR type IN (SELECT unnest(?)) "
+                                 "ORDER BY global_seq", params=[sorted(BODY_TYPES)]
+                                 ).to_arrow_reader(_FETCH_ROWS)
+                for batch in reader:
+                    for g, type_name, payload, body in zip(*(c.to_pylist() for c in batch.columns)):
+                        problem = _body_problem(type_name, payload, body)
+                        if problem:
+                            return VerifyReport(False, report.rows_checked, g, problem)
+        return report
 
     # -- reading ---------------------------------------------------------------------------
 

@@ -25,7 +25,7 @@ from collections import Counter
 from dataclasses import dataclass, field
 from typing import Iterable, Iterator, Sequence
 
-from schemas.events import Event, Malformed
+from schemas.events import Event, Malformed, decode_payload
 from schemas.jsonl import body_json
 from schemas.validate import REASON_CODES, InvalidEvent, check_event, is_time_ns
 
@@ -326,6 +326,24 @@ def keys_to_look_up(state: WriterState, batch: Iterable[Event | Malformed]) -> l
     return keys
 
 
+def _flags_problem(row: RecordedEvent, lots: set[str]) -> str | None:
+    """Recompute a row's flags from the payloads before it (``lots``: the lots declared so
+    far, updated here); the problem when the stored flags differ, else None."""
+    expected: tuple[str, ...] = ()
+    if row.type in ("assay", "lot_declared"):
+        try:
+            lot_id = decode_payload(row.type, row.payload).lot_id
+        except Exception:  # noqa: BLE001 - a stored payload always decoded; say so if not
+            return "payload does not decode"
+        if row.type == "lot_declared":
+            lots.add(lot_id)
+        elif lot_id not in lots:
+            expected = (FLAG_UNKNOWN_LOT,)
+    if tuple(row.flags) != expected:
+        return (f"flags {list(row.flags)} where the payloads before it give {list(expected)}")
+    return None
+
+
 class LedgerStore(abc.ABC):
     """An append-only event ledger.  Subclasses: the DuckDB and in-memory stores.
 
@@ -433,12 +451,14 @@ class LedgerStore(abc.ABC):
             ]
 
     def verify(self) -> VerifyReport:
-        """Recompute payload hashes and the chain over every row; name the first bad one."""
+        """Recompute payload hashes and the chain over every row, and each row's flags from
+        the payloads before it; name the first bad row."""
         with self._lock:
             self._check_open()
             previous = GENESIS
             last_recorded: int | None = None
             count = 0
+            lots: set[str] = set()
             for row in self._rows_for_verify():
                 if row.global_seq != count:
                     return VerifyReport(False, count, count,
@@ -454,6 +474,9 @@ class LedgerStore(abc.ABC):
                 if expected != row.chain_sha256:
                     return VerifyReport(False, count, row.global_seq,
                                         "chain hash mismatch (row fields or an earlier row changed)")
+                problem = _flags_problem(row, lots)
+                if problem:
+                    return VerifyReport(False, count, row.global_seq, problem)
                 previous, last_recorded = row.chain_sha256, row.recorded_time_ns
                 count += 1
             return VerifyReport(True, count)

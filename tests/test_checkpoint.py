@@ -133,3 +133,48 @@ def test_an_altered_or_foreign_checkpoint_is_refused(signed, tmp_path):
         unsigned = make_checkpoint(store, SITE, T0_NS)
         assert unsigned.signature is None and check_checkpoint(store, unsigned).ok
         assert not check_checkpoint(store, unsigned, ca_pem=site_ca).ok
+
+
+def _assay_ledger(path: Path) -> None:
+    """A lot, an assay of it, and an assay of an undeclared lot (flagged unknown_lot)."""
+    lot = pb.LotDeclared(lot_id="LOT-A")
+    set_timestamp_ns(lot.time, T0_NS)
+    events = [Event("lot_declared", "lims", 1, 0, T0_NS, lot.SerializeToString())]
+    for seq, lot_id in ((0, "LOT-A"), (1, "LOT-Z")):
+        a = pb.Assay(assay_id=f"AS-{seq}", lot_id=lot_id, status=pb.FINAL, lab_id="lab1")
+        a.analytes.update({"Fe": 62.5})
+        set_timestamp_ns(a.window_start, T0_NS)
+        set_timestamp_ns(a.window_end, T0_NS + 10**9)
+        set_timestamp_ns(a.reported_time, T0_NS + 2 * 10**9)
+        events.append(Event("assay", "lab1", 1, seq, T0_NS + 10**9,
+                            a.SerializeToString()))
+    with open_ledger(path) as store:
+        result = store.append(events)
+        assert result.appended == 3, result
+        assert [o.flags for o in result.outcomes] == [(), (), ("unknown_lot",)]
+
+
+@pytest.mark.parametrize("edit, problem", [
+    ("UPDATE event_log SET body = json_object('assay_id', 'AS-0', 'analytes', "
+     "json_object('Fe', 70.0)) WHERE global_seq = 1",
+     "stored body does not match the payload"),
+    ("UPDATE event_log SET flags = NULL WHERE global_seq = 2",
+     "flags [] where the payloads before it give ['unknown_lot']"),
+    ("UPDATE event_log SET flags = 'unknown_lot' WHERE global_seq = 1",
+     "flags ['unknown_lot'] where the payloads before it give []"),
+], ids=["assay-body", "flag-dropped", "flag-added"])
+def test_plain_verify_catches_an_edited_body_or_flag(tmp_path, edit, problem):
+    """The views read the stored JSON body and flags, outside the chained fields: verify
+    recomputes them from the hashed payloads."""
+    ledger = tmp_path / "l.duckdb"
+    _assay_ledger(ledger)
+    assert _verify(ledger).returncode == 0
+    with duckdb.connect(str(ledger)) as con:
+        before = con.execute("SELECT avg(\"Fe\") FROM assays").fetchone()[0]
+        con.execute(edit)
+    done = _verify(ledger)
+    assert done.returncode == 1, done.stdout
+    assert problem in done.stdout, done.stdout
+    if "body" in edit:   # the edit did reach what an auditor's SQL reads
+        with duckdb.connect(str(ledger)) as con:
+            assert con.execute("SELECT avg(\"Fe\") FROM assays").fetchone()[0] != before
