@@ -40,6 +40,7 @@ _DECISION = re.compile(r"CertCommonName\((?P<cn>[^)]*)\).* is unauthorized to (?
                        r"\((?P<flow>ingress|egress)\) on (?P<key>\S+)")
 _CACHING = re.compile(r"caching permissions for `(?P<key>[^`]*)`")
 _ANSI = re.compile(r"\x1b\[[0-9;]*m")
+_ABOUT = re.compile(r" on (\S+)\s*$")
 
 
 @dataclass(frozen=True)
@@ -141,29 +142,33 @@ class RefusalLog:
                 self.take(line)
 
     def take(self, line: str) -> None:
+        """One line of zenoh's log.  Every message's decision is a line, so the common
+        case (an allowed message outside a permission table) costs one substring test."""
         if "caching permissions" in line:
             match = _CACHING.search(line)
             if match:   # the next decisions on this key are a permission table, not traffic
                 self._caching[match["key"]] = self._caching.get(match["key"], 0) + 10
             return
-        if "unauthorized" not in line and "authorized" not in line:
+        if self._caching and "authorized" in line:
+            about = _ABOUT.search(_ANSI.sub("", line))
+            if about and about[1] in self._caching:
+                left = self._caching[about[1]] - 1
+                if left:
+                    self._caching[about[1]] = left
+                else:
+                    del self._caching[about[1]]
+                return
+        if " is unauthorized " not in line:
             return
         match = _DECISION.search(_ANSI.sub("", line))
         if match is None:
-            pending = re.search(r" on (\S+)\s*$", _ANSI.sub("", line))
-            if pending and self._caching.get(pending[1], 0) > 0:
-                self._caching[pending[1]] -= 1
             return
-        key = match["key"]
-        if self._caching.get(key, 0) > 0:
-            self._caching[key] -= 1
-            return
-        refusal = (match["cn"], match["what"].lower(), match["flow"], key)
+        refusal = (match["cn"], match["what"].lower(), match["flow"], match["key"])
         n = self.counts.get(refusal, 0) + 1
         self.counts[refusal] = n
         if n == 1 or n % 1000 == 0:
             log(SERVICE, "refused", level="warning", subject=refusal[0], message=refusal[1],
-                flow=refusal[2], key=key, count=n)
+                flow=refusal[2], key=refusal[3], count=n)
 
 
 def _capture_zenoh_log() -> int:

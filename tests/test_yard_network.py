@@ -219,3 +219,26 @@ def test_a_service_warns_before_its_certificate_expires(tmp_path):
     assert line["level"] == "warning"
     assert line["problem"].startswith(f"certificate router ({pki / 'router.pem'}) expires in")
     assert "BEGIN" not in log.read_text()   # no key or certificate material in the log
+
+
+def test_the_refusal_log_skips_permission_tables_and_counts_repeats():
+    """Zenoh's access-control trace, as the router reads it: the decisions listed when a
+    key's permissions are cached are not traffic; a refused message is logged once, then
+    counted."""
+    from services.router import RefusalLog
+
+    refusals = RefusalLog(-1)
+    who = "abc on Interface(lo)+CertCommonName(scan1)+Transport(Tls)+abc"
+    key = "stockpile/yard/@v1/assay/lab1"
+    refusals.take(f"TRACE access_control: ACL (ingress): caching permissions for `{key}` ...")
+    for kind in ("Query", "Reply", "Put", "Delete", "Declare/Undeclare Subscriber",
+                 "Declare/Undeclare Queryable", "Declare/Undeclare Liveliness Token",
+                 "Liveliness Query", "Declare Liveliness Subscriber"):
+        refusals.take(f"TRACE access_control: {who} is unauthorized to {kind} (ingress) on {key}")
+    refusals.take(f"TRACE access_control: {who} is authorized to Put (ingress) on other/key")
+    assert refusals.counts == {}
+    refusals.take(f"TRACE access_control: {who} is authorized to Put (ingress) on {key}")
+    assert refusals.counts == {}     # the table's tenth line
+    for _ in range(3):
+        refusals.take(f"TRACE access_control: {who} is unauthorized to Put (ingress) on {key}")
+    assert refusals.counts == {("scan1", "put", "ingress", key): 3}
