@@ -178,3 +178,23 @@ def test_plain_verify_catches_an_edited_body_or_flag(tmp_path, edit, problem):
     if "body" in edit:   # the edit did reach what an auditor's SQL reads
         with duckdb.connect(str(ledger)) as con:
             assert con.execute("SELECT avg(\"Fe\") FROM assays").fetchone()[0] != before
+
+
+@pytest.mark.parametrize("edit, problem", [
+    ("DELETE FROM gaps", "2 sequence numbers are missing below its highest stored one, the "
+     "open gaps hold 0"),
+    ("UPDATE gaps SET last_seq = 2", "the open gaps hold 1"),
+    ("UPDATE gaps SET first_seq = 1, last_seq = 3", "seq 1 of sim.clock epoch 1 is stored but "
+     "lies in the open gap 1..3"),
+], ids=["gap-deleted", "gap-shrunk", "gap-over-stored"])
+def test_plain_verify_catches_an_edited_gap_row(tmp_path, edit, problem):
+    """Seqs 2 and 3 never arrived: the open gap 2..3 is what the stored rows imply."""
+    ledger = tmp_path / "g.duckdb"
+    with open_ledger(ledger) as store:
+        store.append([_clock(i) for i in (0, 1, 4, 5)])
+        assert [(g.first_seq, g.last_seq) for g in store.gaps(open_only=True)] == [(2, 3)]
+    assert _verify(ledger).returncode == 0
+    with duckdb.connect(str(ledger)) as con:
+        con.execute(edit)
+    done = _verify(ledger)
+    assert done.returncode == 1 and problem in done.stdout, done.stdout
