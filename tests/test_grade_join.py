@@ -31,7 +31,7 @@ def ids(assays):
 def test_coerce_time_ns():
     assert coerce_time_ns(5) == 5 and type(coerce_time_ns(np.int64(7))) is int
     assert coerce_time_ns(SimpleNamespace(seconds=3, nanos=4)) == 3_000_000_004
-    with pytest.raises(TypeError, match="got a bool"):
+    with pytest.raises(TypeError, match="^a time must be a Timestamp or integer ns, got a bool$"):
         coerce_time_ns(True)
     with pytest.raises(TypeError, match="got str"):
         coerce_time_ns("5")
@@ -177,6 +177,26 @@ def test_grade_classes_of_float_times_mark_unknown_times():
         grade_classes("L1", PLAN, [a], np.zeros((2, 2)), AN)
 
 
+def test_grade_classes_keep_nanosecond_times_exact():
+    # real UTC ns lose their last digits as floats: integer times must stay integers
+    t0 = 1_793_491_200_000_000_000
+    a = assay("A", t0 - 1_000, t0, 100, Fe=61.0)
+    c = grade_classes("L1", PLAN, [a], np.array([t0, t0 + 1, t0 + 100], np.int64), ("Fe",))
+    assert c.index.tolist() == [2, 0, 0]
+    c = grade_classes("L1", PLAN, [a], np.array([t0 + 1], np.uint64), ("Fe",))
+    assert c.index.tolist() == [0]
+
+
+def test_an_assay_that_applies_to_no_time_does_not_hide_the_next():
+    # lowest precedence first: a provisional assay elsewhere, then a final one that applies
+    elsewhere = assay("E", 500, 600, 50, status="PROVISIONAL", Fe=1.0)
+    here = assay("H", 0, 20, 100, Fe=62.0, density=0.5)
+    c = grade_classes("L1", PLAN, [here, elsewhere], np.array([10], np.int64), ("Fe",))
+    assert c.index.tolist() == [2] and c.grade[2, 0] == 62.0
+    # a density under 1 t/m3 is still a density
+    assert c.density_t_m3.tolist()[2] == 0.5
+
+
 def test_of_overlapping_assays_final_then_later_then_larger_id_wins():
     t = np.array([15], np.int64)
 
@@ -225,6 +245,17 @@ def test_the_join_uses_the_assays_known_at_k_and_defaults_density():
     np.testing.assert_array_equal(c.grade, [[58.0], [math.nan], [62.0], [64.0]])
     np.testing.assert_array_equal(c.density_t_m3, [2.0, 2.0, 3.0, 2.0])
     assert c.assayed.tolist() == [False, False, True, True]
+
+
+def test_a_declared_lot_without_assays_takes_its_planned_grade():
+    join = GradeJoin({"L1": {"Fe": 58.0}, "L2": {"Fe": 50.0}}, [assay("A", 0, 99, 1)], 10, 2.0)
+    c = join.classes("L2", np.array([5, 6], np.int64))
+    assert c.index.tolist() == [0, 0] and c.grade[0, 0] == 50.0
+    # one cell of planned material: one class of two holds it all
+    tonnes, sums, assayed_t, graded_t = join.material("L2", np.array([5], np.int64), [3.0])
+    assert (tonnes, assayed_t, graded_t) == (6.0, 0.0, 6.0) and sums.tolist() == [300.0]
+    tonnes, sums, assayed_t, graded_t = join.material("L2", np.array([5, 6], np.int64), [1, 2])
+    assert (tonnes, graded_t) == (6.0, 6.0) and sums.tolist() == [300.0]
 
 
 def test_an_undeclared_lot_has_no_grade():

@@ -307,3 +307,41 @@ def test_the_memory_store_fails_on_unknown_input():
     store.close()
     with pytest.raises(InterfaceError, match="the memory ledger is closed"):
         store.head()
+
+
+def test_a_malformed_reason_is_split_into_a_known_code_and_its_detail(backend, tmp_path):
+    store = open_store(backend, tmp_path, ManualClock(10))
+    reasons = ["undecodable: field 3: bad wire type", "weird: not a code", "malformed",
+               "bad_identity:no space"]
+    store.append([Malformed(b"x", r) for r in reasons])
+    assert [(q.code, q.detail) for q in store.quarantine()] == [
+        ("undecodable", "field 3: bad wire type"), ("malformed", "weird: not a code"),
+        ("malformed", "malformed"), ("malformed", "bad_identity:no space")]
+    store.close()
+
+
+def test_quarantine_time_is_the_latest_tick_even_before_a_preserved_head(backend, tmp_path):
+    clock = EventClock(start_ns=50)
+    store = open_store(backend, tmp_path, clock)
+    tick = clock_event(0, 1_000)
+    # a tick imported with its own recorded time (500) earlier than its valid time
+    store.append([Event(tick.type, tick.source, tick.epoch, tick.seq, tick.valid_time_ns,
+                        tick.payload, 500)])
+    store.append([Event("joint_reading", "a.src", 1, 0, 5, b"\xff")])
+    store = reopen(store, clock)
+    store.append([Event("joint_reading", "a.src", 1, 1, 5, b"\xff")])
+    assert [q.recorded_time_ns for q in store.quarantine()] == [1_000, 1_000]
+    store.close()
+
+
+def test_a_payload_that_is_not_bytes_is_quarantined_with_empty_raw_bytes(backend, tmp_path):
+    store = open_store(backend, tmp_path, ManualClock(10))
+    e = joint_event("a.src", 0, 1)
+    result = store.append([Event(e.type, e.source, e.epoch, e.seq, e.valid_time_ns, 3),
+                           Event(e.type, e.source, e.epoch, 1, e.valid_time_ns, bytearray(e.payload))])
+    assert [(o.status, o.code) for o in result.outcomes] == [("rejected", "undecodable"),
+                                                             ("appended", None)]
+    [entry] = store.quarantine()
+    assert (entry.raw, entry.detail) == (b"", "payload is not bytes")
+    assert [r.payload for r in store.read()] == [e.payload]
+    store.close()

@@ -55,6 +55,27 @@ MODULES: dict[str, tuple[str, list[str]]] = {
         "projector.grades.*"]),
 }
 
+# The review's two mutants of ledger/chain.py (issue 44), applied by hand to a copy of the
+# package: which tests kill each is printed (mutmut's own mutants of chain_hash are smaller).
+_CHAIN_JOIN = """        previous,
+        _INTS.pack(global_seq, epoch, seq, valid_time_ns, recorded_time_ns),
+        _names(type_name, source),
+        payload_sha256,
+"""
+NAMED_MUTANTS: dict[str, tuple[str, str, str]] = {
+    "chain hash without type, source, epoch and seq": ("ledger/chain.py", _CHAIN_JOIN, """\
+        previous,
+        struct.pack("<qqq", global_seq, valid_time_ns, recorded_time_ns),
+        payload_sha256,
+"""),
+    "chain hash without the payload hash": ("ledger/chain.py", _CHAIN_JOIN, """\
+        previous,
+        _INTS.pack(global_seq, epoch, seq, valid_time_ns, recorded_time_ns),
+        _names(type_name, source),
+"""),
+}
+NAMED_TESTS = ["tests/test_chain.py", "tests/test_ledger_contract.py", "tests/test_mutation_store.py"]
+
 # exit codes of a mutant's test run (mutmut.stats.status_by_exit_code)
 KILLED = {1, 3, 36, -24, 24, 152, 255}
 SURVIVED = {0}
@@ -84,15 +105,46 @@ def _mutmut(*args: str) -> subprocess.CompletedProcess:
     return subprocess.run([str(exe), *args], cwd=WORK, env=env, text=True, capture_output=True)
 
 
+def named_mutants() -> list[str]:
+    """Run :data:`NAMED_MUTANTS`; lines naming the tests that fail under each."""
+    lines = []
+    for name, (path, old, new) in NAMED_MUTANTS.items():
+        work = WORK.parent / "mutate-named" / name.replace(" ", "-").replace(",", "")
+        if work.exists():
+            shutil.rmtree(work)
+        shutil.copytree(ROOT / "ledger", work / "ledger",
+                        ignore=shutil.ignore_patterns("__pycache__"))
+        source = (work / path).read_text()
+        assert source.count(old) == 1, f"{path} changed: update NAMED_MUTANTS"
+        (work / path).write_text(source.replace(old, new))
+        env = dict(os.environ, PYTHONPATH=str(work), PYTHONDONTWRITEBYTECODE="1")
+        out = subprocess.run([str(Path(sys.executable).with_name("pytest")), "-q", "-p", "no:cacheprovider",
+                              "-rf", "--tb=no", *NAMED_TESTS], cwd=ROOT, env=env,
+                             text=True, capture_output=True)
+        failed = sorted(line.split()[1] for line in out.stdout.splitlines()
+                        if line.startswith("FAILED "))
+        status = f"killed by {len(failed)} tests" if failed else "SURVIVED"
+        lines.append(f"  {name}: {status}")
+        lines += [f"      {t}" for t in failed]
+    return lines
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--keep", action="store_true", help="reuse build/mutate (mutmut's cache)")
     parser.add_argument("--jobs", type=int, default=os.cpu_count() or 2)
     parser.add_argument("--module", action="append", choices=sorted(MODULES),
                         help="only this module (repeatable)")
+    parser.add_argument("--named-only", action="store_true",
+                        help="only the review's named mutants of the chain")
     args = parser.parse_args(argv)
     modules = {k: v for k, v in MODULES.items() if not args.module or k in args.module}
     patterns = [p for _, pats in modules.values() for p in pats]
+
+    if args.named_only:
+        named = named_mutants()
+        print("\n".join(named))
+        return 1 if any("SURVIVED" in line for line in named) else 0
 
     start = time.monotonic()
     if not args.keep or not WORK.exists():
@@ -142,6 +194,10 @@ def main(argv: list[str] | None = None) -> int:
           f"{total_killed / max(total, 1):7.1%}")
     print("\nsurvivors:" if lines else "\nsurvivors: none")
     print("\n".join(lines))
+    named = named_mutants()
+    print("\nthe review's named mutants (ledger/chain.py, applied by hand):")
+    print("\n".join(named))
+    failed |= any("SURVIVED" in line for line in named)
     stale = sorted(k for k in accepted if k not in used
                    and any(fnmatch.fnmatchcase(k, p) for _, pats in modules.values() for p in pats))
     if stale:
