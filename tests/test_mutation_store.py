@@ -345,3 +345,20 @@ def test_a_payload_that_is_not_bytes_is_quarantined_with_empty_raw_bytes(backend
     assert (entry.raw, entry.detail) == (b"", "payload is not bytes")
     assert [r.payload for r in store.read()] == [e.payload]
     store.close()
+
+
+def test_a_row_with_two_flags_reads_back_as_two(tmp_path):
+    # the planner sets one flag at most; the DuckDB store keeps them comma-joined
+    store = DuckDBStore(tmp_path / "l.duckdb", ManualClock(10))
+    store.append([assay_event(0, "A1", "L1", 5), joint_event("a.src", 0, 1)])
+    path = store.path
+    store.close()
+    import duckdb
+
+    con = duckdb.connect(str(path))
+    con.execute("UPDATE event_log SET flags = 'unknown_lot,late lab' WHERE global_seq = 0")
+    con.close()
+    store = DuckDBStore(path, ManualClock(10), read_only=True)
+    assert [r.flags for r in store.read()] == [("unknown_lot", "late lab"), ()]
+    assert [r.flags for r in store.as_of(10, 10)] == [("unknown_lot", "late lab"), ()]
+    store.close()
