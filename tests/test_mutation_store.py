@@ -241,6 +241,8 @@ def test_gaps_split_and_close_across_batches_and_reopens(backend, tmp_path):
     assert open_gaps == [(4, 2, 3, 10), (5, 5, 7, 10), (6, 11, 11, 20)]
     closed = [(g.gap_id, g.first_seq, g.last_seq, g.closed_recorded_ns)
               for g in store.gaps() if not g.is_open]
+    assert {(g.source, g.epoch, g.opened_recorded_ns) for g in store.gaps() if not g.is_open} == {
+        ("a.src", 1, 10), ("a.src", 1, 20)}
     assert closed == [(0, 1, 8, 20), (1, 1, 3, 30), (2, 5, 8, 30), (3, 10, 11, 30)]
     [info] = store.streams()
     assert (info.highest_contiguous_seq, info.max_seq, info.open_gaps, info.missing) == (1, 12, 3, 6)
@@ -361,4 +363,35 @@ def test_a_row_with_two_flags_reads_back_as_two(tmp_path):
     store = DuckDBStore(path, ManualClock(10), read_only=True)
     assert [r.flags for r in store.read()] == [("unknown_lot", "late lab"), ()]
     assert [r.flags for r in store.as_of(10, 10)] == [("unknown_lot", "late lab"), ()]
+    store.close()
+
+
+def test_a_stored_event_after_a_malformed_one_in_a_batch_is_a_duplicate(backend, tmp_path):
+    clock = ManualClock(10)
+    store = open_store(backend, tmp_path, clock)
+    e = joint_event("a.src", 0, 1)
+    store.append([e])
+    store = reopen(store, clock)
+    result = store.append([Malformed(b"x", "malformed: junk"), e])
+    assert [o.status for o in result.outcomes] == ["rejected", "duplicate"]
+    store.close()
+
+
+def test_stored_payloads_are_bytes_whatever_buffer_came_in(tmp_path):
+    store = MemoryStore(ManualClock(10))
+    e = joint_event("a.src", 0, 1)
+    store.append([Event(e.type, e.source, e.epoch, e.seq, e.valid_time_ns, bytearray(e.payload))])
+    [row] = store.read()
+    assert type(row.payload) is bytes and row.payload == e.payload
+
+
+def test_events_after_a_preserved_tick_are_stamped_with_the_tick(backend, tmp_path):
+    store = open_store(backend, tmp_path, EventClock(start_ns=50))
+    # no tick yet: the clock's start, whatever the event's own valid time
+    store.append([joint_event("a.src", 0, 5)])
+    tick = clock_event(0, 1_000)
+    store.append([Event(tick.type, tick.source, tick.epoch, tick.seq, tick.valid_time_ns,
+                        tick.payload, 500)])
+    store.append([joint_event("a.src", 1, 6)])
+    assert [r.recorded_time_ns for r in store.read()] == [50, 500, 1_000]
     store.close()
