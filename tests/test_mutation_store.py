@@ -395,3 +395,20 @@ def test_events_after_a_preserved_tick_are_stamped_with_the_tick(backend, tmp_pa
     store.append([joint_event("a.src", 1, 6)])
     assert [r.recorded_time_ns for r in store.read()] == [50, 500, 1_000]
     store.close()
+
+
+def test_the_assays_view_gains_a_column_for_each_new_analyte(tmp_path):
+    # the writer recreates the views in the batch that first stores an analyte
+    store = DuckDBStore(tmp_path / "l.duckdb", ManualClock(10))
+    store.append([lot_event(0, "L1", 1), assay_event(0, "A1", "L1", 20, {"Fe": 61.0}),
+                  joint_event("a.src", 0, 2)])
+    store.append([assay_event(1, "A2", "L1", 30, {"SiO2": 4.0})])
+    store.append([assay_event(2, "A3", "L1", 40, {"Fe": 60.0})])
+    store.append([assay_event(3, "A4", "L1", 50, {"P": 0.1, "Fe": 59.0})])
+    con = store._con
+    names = [d[0] for d in con.execute("SELECT * FROM assays LIMIT 0").description]
+    assert {"Fe", "SiO2", "P"} <= set(names)
+    rows = con.execute('SELECT assay_id, "Fe", "SiO2", "P" FROM assays ORDER BY assay_id').fetchall()
+    assert rows == [("A1", 61.0, None, None), ("A2", None, 4.0, None), ("A3", 60.0, None, None),
+                    ("A4", 59.0, None, 0.1)]
+    store.close()
