@@ -412,3 +412,21 @@ def test_the_assays_view_gains_a_column_for_each_new_analyte(tmp_path):
     assert rows == [("A1", 61.0, None, None), ("A2", None, 4.0, None), ("A3", 60.0, None, None),
                     ("A4", 59.0, None, 0.1)]
     store.close()
+
+
+def test_a_failed_commit_leaves_the_writer_state_as_it_was(tmp_path):
+    # the event_log table renamed behind the store's back: the batch's INSERT fails, so the
+    # lot it declared must stay unknown (the planner copies the known lots before changing them)
+    from ledger.errors import DatabaseError
+
+    store = DuckDBStore(tmp_path / "l.duckdb", ManualClock(10))
+    store.append([lot_event(0, "L1", 1)])
+    store._con.execute("ALTER TABLE event_log RENAME TO event_log_away")
+    with pytest.raises(DatabaseError):
+        store.append([lot_event(1, "L2", 2)])
+    store._con.execute("ALTER TABLE event_log_away RENAME TO event_log")
+    assert store.head().global_seq == 0
+    result = store.append([assay_event(0, "A1", "L1", 3), assay_event(1, "A2", "L2", 4)])
+    assert [o.flags for o in result.outcomes] == [(), (FLAG_UNKNOWN_LOT,)]
+    assert [r.global_seq for r in store.read()] == [0, 1, 2] and store.verify().ok
+    store.close()
