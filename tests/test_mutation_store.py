@@ -430,3 +430,14 @@ def test_a_failed_commit_leaves_the_writer_state_as_it_was(tmp_path):
     assert [o.flags for o in result.outcomes] == [(), (FLAG_UNKNOWN_LOT,)]
     assert [r.global_seq for r in store.read()] == [0, 1, 2] and store.verify().ok
     store.close()
+
+
+def test_an_assay_without_analytes_is_stored(tmp_path):
+    store = DuckDBStore(tmp_path / "l.duckdb", ManualClock(10))
+    m = pb.Assay(assay_id="A0", lot_id="L1", status=2)
+    set_timestamp_ns(m.window_start, 1)
+    set_timestamp_ns(m.window_end, 2)
+    result = store.append([make_event(m, source="lab.assays", epoch=1, seq=0)])
+    assert result.outcomes[0].status == "appended"
+    assert [r.type for r in store.read()] == ["assay"]
+    store.close()
