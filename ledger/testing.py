@@ -23,7 +23,9 @@ from pathlib import Path
 from schemas import pb
 from schemas.events import Event, make_event, set_timestamp_ns
 
+from ledger.chain import GENESIS, chain_hash, payload_hash
 from ledger.clock import EventClock, ManualClock
+from ledger.records import RecordedEvent, VerifyReport
 from ledger.store import LedgerStore
 
 
@@ -59,6 +61,92 @@ def _histories(draw, st):
     return batches, queries
 
 
+# -- tampering: what an attacker with write access to the storage might do ------------------
+
+#: Stored fields a tamper case changes, one at a time (every field the chain hashes, the
+#: payload and the stored hashes), and ``payload_and_hash``: the payload edited together
+#: with its stored sha256, so that only the chain can tell.
+TAMPER_FIELDS: tuple[str, ...] = (
+    "type", "source", "epoch", "seq", "valid_time_ns", "recorded_time_ns", "payload",
+    "payload_sha256", "global_seq", "chain_sha256", "payload_and_hash")
+#: Whole-row cases: ``delete`` a row (later rows renumbered down, so the sequence stays
+#: dense), ``insert`` a forged row before a row (taking its number; its chain value made
+#: right, later rows renumbered up), ``reorder`` a row and the next (numbers kept),
+#: ``rechain_backwards``: a recorded time moved before the previous row's with every chain
+#: value from there on recomputed (only the recorded-time order can tell).
+TAMPER_ROWS: tuple[str, ...] = ("delete", "insert", "reorder", "rechain_backwards")
+
+
+def _flip(b: bytes) -> bytes:
+    return bytes([b[0] ^ 0x01]) + b[1:]
+
+
+def _rechain(rows: list[RecordedEvent], start: int) -> list[RecordedEvent]:
+    previous = rows[start - 1].chain_sha256 if start > 0 else GENESIS
+    out = rows[:start]
+    for r in rows[start:]:
+        r = r._replace(chain_sha256=chain_hash(previous, r.global_seq, r.type, r.source, r.epoch,
+                                                r.seq, r.valid_time_ns, r.recorded_time_ns,
+                                                r.payload_sha256))
+        out.append(r)
+        previous = r.chain_sha256
+    return out
+
+
+def tampered_rows(rows: list[RecordedEvent], global_seq: int, field: str) -> list[RecordedEvent]:
+    """``rows`` (every stored row, in global order) after one tamper case at ``global_seq``.
+
+    A field case changes that field of that row only (an integer by one, a text by an
+    appended character, the payload by an appended byte, a stored hash by a flipped bit);
+    the row cases are described at :data:`TAMPER_ROWS`.
+    """
+    rows = list(rows)
+    i = global_seq
+    r = rows[i]
+    if field in ("epoch", "seq", "valid_time_ns", "recorded_time_ns", "global_seq"):
+        rows[i] = r._replace(**{field: getattr(r, field) + 1})
+    elif field in ("type", "source"):
+        rows[i] = r._replace(**{field: getattr(r, field) + "x"})
+    elif field == "payload":
+        rows[i] = r._replace(payload=r.payload + b"\x00")
+    elif field in ("payload_sha256", "chain_sha256"):
+        rows[i] = r._replace(**{field: _flip(getattr(r, field))})
+    elif field == "payload_and_hash":
+        payload = r.payload + b"\x00"
+        rows[i] = r._replace(payload=payload, payload_sha256=payload_hash(payload))
+    elif field == "delete":
+        del rows[i]
+        rows[i:] = [x._replace(global_seq=x.global_seq - 1) for x in rows[i:]]
+    elif field == "insert":
+        forged = r._replace(seq=r.seq + 1_000)
+        rows[i:] = [forged] + [x._replace(global_seq=x.global_seq + 1) for x in rows[i:]]
+        rows[:i + 1] = _rechain(rows[:i + 1], i)
+    elif field == "reorder":
+        a, b = rows[i], rows[i + 1]
+        rows[i], rows[i + 1] = b._replace(global_seq=a.global_seq), a._replace(global_seq=b.global_seq)
+    elif field == "rechain_backwards":
+        rows[i] = r._replace(recorded_time_ns=rows[i - 1].recorded_time_ns - 1)
+        rows = _rechain(rows, i)
+    else:
+        raise ValueError(f"unknown tamper case {field!r}")
+    return rows
+
+
+def tamper_expectation(field: str, global_seq: int) -> VerifyReport:
+    """The report verify must give for a tamper case at ``global_seq``."""
+    if field == "insert":
+        bad, problem = global_seq + 1, "chain hash mismatch (row fields or an earlier row changed)"
+    elif field in ("payload", "payload_sha256"):
+        bad, problem = global_seq, "payload does not match its sha256"
+    elif field == "global_seq":
+        bad, problem = global_seq, f"global_seq {global_seq + 1} where {global_seq} was expected"
+    elif field == "rechain_backwards":
+        bad, problem = global_seq, "recorded time goes backwards"
+    else:
+        bad, problem = global_seq, "chain hash mismatch (row fields or an earlier row changed)"
+    return VerifyReport(False, bad, bad, problem)
+
+
 class LedgerStoreContract(abc.ABC):
     """Behaviour every :class:`~ledger.store.LedgerStore` backend must show."""
 
@@ -75,8 +163,9 @@ class LedgerStoreContract(abc.ABC):
 
     @abc.abstractmethod
     def tamper(self, store: LedgerStore, global_seq: int, field: str) -> LedgerStore:
-        """Change ``field`` ("payload" or "recorded_time_ns") of a stored row behind the
-        store's back; return the store to verify (possibly reopened)."""
+        """Change the stored rows behind the store's back as :func:`tampered_rows` does
+        (``field``: one of :data:`TAMPER_FIELDS` or :data:`TAMPER_ROWS`), in the backend's
+        own storage; return the store to verify (possibly reopened)."""
 
     # -- helpers ------------------------------------------------------------------------
 
@@ -306,6 +395,8 @@ class LedgerStoreContract(abc.ABC):
             assert [r.recorded_time_ns for r in store.read()] == [1_000, 1_000, 2_000, 2_000]
             store.close()
 
+    # -- tamper evidence: the review's first two cases ------------------------------------
+
     def test_verify_detects_a_modified_payload(self, tmp_path):
         store, clock = self._new(tmp_path)
         store.append([joint_event("a.src", i, i, travel_m=i) for i in range(6)])
@@ -322,6 +413,45 @@ class LedgerStoreContract(abc.ABC):
         report = store.verify()
         assert not report.ok and report.first_bad_seq == 4, report
         store.close()
+
+    # -- tamper evidence: every hashed field, whole rows, the first and the last row -----
+
+    def _tamper_ledger(self, directory: Path) -> tuple[LedgerStore, ManualClock]:
+        """Six rows from two sources and epochs over three batches (recorded times 1000,
+        1100, 1200), so every field differs between neighbours."""
+        directory.mkdir(parents=True, exist_ok=True)
+        store, clock = self._new(directory, 1_000)
+        for b in range(3):
+            store.append([joint_event("a.src", b, 10 * b + 1, travel_m=b, epoch=1),
+                          joint_event("b.src", b, 10 * b + 2, travel_m=-b, epoch=2)])
+            clock.advance_ns(100)
+        return store, clock
+
+    def _tamper_failures(self, tmp_path: Path, cases) -> list[str]:
+        store, _ = self._tamper_ledger(tmp_path / "intact")
+        assert store.verify() == VerifyReport(True, 6)
+        store.close()
+        failures = []
+        for n, (field, at) in enumerate(cases):
+            store, _ = self._tamper_ledger(tmp_path / f"case{n}")
+            store = self.tamper(store, at, field)
+            report = store.verify()
+            if report != tamper_expectation(field, at):
+                failures.append(f"{field} at {at}: {report}")
+            store.close()
+        return failures
+
+    def test_verify_detects_every_tampered_field_of_the_first_a_middle_and_the_last_row(
+            self, tmp_path):
+        cases = [(field, at) for field in TAMPER_FIELDS for at in (0, 5)]
+        cases += [("payload_and_hash", 3), ("source", 3)]
+        assert self._tamper_failures(tmp_path, cases) == []
+
+    def test_verify_detects_deleted_inserted_and_reordered_rows(self, tmp_path):
+        cases = [("delete", 0), ("delete", 2), ("insert", 0), ("insert", 3), ("insert", 5),
+                 ("reorder", 0), ("reorder", 2), ("reorder", 4),
+                 ("rechain_backwards", 1), ("rechain_backwards", 5)]
+        assert self._tamper_failures(tmp_path, cases) == []
 
     def test_randomised_batches_keep_every_invariant(self, tmp_path):
         seed = random.randrange(2**32)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import importlib.metadata
 import json
 import re
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -121,6 +122,62 @@ def test_verify_fails_with_exit_1_naming_the_first_bad_row(tmp_path, sample_file
     out = run("ledger", "verify", "--ledger", str(ledger))
     assert out.returncode == 1
     assert "global_seq 123" in out.stdout
+
+
+@pytest.fixture(scope="module")
+def verified_ledger(tmp_path_factory, sample_file) -> tuple[Path, int, str]:
+    """A ledger imported once, its head global seq and the chain `verify` prints for it."""
+    ledger = tmp_path_factory.mktemp("verify") / "l.duckdb"
+    run("ledger", "import", str(sample_file), "--ledger", str(ledger))
+    out = run("ledger", "verify", "--ledger", str(ledger))
+    assert out.returncode == 0, out.stderr
+    head = int(out.stdout.split("head global_seq ")[1].split(",")[0])
+    return ledger, head, out.stdout.split("chain ")[1].strip()
+
+
+@pytest.mark.parametrize("case", ["payload_and_hash_of_the_first", "type_of_the_last",
+                                  "source_of_the_last", "deleted_middle_row",
+                                  "reordered_first_rows"])
+def test_verify_names_the_first_row_of_each_tamper_case(tmp_path, verified_ledger, case):
+    original, head, _ = verified_ledger
+    ledger = tmp_path / "l.duckdb"
+    shutil.copy(original, ledger)
+    con = duckdb.connect(str(ledger))
+    if case == "payload_and_hash_of_the_first":
+        # the payload and its stored sha256 edited together: only the chain tells
+        con.execute("UPDATE event_log SET payload = payload || '\\x00'::BLOB WHERE global_seq = 0")
+        con.execute("UPDATE event_log SET payload_sha256 = unhex(sha256(payload)) WHERE global_seq = 0")
+        bad = 0
+    elif case in ("type_of_the_last", "source_of_the_last"):
+        column = case.split("_")[0]
+        con.execute(f"UPDATE event_log SET {column} = {column} || 'x' WHERE global_seq = ?", [head])
+        bad = head
+    elif case == "deleted_middle_row":
+        con.execute("DELETE FROM event_log WHERE global_seq = 500")
+        con.execute("UPDATE event_log SET global_seq = global_seq - 1 WHERE global_seq > 500")
+        bad = 500
+    else:
+        con.execute("UPDATE event_log SET global_seq = 1 - global_seq WHERE global_seq IN (0, 1)")
+        bad = 0
+    con.close()
+    out = run("ledger", "verify", "--ledger", str(ledger))
+    assert out.returncode == 1, out.stdout
+    assert out.stdout.startswith(f"FAILED: first bad row global_seq {bad}: "), out.stdout
+    assert "chain hash mismatch" in out.stdout and f"({bad:,} rows before it are intact)" in out.stdout
+
+
+def test_a_deleted_last_row_shows_only_in_the_printed_chain(tmp_path, verified_ledger):
+    # a hash chain cannot tell a truncated ledger from a shorter one: the head's chain
+    # value, printed by verify, is what a reader keeps to compare against
+    original, head, chain = verified_ledger
+    ledger = tmp_path / "l.duckdb"
+    shutil.copy(original, ledger)
+    con = duckdb.connect(str(ledger))
+    con.execute("DELETE FROM event_log WHERE global_seq = ?", [head])
+    con.close()
+    out = run("ledger", "verify", "--ledger", str(ledger))
+    assert out.returncode == 0
+    assert f"head global_seq {head - 1}," in out.stdout and chain not in out.stdout
 
 
 def test_stats_json_and_text(tmp_path, sample_file):

@@ -7,7 +7,8 @@ import duckdb
 from ledger.clock import ManualClock
 from ledger.duckdb_store import DuckDBStore
 from ledger.memory import MemoryStore
-from ledger.testing import LedgerStoreContract
+from ledger.records import RecordedEvent
+from ledger.testing import LedgerStoreContract, tampered_rows
 
 
 class TestMemoryStore(LedgerStoreContract):
@@ -17,12 +18,10 @@ class TestMemoryStore(LedgerStoreContract):
         return MemoryStore(clock)
 
     def tamper(self, store, global_seq, field):
-        row = store._rows[global_seq]
-        if field == "payload":
-            changed = row._replace(payload=row.payload + b"\x00")
-        else:
-            changed = row._replace(recorded_time_ns=row.recorded_time_ns + 1)
-        store._rows[global_seq] = changed
+        # the rows as the store keeps them, changed in place (its index and writer state
+        # are left as they were: only verify looks)
+        store._rows[:] = tampered_rows(store._rows, global_seq, field)
+        store._recorded[:] = [r.recorded_time_ns for r in store._rows]
         return store
 
 
@@ -37,14 +36,22 @@ class TestDuckDBStore(LedgerStoreContract):
         return DuckDBStore(store.path, clock)
 
     def tamper(self, store, global_seq, field):
+        # event_log rewritten with SQL in another connection, the file reopened read-only
         path = store.path
         store.close()
         con = duckdb.connect(str(path))
-        if field == "payload":
-            con.execute("UPDATE event_log SET payload = payload || '\\x00'::BLOB "
-                        "WHERE global_seq = ?", [global_seq])
-        else:
-            con.execute("UPDATE event_log SET recorded_time_ns = recorded_time_ns + 1 "
-                        "WHERE global_seq = ?", [global_seq])
+        columns = "global_seq, type, source, epoch, seq, valid_time_ns, recorded_time_ns, " \
+                  "payload, payload_sha256, chain_sha256"
+        rows = [RecordedEvent(*r[:7], bytes(r[7]), bytes(r[8]), bytes(r[9])) for r in con.execute(
+            f"SELECT {columns} FROM event_log ORDER BY global_seq").fetchall()]
+        changed = tampered_rows(rows, global_seq, field)
+        con.execute("BEGIN TRANSACTION")
+        # the rows from the first changed one on are deleted and written again
+        start = next((i for i, (a, b) in enumerate(zip(rows, changed)) if a != b),
+                     min(len(rows), len(changed)))
+        con.execute("DELETE FROM event_log WHERE global_seq >= ?", [start])
+        con.executemany(f"INSERT INTO event_log ({columns}) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                        [list(r[:10]) for r in changed[start:]])
+        con.execute("COMMIT")
         con.close()
         return DuckDBStore(path, ManualClock(0), read_only=True)
