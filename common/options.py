@@ -245,7 +245,7 @@ def add_progress(parser: argparse.ArgumentParser | Any) -> argparse.Action:
 
 def add_batch_size(parser: argparse.ArgumentParser | Any) -> argparse.Action:
     """``--batch-size N``: events per atomic ledger batch (default DEFAULT_BATCH_SIZE)."""
-    return parser.add_argument("--batch-size", type=_positive_int, default=DEFAULT_BATCH_SIZE,
+    return parser.add_argument("--batch-size", type=positive_int, default=DEFAULT_BATCH_SIZE,
                                metavar="N", help="events per atomic ledger batch "
                                f"(default {DEFAULT_BATCH_SIZE:,})")
 
@@ -261,11 +261,12 @@ def non_negative_float(text: str) -> float:
     return value
 
 
-def _positive_int(text: str) -> int:
+def positive_int(text: str, what: str = "an integer") -> int:
+    """argparse type: an integer > 0 (counts; ``what`` names the unit in the error)."""
     try:
         value = int(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
+        raise argparse.ArgumentTypeError(f"not {what}: {text!r}") from None
     if value <= 0:
         raise argparse.ArgumentTypeError(f"must be positive, got {text!r}")
     return value

@@ -9,7 +9,7 @@ from __future__ import annotations
 import argparse
 import json
 
-from common.options import add_out
+from common.options import add_out, positive_int
 from security import pki
 
 
@@ -133,10 +133,4 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _positive_days(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a whole number of days: {text!r}") from None
-    if value <= 0:
-        raise argparse.ArgumentTypeError(f"must be positive, got {text!r}")
-    return value
+    return positive_int(text, "a whole number of days")

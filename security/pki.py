@@ -241,21 +241,20 @@ def _write_private(path: Path, data: bytes, *, force: bool) -> None:
             path.unlink(missing_ok=True)     # no half-written key left to refuse later
             raise
         return
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, _PRIVATE_MODE)
-    try:
-        _write_fd(fd, data)
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
+    _replace_atomically(path, data, _PRIVATE_MODE)
 
 
 def _write_public(path: Path, data: bytes) -> None:
     """Write a public file (certificate, CRL, index) atomically: a temporary file, then
     rename."""
+    _replace_atomically(path, data, _PUBLIC_MODE)
+
+
+def _replace_atomically(path: Path, data: bytes, mode: int) -> None:
+    """Write ``data`` to a temporary file created exclusively with ``mode``, then rename it
+    over ``path`` (a reader never sees half of it; a failure leaves no temporary file)."""
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, _PUBLIC_MODE)
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, mode)
     try:
         _write_fd(fd, data)
         os.replace(tmp, path)
