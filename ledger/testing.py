@@ -25,7 +25,7 @@ from schemas.events import Event, make_event, set_timestamp_ns
 
 from ledger.chain import GENESIS, chain_hash, payload_hash
 from ledger.clock import EventClock, ManualClock
-from ledger.records import RecordedEvent, VerifyReport
+from ledger.records import FLAG_UNKNOWN_LOT, RecordedEvent, VerifyReport
 from ledger.store import LedgerStore
 
 
@@ -64,11 +64,12 @@ def _histories(draw, st):
 # -- tampering: what an attacker with write access to the storage might do ------------------
 
 #: Stored fields a tamper case changes, one at a time (every field the chain hashes, the
-#: payload and the stored hashes), and ``payload_and_hash``: the payload edited together
-#: with its stored sha256, so that only the chain can tell.
+#: payload and the stored hashes), ``payload_and_hash``: the payload edited together
+#: with its stored sha256, so that only the chain can tell, and ``flags``: a flag added
+#: (outside the chain: verify recomputes flags from the payloads before the row).
 TAMPER_FIELDS: tuple[str, ...] = (
     "type", "source", "epoch", "seq", "valid_time_ns", "recorded_time_ns", "payload",
-    "payload_sha256", "global_seq", "chain_sha256", "payload_and_hash")
+    "payload_sha256", "global_seq", "chain_sha256", "payload_and_hash", "flags")
 #: Whole-row cases: ``delete`` a row (later rows renumbered down, so the sequence stays
 #: dense), ``insert`` a forged row before a row (taking its number; its chain value made
 #: right, later rows renumbered up), ``reorder`` a row and the next (numbers kept),
@@ -114,6 +115,8 @@ def tampered_rows(rows: list[RecordedEvent], global_seq: int, field: str) -> lis
     elif field == "payload_and_hash":
         payload = r.payload + b"\x00"
         rows[i] = r._replace(payload=payload, payload_sha256=payload_hash(payload))
+    elif field == "flags":
+        rows[i] = r._replace(flags=r.flags + (FLAG_UNKNOWN_LOT,))
     elif field == "delete":
         del rows[i]
         rows[i:] = [x._replace(global_seq=x.global_seq - 1) for x in rows[i:]]
@@ -142,6 +145,8 @@ def tamper_expectation(field: str, global_seq: int) -> VerifyReport:
         bad, problem = global_seq, f"global_seq {global_seq + 1} where {global_seq} was expected"
     elif field == "rechain_backwards":
         bad, problem = global_seq, "recorded time goes backwards"
+    elif field == "flags":   # the tamper ledger's rows carry no flags of their own
+        bad, problem = global_seq, f"flags ['{FLAG_UNKNOWN_LOT}'] where the payloads before it give []"
     else:
         bad, problem = global_seq, "chain hash mismatch (row fields or an earlier row changed)"
     return VerifyReport(False, bad, bad, problem)

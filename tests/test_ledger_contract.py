@@ -41,17 +41,20 @@ class TestDuckDBStore(LedgerStoreContract):
         store.close()
         con = duckdb.connect(str(path))
         columns = "global_seq, type, source, epoch, seq, valid_time_ns, recorded_time_ns, " \
-                  "payload, payload_sha256, chain_sha256"
-        rows = [RecordedEvent(*r[:7], bytes(r[7]), bytes(r[8]), bytes(r[9])) for r in con.execute(
-            f"SELECT {columns} FROM event_log ORDER BY global_seq").fetchall()]
+                  "payload, payload_sha256, chain_sha256, flags"
+        rows = [RecordedEvent(*r[:7], bytes(r[7]), bytes(r[8]), bytes(r[9]),
+                              tuple(r[10].split(",")) if r[10] else ())
+                for r in con.execute(f"SELECT {columns} FROM event_log ORDER BY global_seq"
+                                     ).fetchall()]
         changed = tampered_rows(rows, global_seq, field)
         con.execute("BEGIN TRANSACTION")
         # the rows from the first changed one on are deleted and written again
         start = next((i for i, (a, b) in enumerate(zip(rows, changed)) if a != b),
                      min(len(rows), len(changed)))
         con.execute("DELETE FROM event_log WHERE global_seq >= ?", [start])
-        con.executemany(f"INSERT INTO event_log ({columns}) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
-                        [list(r[:10]) for r in changed[start:]])
+        con.executemany(f"INSERT INTO event_log ({columns}) VALUES "
+                        "(?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                        [list(r[:10]) + [",".join(r.flags) or None] for r in changed[start:]])
         con.execute("COMMIT")
         con.close()
         return DuckDBStore(path, ManualClock(0), read_only=True)
