@@ -10,7 +10,7 @@ import argparse
 import json
 
 from common.options import add_out, positive_int
-from security import pki
+from security import certificates, pki
 
 
 def _cmd_init(args: argparse.Namespace) -> int:
@@ -44,7 +44,7 @@ def _cmd_revoke(args: argparse.Namespace) -> int:
 
 def _cmd_list(args: argparse.Namespace) -> int:
     index = pki.read_index(args.ca)
-    rows = [dict(entry, status=pki.certificate_status(entry)) for entry in index.certificates]
+    rows = [dict(entry, status=certificates.certificate_status(entry)) for entry in index.certificates]
     if args.json:
         print(json.dumps({"site": index.site, "ca": index.ca, "crl_number": index.crl_number,
                           "certificates": rows}, indent=2))

@@ -74,7 +74,6 @@ import zenoh.ext as zext
 from common.options import add_batch_size, add_clock, add_duration
 from ledger import clock_by_name, open_ledger
 from ledger.wire import stats_to_json
-from ledger.checkpoint import make_checkpoint, write_checkpoint
 from ledger.errors import LedgerError
 from ledger.holder import LedgerHolder, remove_holder, this_host, write_holder
 from ledger.store import LedgerStore
@@ -82,6 +81,7 @@ from ledger.wire import (encode_records, gap_to_json, head_to_json, quarantine_t
                          stream_to_json)
 from schemas.events import Malformed, decode_attachment, event_from_sample
 from services.service import ServiceRuntime, Stopper, ZenohOptions, log
+from services.ledger_checkpoints import Checkpointer
 from services.zenoh_config import reader_endpoints
 
 SERVICE = "ledger"
@@ -101,11 +101,6 @@ CHUNK_ATTACHMENT = struct.Struct("<IBQ")
 def head_key(site: str) -> str:
     """Where the committed head is published after each batch."""
     return f"stockpile/{site}/@ledger/head"
-
-
-def checkpoint_key(site: str) -> str:
-    """Where each checkpoint of the chain head is published (its file's JSON)."""
-    return f"stockpile/{site}/@ledger/checkpoint"
 
 
 def query_key(site: str, what: str) -> str:
@@ -419,7 +414,7 @@ class Reader:
         elif what == "stats":
             self._reply_json(query, key, stats_to_json(self.store.stats()))
         elif what == "head":
-            self._reply_json(query, key, head_json(self.store))
+            self._reply_json(query, key, head_to_json(self.store.head()))
         elif what == "gaps":
             gaps = self.store.gaps(open_only=bool(params.get("open_only", False)))
             self._reply_json(query, key, [gap_to_json(g) for g in gaps])
@@ -450,44 +445,6 @@ class Reader:
 
 def _opt_int(value: object) -> int | None:
     return None if value is None else int(value)  # type: ignore[arg-type]
-
-
-def head_json(store: LedgerStore) -> dict[str, Any]:
-    return head_to_json(store.head())
-
-
-class Checkpointer:
-    """Writes (and publishes) a checkpoint of the chain head when it moved, signed with
-    the service's site certificate when it has one (:mod:`ledger.checkpoint`)."""
-
-    def __init__(self, config: Config, store: LedgerStore, session) -> None:
-        self.store, self.site = store, config.site
-        self.directory = config.checkpoint_dir or (
-            None if config.ledger_path == ":memory:" else config.ledger_path + ".checkpoints")
-        certificate = config.zenoh.certificate
-        self.cert_path = certificate
-        self.key_path = None if certificate is None else certificate.with_suffix(".key")
-        self.publisher = session.declare_publisher(checkpoint_key(config.site))
-        self.last_seq: int | None = None
-
-    def take(self) -> None:
-        head = self.store.head().global_seq
-        if self.directory is None or head == self.last_seq:
-            return
-        try:
-            checkpoint = make_checkpoint(self.store, self.site, time.time_ns(),
-                                         key_path=self.key_path, certificate_path=self.cert_path)
-            path = write_checkpoint(checkpoint, self.directory)
-        except (OSError, ValueError) as exc:
-            log(SERVICE, "checkpoint failed", level="error", error=str(exc).splitlines()[0])
-            return
-        self.last_seq = head
-        self.publisher.put(path.read_bytes())
-        log(SERVICE, "checkpoint", global_seq=head, path=str(path),
-            signer=checkpoint.signer or "(unsigned)")
-
-    def close(self) -> None:
-        self.publisher.undeclare()
 
 
 def _write_holder(config: Config) -> LedgerHolder | None:
@@ -545,7 +502,7 @@ def _serve(config: Config, store: LedgerStore, samples: queue.Queue,
                                                congestion_control=zenoh.CongestionControl.BLOCK)
 
     def publish_head() -> None:
-        head_publisher.put(json.dumps(head_json(store)).encode())
+        head_publisher.put(json.dumps(head_to_json(store.head())).encode())
 
     repair = GapRepair(session, config.site, store, samples, runtime)
     writer = Writer(store, samples, runtime, config, publish_head, on_gaps=repair.check)
@@ -581,7 +538,10 @@ def _serve(config: Config, store: LedgerStore, samples: queue.Queue,
                 queries=query_key(config.site, "*"), head_key=head_key(config.site))
     publish_head()
     holder = _write_holder(config)
-    checkpoints = Checkpointer(config, store, session)
+    checkpoints = Checkpointer(
+        store, session, config.site, config.zenoh.certificate,
+        config.checkpoint_dir or (None if config.ledger_path == ":memory:"
+                                  else config.ledger_path + ".checkpoints"))
     runtime.announce()
     try:
         while not runtime.stopper.wait(config.checkpoint_every_s):

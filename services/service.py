@@ -49,7 +49,7 @@ from typing import Any, Callable, Sequence
 
 import zenoh
 
-from security.pki import expiry_warning
+from security.certificates import expiry_warning
 from services.inbox import Inbox
 from services.logfmt import log, parse_logfmt
 from services.publishing import EventPublisher, declare_ledger_publisher

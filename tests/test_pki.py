@@ -20,7 +20,7 @@ from cryptography import x509
 from cryptography.hazmat.primitives import serialization
 from cryptography.hazmat.primitives.asymmetric import ec
 
-from security import pki
+from security import certificates, pki
 
 OPENSSL = shutil.which("openssl")
 needs_openssl = pytest.mark.skipif(OPENSSL is None, reason="no openssl binary on PATH: the "
@@ -97,7 +97,7 @@ def test_every_role_gets_a_certificate_naming_it(site):
         assert mode(key_path) == 0o600, name
         cert = x509.load_pem_x509_certificate(cert_path.read_bytes())
         cert.verify_directly_issued_by(ca)
-        info = pki.certificate_info(cert_path)
+        info = certificates.certificate_info(cert_path)
         assert (info.common_name, info.role, info.site) == (name, role, "capelambert")
         assert info.issuer == ca.subject.rfc4514_string() and not info.is_ca
         assert info.serial == pki.serial_hex(cert.serial_number) == index[name]["serial"]
@@ -113,7 +113,7 @@ def test_every_role_gets_a_certificate_naming_it(site):
         else:
             assert "serverAuth" not in info.extended_key_usages
             assert info.dns_names == () and info.ip_addresses == ()
-        assert pki.verify_certificate(cert_path, ca_dir / "ca.pem",
+        assert certificates.verify_certificate(cert_path, ca_dir / "ca.pem",
                                       crl_path=ca_dir / "crl.pem").common_name == name
 
 
@@ -160,7 +160,7 @@ def test_issue_to_a_tls_directory_and_rotate(tmp_path):
     assert mode(tls / "lab-2.key") == 0o600 and mode(tls) == 0o700
     assert (tls / "ca.pem").read_bytes() == (ca_dir / "ca.pem").read_bytes()
     assert not (ca_dir / "lab-2.key").exists()
-    old_key, old_cert = (tls / "lab-2.key").read_bytes(), pki.certificate_info(tls / "lab-2.pem")
+    old_key, old_cert = (tls / "lab-2.key").read_bytes(), certificates.certificate_info(tls / "lab-2.pem")
 
     # overwrite refused: one line, exit 2, files untouched
     again = stockpile("pki", "issue", "--ca", str(ca_dir), "--role", "lab", "--name", "lab-2",
@@ -175,13 +175,13 @@ def test_issue_to_a_tls_directory_and_rotate(tmp_path):
                         "--out", str(tls), "--force", "--valid-days", "10")
     assert rotated.returncode == 0, rotated.stderr
     assert (tls / "lab-2.key").read_bytes() != old_key and mode(tls / "lab-2.key") == 0o600
-    new_cert = pki.certificate_info(tls / "lab-2.pem")
+    new_cert = certificates.certificate_info(tls / "lab-2.pem")
     assert new_cert.serial != old_cert.serial
     revoked = stockpile("pki", "revoke", "--ca", str(ca_dir), "--serial", old_cert.serial,
                         "--reason", "superseded")
     assert revoked.returncode == 0, revoked.stderr
-    crl = pki.load_crl(ca_dir / "crl.pem", ca_cert_path=ca_dir / "ca.pem")
-    assert pki.is_revoked(crl, old_cert.serial) and not pki.is_revoked(crl, tls / "lab-2.pem")
+    crl = certificates.load_crl(ca_dir / "crl.pem", ca_cert_path=ca_dir / "ca.pem")
+    assert certificates.is_revoked(crl, old_cert.serial) and not certificates.is_revoked(crl, tls / "lab-2.pem")
     assert not list(tls.glob(".*tmp")) and not list(ca_dir.glob(".*tmp"))
 
     # a certificate may not outlive the CA
@@ -212,20 +212,20 @@ def test_overwriting_a_ca_is_refused_unless_forced(tmp_path):
 def test_revoke_puts_the_serial_in_a_signed_crl(tmp_path):
     ca_dir = tmp_path / "ca"
     pki.init_ca("yard", ca_dir)
-    empty = pki.load_crl(ca_dir / "crl.pem", ca_cert_path=ca_dir / "ca.pem")
+    empty = certificates.load_crl(ca_dir / "crl.pem", ca_cert_path=ca_dir / "ca.pem")
     assert len(list(empty)) == 0
     lab = pki.issue(ca_dir, "lab", "lab-1")
     keep = pki.issue(ca_dir, "ledger", "ledger-1")
-    assert not pki.is_revoked(empty, lab.cert_path)
+    assert not certificates.is_revoked(empty, lab.cert_path)
     out = stockpile("pki", "revoke", "--ca", str(ca_dir), "--name", "lab-1",
                     "--reason", "key-compromise")
     assert out.returncode == 0, out.stderr
     assert len(out.stdout.splitlines()) == 1 and lab.serial in out.stdout
     assert "crl.pem" in out.stdout and "index.json" in out.stdout
-    crl = pki.load_crl(ca_dir / "crl.pem", ca_cert_path=ca_dir / "ca.pem")
-    assert pki.is_revoked(crl, lab.serial) and pki.is_revoked(crl, lab.cert_path)
-    assert pki.is_revoked(crl, int(lab.serial, 16))
-    assert not pki.is_revoked(crl, keep.cert_path)
+    crl = certificates.load_crl(ca_dir / "crl.pem", ca_cert_path=ca_dir / "ca.pem")
+    assert certificates.is_revoked(crl, lab.serial) and certificates.is_revoked(crl, lab.cert_path)
+    assert certificates.is_revoked(crl, int(lab.serial, 16))
+    assert not certificates.is_revoked(crl, keep.cert_path)
     entry = crl.get_revoked_certificate_by_serial_number(int(lab.serial, 16))
     reason = entry.extensions.get_extension_for_class(x509.CRLReason).value.reason
     assert reason == x509.ReasonFlags.key_compromise
@@ -233,7 +233,7 @@ def test_revoke_puts_the_serial_in_a_signed_crl(tmp_path):
     assert index["lab-1"]["revoked"] and index["lab-1"]["revocation_reason"] == "key-compromise"
     assert not index["ledger-1"]["revoked"]
     with pytest.raises(ValueError, match="is revoked"):
-        pki.verify_certificate(lab.cert_path, ca_dir / "ca.pem", crl_path=ca_dir / "crl.pem")
+        certificates.verify_certificate(lab.cert_path, ca_dir / "ca.pem", crl_path=ca_dir / "crl.pem")
     listed = json.loads(stockpile("pki", "list", "--ca", str(ca_dir), "--json").stdout)
     assert {r["name"]: r["status"] for r in listed["certificates"]} == {
         "lab-1": "revoked", "ledger-1": "valid"}
@@ -266,18 +266,18 @@ def test_expiry_warning(tmp_path):
     expired = pki.issue(ca_dir, "plc", "plc-1", valid_days=1, now=now - dt.timedelta(days=10))
     fresh = pki.issue(ca_dir, "lab", "lab-1", valid_days=365, now=now)
 
-    line = pki.expiry_warning(soon.cert_path, 7 * DAY_S, now)
+    line = certificates.expiry_warning(soon.cert_path, 7 * DAY_S, now)
     assert line == (f"certificate gnss-1 ({soon.cert_path}) expires in 3 days "
                     f"(at {pki.iso_utc(soon.not_after)})")
-    assert pki.expiry_warning(soon.cert_path, 1 * DAY_S, now) is None
-    assert "expires in 5 hours" in pki.expiry_warning(
+    assert certificates.expiry_warning(soon.cert_path, 1 * DAY_S, now) is None
+    assert "expires in 5 hours" in certificates.expiry_warning(
         soon.cert_path, DAY_S, soon.not_after - dt.timedelta(hours=5, minutes=10))
-    gone = pki.expiry_warning(expired.cert_path, 0, now)
+    gone = certificates.expiry_warning(expired.cert_path, 0, now)
     assert gone is not None and "plc-1" in gone and "expired 9 days ago" in gone
-    assert pki.expiry_warning(fresh.cert_path, 30 * DAY_S, now) is None
+    assert certificates.expiry_warning(fresh.cert_path, 30 * DAY_S, now) is None
     with pytest.raises(ValueError, match="expired at"):
-        pki.verify_certificate(expired.cert_path, ca_dir / "ca.pem", now=now)
-    assert pki.certificate_status(pki.read_index(ca_dir).certificates[1], now) == "expired"
+        certificates.verify_certificate(expired.cert_path, ca_dir / "ca.pem", now=now)
+    assert certificates.certificate_status(pki.read_index(ca_dir).certificates[1], now) == "expired"
     if OPENSSL:
         out = openssl("verify", "-CAfile", str(ca_dir / "ca.pem"), str(expired.cert_path))
         assert out.returncode != 0 and "expired" in out.stdout + out.stderr
@@ -289,9 +289,9 @@ def test_a_certificate_from_another_ca_fails_verification(tmp_path):
     pki.init_ca("yard", theirs)          # same site name, another key
     foreign = pki.issue(theirs, "lab", "lab-1")
     with pytest.raises(ValueError, match="was not issued by the CA"):
-        pki.verify_certificate(foreign.cert_path, ours / "ca.pem")
+        certificates.verify_certificate(foreign.cert_path, ours / "ca.pem")
     with pytest.raises(ValueError, match="not signed by the CA"):
-        pki.load_crl(theirs / "crl.pem", ca_cert_path=ours / "ca.pem")
+        certificates.load_crl(theirs / "crl.pem", ca_cert_path=ours / "ca.pem")
     if OPENSSL:
         out = openssl("verify", "-CAfile", str(ours / "ca.pem"), str(foreign.cert_path))
         assert out.returncode != 0, out.stdout
@@ -414,8 +414,8 @@ def test_revoke_by_name_or_by_serial_only(tmp_path):
         pki.revoke(ca_dir, first.serial, by="name")
     both = pki.revoke(ca_dir, "lab-1", "cessation-of-operation", by="name")
     assert {e["serial"] for e in both.revoked} == {first.serial, second.serial}
-    crl = pki.load_crl(ca_dir / "crl.pem")
-    assert pki.is_revoked(crl, first.serial) and pki.is_revoked(crl, second.cert_path)
+    crl = certificates.load_crl(ca_dir / "crl.pem")
+    assert certificates.is_revoked(crl, first.serial) and certificates.is_revoked(crl, second.cert_path)
     assert both.crl_number == 1 and pki.read_index(ca_dir).crl_number == 1
 
 
