@@ -5,6 +5,15 @@ recorded_time_ns (little-endian i64) || len(type) type || len(source) source ||
 sha256(payload))`` with ``chain[-1]`` = 32 zero bytes.  Changing any stored field
 of any row changes its chain value and every one after it; ``stockpile ledger
 verify`` recomputes the chain and names the first row that disagrees.
+
+Quarantine entries are links of the same chain, in arrival order between the rows
+(an entry stored after row ``n`` and before row ``n+1`` records ``after_global_seq =
+n``): ``link = sha256(previous link || b"Q" || quarantine_id, after_global_seq,
+recorded_time_ns (i64) || epoch, seq, valid_time_ns, existing_global_seq (each a
+presence byte then i64) || len(type) type || len(source) source || len(code) code ||
+len(detail) detail (lengths u32) || sha256(raw))``, and the next row's ``chain[n-1]``
+is the last link before it.  Deleting or editing an entry therefore breaks the chain
+of every row after it.
 """
 
 from __future__ import annotations
@@ -17,6 +26,9 @@ GENESIS = bytes(32)
 
 _INTS = struct.Struct("<qqqqq")
 _LEN = struct.Struct("<H")
+_QINTS = struct.Struct("<qqq")
+_LEN32 = struct.Struct("<I")
+_OPT = struct.Struct("<Bq")
 
 
 def payload_hash(payload: bytes) -> bytes:
@@ -48,4 +60,40 @@ def chain_hash(
         _INTS.pack(global_seq, epoch, seq, valid_time_ns, recorded_time_ns),
         _names(type_name, source),
         payload_sha256,
+    ))).digest()
+
+
+def _optional(value: int | None) -> bytes:
+    return _OPT.pack(0, 0) if value is None else _OPT.pack(1, value)
+
+
+def _text(value: str) -> bytes:
+    raw = value.encode("utf-8", "surrogatepass")
+    return _LEN32.pack(len(raw)) + raw
+
+
+def quarantine_hash(
+    previous: bytes,
+    quarantine_id: int,
+    after_global_seq: int,
+    recorded_time_ns: int,
+    epoch: int | None,
+    seq: int | None,
+    valid_time_ns: int | None,
+    existing_global_seq: int | None,
+    type_name: str,
+    source: str,
+    code: str,
+    detail: str,
+    raw: bytes,
+) -> bytes:
+    """The chain value of one quarantine entry given the previous link (32 bytes)."""
+    return hashlib.sha256(b"".join((
+        previous,
+        b"Q",
+        _QINTS.pack(quarantine_id, after_global_seq, recorded_time_ns),
+        _optional(epoch), _optional(seq), _optional(valid_time_ns),
+        _optional(existing_global_seq),
+        _text(type_name), _text(source), _text(code), _text(detail),
+        hashlib.sha256(raw).digest(),
     ))).digest()

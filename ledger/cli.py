@@ -186,8 +186,10 @@ def cmd_verify(args: argparse.Namespace) -> int:
         print(f"ok: {report.rows_checked:,} rows verified, head global_seq {head.global_seq}, "
               f"chain {head.chain_sha256.hex()}")
     else:
-        print(f"FAILED: first bad row global_seq {report.first_bad_seq}: {report.problem} "
-              f"({report.rows_checked:,} rows before it are intact)")
+        where = ("" if report.first_bad_seq is None
+                 else f"first bad row global_seq {report.first_bad_seq}: ")
+        print(f"FAILED: {where}{report.problem} ({report.rows_checked:,} rows before it are "
+              "intact)")
     if found is not None:
         signer = f" (signed by {found.signer})" if found.signer else " (unsigned)"
         if found.ok:

@@ -46,7 +46,7 @@ from ledger.errors import InterfaceError, OperationalError, ProgrammingError, ba
 from ledger.records import Gap, LedgerStats, QuarantineEntry, RecordedEvent, VerifyReport
 from ledger.store import BODY_TYPES, BatchPlan, Key, LedgerStore, StreamState, WriterState
 
-SCHEMA_VERSION = "1"
+SCHEMA_VERSION = "2"
 
 _DDL = [
     """CREATE TABLE IF NOT EXISTS ledger_meta (key VARCHAR NOT NULL, value VARCHAR NOT NULL)""",
@@ -84,7 +84,9 @@ _DDL = [
         code VARCHAR NOT NULL,
         detail VARCHAR NOT NULL,
         raw BLOB NOT NULL,
-        existing_global_seq BIGINT
+        existing_global_seq BIGINT,
+        after_global_seq BIGINT NOT NULL,
+        chain_sha256 BLOB NOT NULL
     )""",
 ]
 
@@ -214,6 +216,10 @@ class DuckDBStore(LedgerStore):
             state.head_seq, state.last_recorded_ns, state.head_chain = head[0], head[1], bytes(head[2])
         else:
             state.head_chain = GENESIS
+        last_entry = con.execute("SELECT after_global_seq, chain_sha256 FROM quarantine "
+                                 "ORDER BY quarantine_id DESC LIMIT 1").fetchone()
+        after_head = last_entry is not None and last_entry[0] == state.head_seq
+        state.link_chain = bytes(last_entry[1]) if after_head else state.head_chain
         for source, epoch, max_seq in con.execute(
                 "SELECT source, epoch, max(seq) FROM event_log GROUP BY source, epoch").fetchall():
             state.streams[(source, epoch)] = StreamState(max_seq=max_seq)
@@ -303,9 +309,10 @@ class DuckDBStore(LedgerStore):
         con = self._con
         if plan.quarantine:
             con.executemany(
-                "INSERT INTO quarantine VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                "INSERT INTO quarantine VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
                 [[q.quarantine_id, q.recorded_time_ns, q.type, q.source, q.epoch, q.seq,
-                  q.valid_time_ns, q.code, q.detail, q.raw, q.existing_global_seq]
+                  q.valid_time_ns, q.code, q.detail, q.raw, q.existing_global_seq,
+                  q.after_global_seq, q.chain_sha256]
                  for q in plan.quarantine])
         for gap in plan.closed_gaps:
             con.execute("UPDATE gaps SET closed_recorded_ns = ? WHERE gap_id = ?",
@@ -420,9 +427,9 @@ class DuckDBStore(LedgerStore):
             with backend_errors():
                 rows = self._con.execute(
                     "SELECT quarantine_id, recorded_time_ns, type, source, epoch, seq, "
-                    "valid_time_ns, code, detail, raw, existing_global_seq FROM quarantine "
-                    "ORDER BY quarantine_id").fetchall()
-        return [QuarantineEntry(*r[:9], bytes(r[9]), r[10]) for r in rows]
+                    "valid_time_ns, code, detail, raw, existing_global_seq, after_global_seq, "
+                    "chain_sha256 FROM quarantine ORDER BY quarantine_id").fetchall()
+        return [QuarantineEntry(*r[:9], bytes(r[9]), r[10], r[11], bytes(r[12])) for r in rows]
 
     def stats(self) -> LedgerStats:
         """As :meth:`LedgerStore.stats`, computed in SQL (no payloads are read)."""

@@ -136,6 +136,8 @@ class QuarantineEntry:
     detail: str
     raw: bytes
     existing_global_seq: int | None = None  # for conflicts: the stored event's
+    after_global_seq: int = -1  # the last row stored before it (-1: none)
+    chain_sha256: bytes = b""  # its link of the hash chain (ledger.chain.quarantine_hash)
 
     @property
     def reason(self) -> str:

@@ -32,7 +32,7 @@ from schemas.validate import REASON_CODES, InvalidEvent, check_event, is_time_ns
 from ledger.chain import GENESIS, chain_hash, payload_hash
 from ledger.clock import SiteClock, WallClock
 from ledger.errors import InterfaceError, LedgerError
-from ledger.verifying import OpenGapCheck, flags_problem
+from ledger.verifying import CHAIN_MISMATCH, GapHistory, QuarantineLinks, flags_problem, quarantine_link
 from ledger.records import (
     FLAG_UNKNOWN_LOT,
     AppendOutcome,
@@ -95,7 +95,8 @@ class WriterState:
     """Everything the writer needs to decide a batch without reading rows back."""
 
     head_seq: int = -1
-    head_chain: bytes = GENESIS
+    head_chain: bytes = GENESIS  # the last row's chain value
+    link_chain: bytes = GENESIS  # the last link: the last row's, or a quarantine entry's after it
     last_recorded_ns: int | None = None
     latest_clock_event_ns: int | None = None
     streams: dict[tuple[str, int], StreamState] = field(default_factory=dict)
@@ -137,6 +138,7 @@ class _BatchPlanner:
         self.state = WriterState(
             head_seq=state.head_seq,
             head_chain=state.head_chain,
+            link_chain=state.link_chain,
             last_recorded_ns=state.last_recorded_ns,
             latest_clock_event_ns=state.latest_clock_event_ns,
             streams=dict(state.streams),  # values copied on first touch
@@ -196,7 +198,10 @@ class _BatchPlanner:
         )
         # identity numbers that do not fit the store are kept only in the raw bytes
         entry = dataclasses.replace(entry, epoch=_int64_or_none(epoch), seq=_int64_or_none(seq),
-                                    valid_time_ns=_int64_or_none(valid))
+                                    valid_time_ns=_int64_or_none(valid),
+                                    after_global_seq=s.head_seq)
+        entry = dataclasses.replace(entry, chain_sha256=quarantine_link(s.link_chain, entry))
+        s.link_chain = entry.chain_sha256
         s.next_quarantine_id += 1
         self.plan.quarantine.append(entry)
         status = "conflict" if code == "conflict" else "rejected"
@@ -221,10 +226,11 @@ class _BatchPlanner:
         gap = stream.open_gaps.pop(index)
         closed = Gap(gap.gap_id, source, epoch, gap.first_seq, gap.last_seq,
                      gap.opened_recorded_ns, recorded_ns)
-        # a gap opened earlier in this same batch is replaced, not closed in the store
-        opened_here = [g for g in self.plan.opened_gaps if g.gap_id == gap.gap_id]
+        # a gap opened earlier in this same batch is stored closed (every gap is kept, so
+        # the gap table is the same whatever the batches were)
+        opened_here = [i for i, g in enumerate(self.plan.opened_gaps) if g.gap_id == gap.gap_id]
         if opened_here:
-            self.plan.opened_gaps.remove(opened_here[0])
+            self.plan.opened_gaps[opened_here[0]] = closed
         else:
             self.plan.closed_gaps.append(closed)
         remainders = []
@@ -297,9 +303,10 @@ class _BatchPlanner:
                 s.known_lots.add(message.lot_id)
         global_seq = s.head_seq + 1
         valid = item.valid_time_ns
-        chain = chain_hash(s.head_chain, global_seq, type_name, source, epoch, seq, valid,
+        chain = chain_hash(s.link_chain, global_seq, type_name, source, epoch, seq, valid,
                            recorded, digest)
-        s.head_seq, s.head_chain, s.last_recorded_ns = global_seq, chain, recorded
+        s.head_seq, s.head_chain, s.link_chain, s.last_recorded_ns = (global_seq, chain, chain,
+                                                                      recorded)
         self._track_sequence(source, epoch, seq, recorded)
         plan = self.plan
         plan.rows.append(RecordedEvent(global_seq, type_name, source, epoch, seq, valid,
@@ -434,19 +441,24 @@ class LedgerStore(abc.ABC):
             ]
 
     def verify(self) -> VerifyReport:
-        """Recompute payload hashes and the chain over every row, and each row's flags from
-        the payloads before it; name the first bad row."""
+        """Recompute payload hashes and the chain over every row and quarantine entry, each
+        row's flags from the payloads before it, and the gap table from the rows; name the
+        first bad row (or entry, or gap)."""
         with self._lock:
             self._check_open()
             previous = GENESIS
             last_recorded: int | None = None
             count = 0
             lots: set[str] = set()
-            gaps = OpenGapCheck(self.gaps(open_only=True))
+            gaps = GapHistory()
+            links = QuarantineLinks(self.quarantine())
             for row in self._rows_for_verify():
                 if row.global_seq != count:
                     return VerifyReport(False, count, count,
                                         f"global_seq {row.global_seq} where {count} was expected")
+                previous, problem = links.before(count, previous)
+                if problem:
+                    return VerifyReport(False, count, None, problem)
                 if payload_hash(row.payload) != row.payload_sha256:
                     return VerifyReport(False, count, row.global_seq,
                                         "payload does not match its sha256")
@@ -456,14 +468,14 @@ class LedgerStore(abc.ABC):
                                       row.seq, row.valid_time_ns, row.recorded_time_ns,
                                       row.payload_sha256)
                 if expected != row.chain_sha256:
-                    return VerifyReport(False, count, row.global_seq,
-                                        "chain hash mismatch (row fields or an earlier row changed)")
+                    return VerifyReport(False, count, row.global_seq, CHAIN_MISMATCH)
                 problem = flags_problem(row, lots) or gaps.row(row)
                 if problem:
                     return VerifyReport(False, count, row.global_seq, problem)
                 previous, last_recorded = row.chain_sha256, row.recorded_time_ns
                 count += 1
-            problem = gaps.problem()
+            _, problem = links.before(count, previous)
+            problem = problem or links.problem_after(count) or gaps.problem(self.gaps())
             if problem:
                 return VerifyReport(False, count, None, problem)
             return VerifyReport(True, count)

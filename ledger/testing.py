@@ -15,18 +15,20 @@ it runs, so that the module imports without it.
 from __future__ import annotations
 
 import abc
+import dataclasses
 import random
 import tempfile
 import threading
 from pathlib import Path
 
 from schemas import pb
-from schemas.events import Event, make_event, set_timestamp_ns
+from schemas.events import Event, Malformed, make_event, set_timestamp_ns
 
 from ledger.chain import GENESIS, chain_hash, payload_hash
 from ledger.clock import EventClock, ManualClock
-from ledger.records import FLAG_UNKNOWN_LOT, RecordedEvent, VerifyReport
+from ledger.records import FLAG_UNKNOWN_LOT, Gap, QuarantineEntry, RecordedEvent, VerifyReport
 from ledger.store import LedgerStore
+from ledger.verifying import CHAIN_MISMATCH
 
 
 def joint_event(source: str, seq: int, valid_time_ns: int, travel_m: float = 0.0,
@@ -138,7 +140,7 @@ def tampered_rows(rows: list[RecordedEvent], global_seq: int, field: str) -> lis
 def tamper_expectation(field: str, global_seq: int) -> VerifyReport:
     """The report verify must give for a tamper case at ``global_seq``."""
     if field == "insert":
-        bad, problem = global_seq + 1, "chain hash mismatch (row fields or an earlier row changed)"
+        bad, problem = global_seq + 1, CHAIN_MISMATCH
     elif field in ("payload", "payload_sha256"):
         bad, problem = global_seq, "payload does not match its sha256"
     elif field == "global_seq":
@@ -148,8 +150,54 @@ def tamper_expectation(field: str, global_seq: int) -> VerifyReport:
     elif field == "flags":   # the tamper ledger's rows carry no flags of their own
         bad, problem = global_seq, f"flags ['{FLAG_UNKNOWN_LOT}'] where the payloads before it give []"
     else:
-        bad, problem = global_seq, "chain hash mismatch (row fields or an earlier row changed)"
+        bad, problem = global_seq, CHAIN_MISMATCH
     return VerifyReport(False, bad, bad, problem)
+
+
+#: Cases on the quarantine and gap tables (an entry or gap row edited, deleted, added):
+#: ``(table, case)``; plain verify must catch each (:func:`tampered_side`).
+SIDE_TAMPER_CASES: tuple[tuple[str, str], ...] = (
+    ("quarantine", "detail"), ("quarantine", "code"), ("quarantine", "raw"),
+    ("quarantine", "recorded_time_ns"), ("quarantine", "last_detail"),
+    ("quarantine", "delete_first"), ("quarantine", "delete_all"),
+    ("gaps", "last_seq"), ("gaps", "reopen"), ("gaps", "close"), ("gaps", "delete_closed"),
+    ("gaps", "delete_open"), ("gaps", "delete_all"), ("gaps", "add"))
+
+
+def tampered_side(quarantine: list[QuarantineEntry], gaps: list[Gap],
+                  case: tuple[str, str]) -> tuple[list[QuarantineEntry], list[Gap]]:
+    """The quarantine and gap tables after one of :data:`SIDE_TAMPER_CASES`."""
+    quarantine, gaps = list(quarantine), list(gaps)
+    table, what = case
+    closed = next(i for i, g in enumerate(gaps) if not g.is_open)
+    still_open = next(i for i, g in enumerate(gaps) if g.is_open)
+    if case == ("quarantine", "last_detail"):
+        quarantine[-1] = dataclasses.replace(quarantine[-1], detail=quarantine[-1].detail + "x")
+    elif table == "quarantine" and what in ("detail", "code"):
+        quarantine[0] = dataclasses.replace(quarantine[0], **{what: getattr(quarantine[0], what) + "x"})
+    elif what == "raw":
+        quarantine[0] = dataclasses.replace(quarantine[0], raw=quarantine[0].raw + b"\x00")
+    elif what == "recorded_time_ns":
+        quarantine[0] = dataclasses.replace(quarantine[0], recorded_time_ns=quarantine[0].recorded_time_ns + 1)
+    elif what == "delete_first":
+        del quarantine[0]
+    elif what == "delete_all":
+        quarantine, gaps = ([], gaps) if table == "quarantine" else (quarantine, [])
+    elif what == "last_seq":
+        gaps[still_open] = dataclasses.replace(gaps[still_open], last_seq=gaps[still_open].last_seq + 1)
+    elif what == "reopen":
+        gaps[closed] = dataclasses.replace(gaps[closed], closed_recorded_ns=None)
+    elif what == "close":
+        gaps[still_open] = dataclasses.replace(gaps[still_open], closed_recorded_ns=10**12)
+    elif what == "delete_closed":
+        del gaps[closed]
+    elif what == "delete_open":
+        del gaps[still_open]
+    elif what == "add":
+        gaps.append(Gap(len(gaps), "a.src", 1, 1_000, 1_001, gaps[-1].opened_recorded_ns))
+    else:
+        raise ValueError(f"unknown side tamper case {case!r}")
+    return quarantine, gaps
 
 
 class LedgerStoreContract(abc.ABC):
@@ -167,6 +215,12 @@ class LedgerStoreContract(abc.ABC):
         return store
 
     @abc.abstractmethod
+    @abc.abstractmethod
+    def replace_side_tables(self, store: LedgerStore, quarantine: list[QuarantineEntry],
+                            gaps: list[Gap]) -> LedgerStore:
+        """Replace the stored quarantine and gap tables behind the store's back; return a
+        store that reads the changed tables."""
+
     def tamper(self, store: LedgerStore, global_seq: int, field: str) -> LedgerStore:
         """Change the stored rows behind the store's back as :func:`tampered_rows` does
         (``field``: one of :data:`TAMPER_FIELDS` or :data:`TAMPER_ROWS`), in the backend's
@@ -281,11 +335,18 @@ class LedgerStoreContract(abc.ABC):
         assert [(g.first_seq, g.last_seq) for g in store.gaps(open_only=True)] == [(0, 2)]
         store.close()
 
-    def test_gap_opened_and_filled_inside_one_batch_leaves_no_gap(self, tmp_path):
-        store, _ = self._new(tmp_path)
-        store.append([joint_event("a.src", s, s) for s in (0, 2, 1)])
-        assert store.gaps() == []
-        store.close()
+    def test_gap_opened_and_filled_inside_one_batch_is_kept_closed(self, tmp_path):
+        # the gap table does not depend on where the batches were cut
+        one, _ = self._new(tmp_path / "one", 1_000)
+        one.append([joint_event("a.src", s, s) for s in (0, 2, 1)])
+        three, _ = self._new(tmp_path / "three", 1_000)
+        for s in (0, 2, 1):
+            three.append([joint_event("a.src", s, s)])
+        assert one.gaps(open_only=True) == []
+        assert one.gaps() == three.gaps() == [Gap(0, "a.src", 1, 1, 1, 1_000, 1_000)]
+        assert one.verify().ok and three.verify().ok
+        one.close()
+        three.close()
 
     def test_concurrent_appenders_get_a_dense_global_sequence(self, tmp_path):
         store, _ = self._new(tmp_path)
@@ -457,6 +518,41 @@ class LedgerStoreContract(abc.ABC):
                  ("reorder", 0), ("reorder", 2), ("reorder", 4),
                  ("rechain_backwards", 1), ("rechain_backwards", 5)]
         assert self._tamper_failures(tmp_path, cases) == []
+
+    def _side_ledger(self, directory: Path) -> LedgerStore:
+        """Rows with quarantine entries before, between and after them, a gap closed
+        (with a remainder still open) and another open."""
+        directory.mkdir(parents=True, exist_ok=True)
+        store, clock = self._new(directory, 1_000)
+        store.append([Malformed(b"{bad", "malformed: not JSON"), joint_event("a.src", 0, 1),
+                      joint_event("a.src", 4, 2)])
+        clock.advance_ns(100)
+        store.append([joint_event("a.src", 2, 3), joint_event("a.src", 0, 1, travel_m=9.0),
+                      joint_event("b.src", 3, 4)])
+        clock.advance_ns(100)
+        store.append([joint_event("b.src", 4, 5), Malformed(b"\xff", "malformed: not UTF-8")])
+        return store
+
+    def test_verify_detects_edited_deleted_and_added_quarantine_and_gap_rows(self, tmp_path):
+        store = self._side_ledger(tmp_path / "intact")
+        assert store.verify() == VerifyReport(True, 5)
+        assert [q.after_global_seq for q in store.quarantine()] == [-1, 2, 4]
+        assert len(store.gaps()) == 4 and sum(g.is_open for g in store.gaps()) == 3
+        store.close()
+        failures = []
+        for n, case in enumerate(SIDE_TAMPER_CASES):
+            store = self._side_ledger(tmp_path / f"case{n}")
+            store = self.replace_side_tables(store, *tampered_side(store.quarantine(),
+                                                                   store.gaps(), case))
+            report = store.verify()
+            named = ("quarantine entry" if case[0] == "quarantine" else "gap row") in (
+                report.problem or "")
+            # a deleted entry shows at the first row chained after it
+            rechained = case[0] == "quarantine" and report.problem == CHAIN_MISMATCH
+            if report.ok or not (named or rechained):
+                failures.append(f"{case}: {report}")
+            store.close()
+        assert failures == []
 
     def test_randomised_batches_keep_every_invariant(self, tmp_path):
         seed = random.randrange(2**32)

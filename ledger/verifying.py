@@ -1,56 +1,120 @@
-"""Checks ``LedgerStore.verify`` makes beyond the chain: what the views read outside the
-chained fields, recomputed from the stored rows."""
+"""Checks ``LedgerStore.verify`` makes beyond the rows' chain: the quarantine entries'
+links of the chain, and what the views read outside the chained fields (flags, the gap
+table), recomputed from the stored rows."""
 
 from __future__ import annotations
 
 import bisect
+import dataclasses
 
 from schemas.events import decode_payload
 
-from ledger.records import FLAG_UNKNOWN_LOT, Gap, RecordedEvent
+from ledger.chain import quarantine_hash
+from ledger.records import FLAG_UNKNOWN_LOT, Gap, QuarantineEntry, RecordedEvent
 
 
-class OpenGapCheck:
-    """The open gaps against the stored rows: per (source, epoch), the sequence numbers
-    missing below its highest stored one are exactly the open gaps' (a gap row deleted,
-    added or edited shows), and no stored row lies inside an open gap."""
+#: verify's finding when a row's chain value is not the one recomputed
+CHAIN_MISMATCH = "chain hash mismatch (row fields, an earlier row or a quarantine entry changed)"
 
-    def __init__(self, open_gaps: list[Gap]) -> None:
-        self.spans: dict[tuple[str, int], list[tuple[int, int]]] = {}
-        for gap in open_gaps:
-            self.spans.setdefault((gap.source, gap.epoch), []).append(
-                (gap.first_seq, gap.last_seq))
-        for spans in self.spans.values():
-            spans.sort()
-        self.starts = {key: [first for first, _last in spans] for key, spans in self.spans.items()}
-        self.seen: dict[tuple[str, int], list[int]] = {}  # key -> [rows, highest seq]
+
+def quarantine_link(previous: bytes, entry: QuarantineEntry) -> bytes:
+    """The chain link of a quarantine entry (:func:`ledger.chain.quarantine_hash`)."""
+    return quarantine_hash(previous, entry.quarantine_id, entry.after_global_seq,
+                           entry.recorded_time_ns, entry.epoch, entry.seq, entry.valid_time_ns,
+                           entry.existing_global_seq, entry.type, entry.source, entry.code,
+                           entry.detail, entry.raw)
+
+
+class QuarantineLinks:
+    """The quarantine entries (in id order) as links of the chain between the rows."""
+
+    def __init__(self, entries: list[QuarantineEntry]) -> None:
+        self.entries = entries
+        self.next = 0
+
+    def before(self, global_seq: int, previous: bytes) -> tuple[bytes, str | None]:
+        """Check the entries stored before row ``global_seq`` from the link ``previous``;
+        the last link and the problem found, if any."""
+        while self.next < len(self.entries):
+            entry = self.entries[self.next]
+            if entry.after_global_seq >= global_seq:
+                break
+            where = f"quarantine entry {entry.quarantine_id}"
+            if entry.quarantine_id != self.next:
+                return previous, (f"{where} where {self.next} was expected "
+                                  "(a quarantine entry was deleted or added)")
+            lowest = self.entries[self.next - 1].after_global_seq if self.next else -1
+            if entry.after_global_seq < lowest:
+                return previous, f"{where} is placed before the entry ahead of it"
+            link = quarantine_link(previous, entry)
+            if link != entry.chain_sha256:
+                return previous, (f"{where}: chain hash mismatch (the entry was edited, or one "
+                                  "before it deleted)")
+            previous = link
+            self.next += 1
+        return previous, None
+
+    def problem_after(self, rows: int) -> str | None:
+        """Entries placed after a row that is not stored (``rows``: rows checked)."""
+        for entry in self.entries[self.next:]:
+            return (f"quarantine entry {entry.quarantine_id} is placed after global_seq "
+                    f"{entry.after_global_seq}, the ledger holds {rows} rows")
+        return None
+
+
+class GapHistory:
+    """The gap table recomputed from the rows in global order, as the writer keeps it:
+    a gap opens when a source skips sequence numbers and closes when one of them arrives,
+    what is still missing opening again as new gaps (ids in order of opening)."""
+
+    def __init__(self) -> None:
+        self.streams: dict[tuple[str, int], tuple[list[int], list[Gap]]] = {}
+        self.gaps: list[Gap] = []
+
+    def _open(self, source: str, epoch: int, first: int, last: int, opened_ns: int) -> Gap:
+        gap = Gap(len(self.gaps), source, epoch, first, last, opened_ns)
+        self.gaps.append(gap)
+        return gap
 
     def row(self, row: RecordedEvent) -> str | None:
+        """Follow one row; the problem when it cannot be a new sequence number."""
         key = (row.source, row.epoch)
-        seen = self.seen.get(key)
-        if seen is None:
-            seen = self.seen[key] = [0, -1]
-        seen[0] += 1
-        if row.seq > seen[1]:
-            seen[1] = row.seq
-        spans = self.spans.get(key)
-        if spans:
-            i = bisect.bisect_right(self.starts[key], row.seq) - 1
-            if i >= 0 and spans[i][1] >= row.seq:
-                return (f"seq {row.seq} of {row.source} epoch {row.epoch} is stored but lies "
-                        f"in the open gap {spans[i][0]}..{spans[i][1]}")
+        highest, open_gaps = self.streams.setdefault(key, ([-1], []))
+        seq = row.seq
+        if seq > highest[0]:
+            if seq > highest[0] + 1:
+                open_gaps.append(self._open(row.source, row.epoch, highest[0] + 1, seq - 1,
+                                            row.recorded_time_ns))
+            highest[0] = seq
+            return None
+        starts = [g.first_seq for g in open_gaps]
+        i = bisect.bisect_right(starts, seq) - 1
+        if i < 0 or open_gaps[i].last_seq < seq:
+            return f"seq {seq} of {row.source} epoch {row.epoch} is stored twice"
+        gap = open_gaps.pop(i)
+        self.gaps[gap.gap_id] = dataclasses.replace(gap, closed_recorded_ns=row.recorded_time_ns)
+        remainders = [self._open(row.source, row.epoch, first, last, gap.opened_recorded_ns)
+                      for first, last in ((gap.first_seq, seq - 1), (seq + 1, gap.last_seq))
+                      if first <= last]
+        open_gaps[i:i] = remainders
         return None
 
-    def problem(self) -> str | None:
-        for key in sorted(set(self.seen) | set(self.spans)):
-            rows, highest = self.seen.get(key, (0, -1))
-            missing = highest + 1 - rows
-            in_gaps = sum(last - first + 1 for first, last in self.spans.get(key, ()))
-            if missing != in_gaps:
-                return (f"{key[0]} epoch {key[1]}: {missing} sequence numbers are missing below "
-                        f"its highest stored one, the open gaps hold {in_gaps} (a gap row was "
-                        "deleted, added or edited)")
+    def problem(self, stored: list[Gap]) -> str | None:
+        """The stored gap table against the recomputed one (None when they agree)."""
+        for expected, found in zip(self.gaps, stored):
+            if expected != found:
+                return (f"gap row {found.gap_id} is {_gap_text(found)} where the rows give "
+                        f"{_gap_text(expected)} (a gap row was edited, deleted or added)")
+        if len(stored) != len(self.gaps):
+            return (f"{len(stored)} gap rows where the rows give {len(self.gaps)} (a gap row "
+                    "was deleted or added)")
         return None
+
+
+def _gap_text(gap: Gap) -> str:
+    state = "open" if gap.closed_recorded_ns is None else f"closed at {gap.closed_recorded_ns}"
+    return (f"gap {gap.gap_id} of {gap.source} epoch {gap.epoch} seq {gap.first_seq}.."
+            f"{gap.last_seq} opened at {gap.opened_recorded_ns}, {state}")
 
 
 def flags_problem(row: RecordedEvent, lots: set[str]) -> str | None:

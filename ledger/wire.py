@@ -121,14 +121,16 @@ def stream_from_json(data: dict[str, Any]) -> StreamInfo:
 
 
 def quarantine_to_json(entry: QuarantineEntry) -> dict[str, Any]:
-    """The entry as a dict, its raw bytes as base64."""
+    """The entry as a dict, its raw bytes as base64 and its chain link as hex."""
     data = dataclasses.asdict(entry)
     data["raw"] = base64.b64encode(entry.raw).decode("ascii")
+    data["chain_sha256"] = entry.chain_sha256.hex()
     return data
 
 
 def quarantine_from_json(data: dict[str, Any]) -> QuarantineEntry:
-    return _build(QuarantineEntry, data, raw=lambda v: base64.b64decode(v, validate=True))
+    return _build(QuarantineEntry, data, raw=lambda v: base64.b64decode(v, validate=True),
+                  chain_sha256=lambda v: bytes.fromhex(v))
 
 
 def stats_to_json(stats: LedgerStats) -> dict[str, Any]:

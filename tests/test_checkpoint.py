@@ -181,12 +181,12 @@ def test_plain_verify_catches_an_edited_body_or_flag(tmp_path, edit, problem):
 
 
 @pytest.mark.parametrize("edit, problem", [
-    ("DELETE FROM gaps", "2 sequence numbers are missing below its highest stored one, the "
-     "open gaps hold 0"),
-    ("UPDATE gaps SET last_seq = 2", "the open gaps hold 1"),
-    ("UPDATE gaps SET first_seq = 1, last_seq = 3", "seq 1 of sim.clock epoch 1 is stored but "
-     "lies in the open gap 1..3"),
-], ids=["gap-deleted", "gap-shrunk", "gap-over-stored"])
+    ("DELETE FROM gaps", "0 gap rows where the rows give 1"),
+    ("UPDATE gaps SET last_seq = 2", "gap row 0 is gap 0 of sim.clock epoch 1 seq 2..2"),
+    ("UPDATE gaps SET first_seq = 1, last_seq = 3", "gap row 0 is gap 0 of sim.clock epoch 1 "
+     "seq 1..3"),
+    ("UPDATE gaps SET closed_recorded_ns = 5", "closed at 5 where the rows give"),
+], ids=["gap-deleted", "gap-shrunk", "gap-over-stored", "gap-closed"])
 def test_plain_verify_catches_an_edited_gap_row(tmp_path, edit, problem):
     """Seqs 2 and 3 never arrived: the open gap 2..3 is what the stored rows imply."""
     ledger = tmp_path / "g.duckdb"

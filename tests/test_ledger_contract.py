@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import duckdb
 
 from ledger.clock import ManualClock
@@ -22,6 +24,11 @@ class TestMemoryStore(LedgerStoreContract):
         # are left as they were: only verify looks)
         store._rows[:] = tampered_rows(store._rows, global_seq, field)
         store._recorded[:] = [r.recorded_time_ns for r in store._rows]
+        return store
+
+    def replace_side_tables(self, store, quarantine, gaps):
+        store._quarantine[:] = quarantine
+        store._gaps = {g.gap_id: g for g in gaps}
         return store
 
 
@@ -55,6 +62,23 @@ class TestDuckDBStore(LedgerStoreContract):
         con.executemany(f"INSERT INTO event_log ({columns}) VALUES "
                         "(?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
                         [list(r[:10]) + [",".join(r.flags) or None] for r in changed[start:]])
+        con.execute("COMMIT")
+        con.close()
+        return DuckDBStore(path, ManualClock(0), read_only=True)
+
+    def replace_side_tables(self, store, quarantine, gaps):
+        path = store.path
+        store.close()
+        con = duckdb.connect(str(path))
+        con.execute("BEGIN TRANSACTION")
+        con.execute("DELETE FROM quarantine")
+        con.execute("DELETE FROM gaps")
+        if quarantine:
+            con.executemany("INSERT INTO quarantine VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                            [list(dataclasses.astuple(q)) for q in quarantine])
+        if gaps:
+            con.executemany("INSERT INTO gaps VALUES (?, ?, ?, ?, ?, ?, ?)",
+                            [list(dataclasses.astuple(g)) for g in gaps])
         con.execute("COMMIT")
         con.close()
         return DuckDBStore(path, ManualClock(0), read_only=True)

@@ -7,6 +7,9 @@ state must survive a restart).
 
 from __future__ import annotations
 
+import hashlib
+import struct
+
 import pytest
 
 from ledger.chain import GENESIS
@@ -155,8 +158,17 @@ def test_a_rejected_event_is_quarantined_with_every_field(backend, tmp_path):
     assert detail and detail.startswith("payload is not a")
     store = reopen(store, clock)
     [entry] = store.quarantine()
+    [row] = store.read()
+    # a link of the chain after row 0, its fields as ledger/chain.py lays them out
+    link = hashlib.sha256(b"".join([
+        row.chain_sha256, b"Q", struct.pack("<qqq", 0, 0, 500),
+        struct.pack("<Bq", 1, 3), struct.pack("<Bq", 1, 7), struct.pack("<Bq", 1, 11),
+        struct.pack("<Bq", 0, 0),
+        *(len(t.encode()).to_bytes(4, "little") + t.encode()
+          for t in ("joint_reading", "a.src", "undecodable", detail)),
+        hashlib.sha256(b"\xff\xff").digest()])).digest()
     assert entry == QuarantineEntry(0, 500, "joint_reading", "a.src", 3, 7, 11, "undecodable",
-                                    detail, b"\xff\xff", None)
+                                    detail, b"\xff\xff", None, 0, link)
     # quarantine ids go on from the stored ones after a reopen
     clock.set_ns(600)
     store.append([Malformed(b"{not json", "malformed: bad JSON", "scan", "s.src", 1, 2, 3),
