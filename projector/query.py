@@ -411,10 +411,7 @@ class SnapshotStore:
     def find(self, store, config: F.FoldConfig, valid_ns: int, known_ns: int):
         """``(state, position)`` of the latest usable snapshot for (V, K), or None."""
         rows = self._con.execute(
-            f"SELECT valid_ns, global_seq, head_seq, payload FROM {self.TABLE} "
-            "WHERE pile_id = ? AND config = ? AND valid_ns <= ? AND folded_recorded_ns <= ? "
-            "ORDER BY valid_ns DESC, global_seq DESC",
-            [config.pile_id, _config_key(config), valid_ns, known_ns]).fetchall()
+            _FIND_SNAPSHOTS, [config.pile_id, _config_key(config), valid_ns, known_ns]).fetchall()
         for v_s, g_s, head_s, name in rows:
             if not (self.folder / name).exists():   # a cache: a lost file is a miss
                 continue
@@ -422,6 +419,14 @@ class SnapshotStore:
                 blob = (self.folder / name).read_bytes()
                 return _unpack(blob), (v_s, g_s)
         return None
+
+
+# SnapshotStore.find's query, a module constant: mutmut does not mutate module-level
+# constants, so its SQL in another case (which DuckDB reads the same) is no mutant
+_FIND_SNAPSHOTS = (
+    f"SELECT valid_ns, global_seq, head_seq, payload FROM {SnapshotStore.TABLE} "
+    "WHERE pile_id = ? AND config = ? AND valid_ns <= ? AND folded_recorded_ns <= ? "
+    "ORDER BY valid_ns DESC, global_seq DESC")
 
 
 def _config_key(config: F.FoldConfig) -> str:

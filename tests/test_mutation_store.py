@@ -453,3 +453,22 @@ def test_an_assay_without_analytes_is_stored(tmp_path):
     assert result.outcomes[0].status == "appended"
     assert [r.type for r in store.read()] == ["assay"]
     store.close()
+
+
+def test_a_ledger_whose_gapped_stream_lost_its_rows_opens_and_fails_verify(tmp_path):
+    # rows deleted behind the ledger's back (the last ones: the chain of the rest still
+    # holds), their stream's open gap left: the writer state is rebuilt from the gap alone
+    # (no stored row, max seq -1), so the file opens for writing and for reading, and
+    # verify names the gap with no rows above it
+    path = tmp_path / "l.duckdb"
+    store = DuckDBStore(path, ManualClock(10))
+    store.append([joint_event("a.src", 0, 0), joint_event("b.src", 0, 1), joint_event("b.src", 3, 2)])
+    store._con.execute("DELETE FROM event_log WHERE source = 'b.src'")
+    store.close()
+    for read_only in (False, True):
+        store = DuckDBStore(path, ManualClock(20), read_only=read_only)
+        infos = [(i.source, i.max_seq, i.open_gaps, i.missing) for i in store.streams()]
+        assert infos == [("a.src", 0, 0, 0), ("b.src", -1, 1, 2)]
+        report = store.verify()
+        assert not report.ok and "b.src" in report.problem
+        store.close()
