@@ -105,9 +105,13 @@ class GapHistory:
             if expected != found:
                 return (f"gap row {found.gap_id} is {_gap_text(found)} where the rows give "
                         f"{_gap_text(expected)} (a gap row was edited, deleted or added)")
-        if len(stored) != len(self.gaps):
-            return (f"{len(stored)} gap rows where the rows give {len(self.gaps)} (a gap row "
-                    "was deleted or added)")
+        if len(stored) > len(self.gaps):
+            return (f"{len(stored)} gap rows where the rows give {len(self.gaps)}: "
+                    f"{_gap_text(stored[len(self.gaps)])} is not implied by the rows (a gap row "
+                    "was added, or rows deleted)")
+        if len(stored) < len(self.gaps):
+            return (f"{len(stored)} gap rows where the rows give {len(self.gaps)}: "
+                    f"{_gap_text(self.gaps[len(stored)])} has no gap row (a gap row was deleted)")
         return None
 
 

@@ -181,7 +181,8 @@ def test_plain_verify_catches_an_edited_body_or_flag(tmp_path, edit, problem):
 
 
 @pytest.mark.parametrize("edit, problem", [
-    ("DELETE FROM gaps", "0 gap rows where the rows give 1"),
+    ("DELETE FROM gaps", "0 gap rows where the rows give 1: gap 0 of sim.clock epoch 1 seq "
+     "2..3 opened at"),
     ("UPDATE gaps SET last_seq = 2", "gap row 0 is gap 0 of sim.clock epoch 1 seq 2..2"),
     ("UPDATE gaps SET first_seq = 1, last_seq = 3", "gap row 0 is gap 0 of sim.clock epoch 1 "
      "seq 1..3"),
