@@ -2,7 +2,8 @@
 
 ``chain[n] = sha256(chain[n-1] || global_seq, epoch, seq, valid_time_ns,
 recorded_time_ns (little-endian i64) || len(type) type || len(source) source ||
-sha256(payload))`` with ``chain[-1]`` = 32 zero bytes.  Changing any stored field
+sha256(payload) [|| b"S" || len(key id) key id || len(signature) signature, lengths
+u16, for a signed row])`` with ``chain[-1]`` = 32 zero bytes.  Changing any stored field
 of any row changes its chain value and every one after it; ``stockpile ledger
 verify`` recomputes the chain and names the first row that disagrees.
 
@@ -53,13 +54,16 @@ def chain_hash(
     valid_time_ns: int,
     recorded_time_ns: int,
     payload_sha256: bytes,
+    signature_block: bytes = b"",
 ) -> bytes:
-    """The chain value of one row given the previous row's (32 bytes)."""
+    """The chain value of one row given the previous row's (32 bytes); a signed row's
+    ``signature_block`` (:func:`ledger.signing.signature_block`) goes last."""
     return hashlib.sha256(b"".join((
         previous,
         _INTS.pack(global_seq, epoch, seq, valid_time_ns, recorded_time_ns),
         _names(type_name, source),
         payload_sha256,
+        signature_block,
     ))).digest()
 
 

@@ -4,7 +4,8 @@ Tables (raw, append-only; the auditors' views are in :mod:`ledger.views`):
 
 ``event_log``
     one row per stored event: identity, valid and recorded time (ns), payload,
-    sha256(payload), chain hash, flags, and for domain events the JSON body.
+    sha256(payload), chain hash, flags, for domain events the JSON body, and for a
+    signed event its signer's key id and signature.
 ``gaps``
     missing source sequence ranges, opened and closed.
 ``quarantine``
@@ -43,6 +44,7 @@ from ledger import views
 from ledger.chain import GENESIS
 from ledger.clock import SiteClock
 from ledger.errors import InterfaceError, OperationalError, ProgrammingError, backend_errors
+from ledger.signing import SigningPolicy, registry_from_rows
 from ledger.records import Gap, LedgerStats, QuarantineEntry, RecordedEvent, VerifyReport
 from ledger.store import BODY_TYPES, BatchPlan, Key, LedgerStore, StreamState, WriterState
 
@@ -62,7 +64,9 @@ _DDL = [
         payload_sha256 BLOB USING COMPRESSION uncompressed NOT NULL,
         chain_sha256 BLOB USING COMPRESSION uncompressed NOT NULL,
         flags VARCHAR,
-        body JSON
+        body JSON,
+        signer VARCHAR,
+        signature BLOB
     )""",
     """CREATE TABLE IF NOT EXISTS gaps (
         gap_id BIGINT NOT NULL,
@@ -91,7 +95,7 @@ _DDL = [
 ]
 
 _ROW_COLUMNS = ("global_seq, type, source, epoch, seq, valid_time_ns, recorded_time_ns, "
-                "payload, payload_sha256, chain_sha256, flags")
+                "payload, payload_sha256, chain_sha256, flags, signer, signature")
 
 _EVENT_SCHEMA = pa.schema([
     ("global_seq", pa.int64()), ("type", pa.string()), ("source", pa.string()),
@@ -99,6 +103,7 @@ _EVENT_SCHEMA = pa.schema([
     ("recorded_time_ns", pa.int64()), ("payload", pa.binary()),
     ("payload_sha256", pa.binary()), ("chain_sha256", pa.binary()),
     ("flags", pa.string()), ("body", pa.string()),
+    ("signer", pa.string()), ("signature", pa.binary()),
 ])
 
 _FETCH_ROWS = 65_536
@@ -117,6 +122,8 @@ _GAP_COLUMNS = ("gap_id, source, epoch, first_seq, last_seq, opened_recorded_ns,
 _SELECT_OPEN_GAPS_BY_FIRST_SEQ = (f"SELECT {_GAP_COLUMNS} FROM gaps "
                                   "WHERE closed_recorded_ns IS NULL ORDER BY first_seq")
 _SELECT_LATEST_CLOCK = "SELECT max(valid_time_ns) FROM event_log WHERE type = 'clock'"
+_SELECT_KEY_ROWS = ("SELECT type, payload FROM event_log WHERE type IN "
+                    "('source_key_declared', 'source_key_revoked') ORDER BY global_seq")
 _SELECT_KNOWN_LOTS = ("SELECT DISTINCT body->>'lot_id' FROM event_log "
                       "WHERE type = 'lot_declared'")
 _SELECT_NEXT_GAP_ID = "SELECT coalesce(max(gap_id) + 1, 0) FROM gaps"
@@ -185,6 +192,8 @@ class DuckDBStore(LedgerStore):
     read_only : bool
         Open for reading only; many read-only processes may share a file that no
         writer has open.
+    signing : SigningPolicy, optional
+        Types that must be signed and the admin key trusted (:mod:`ledger.signing`).
 
     Raises
     ------
@@ -199,8 +208,8 @@ class DuckDBStore(LedgerStore):
     backend = "duckdb"
 
     def __init__(self, path: str | os.PathLike[str], clock: SiteClock | None = None, *,
-                 read_only: bool = False) -> None:
-        super().__init__(clock, read_only=read_only)
+                 read_only: bool = False, signing: SigningPolicy | None = None) -> None:
+        super().__init__(clock, read_only=read_only, signing=signing)
         self.path = Path(path)
         self._registered = False
         resolved = str(self.path.resolve())
@@ -273,6 +282,8 @@ class DuckDBStore(LedgerStore):
             gap = Gap(*values)
             state.streams.setdefault((gap.source, gap.epoch), StreamState()).open_gaps.append(gap)
         state.latest_clock_event_ns = con.execute(_SELECT_LATEST_CLOCK).fetchone()[0]
+        state.keys = registry_from_rows((t, bytes(p)) for t, p in
+                                        con.execute(_SELECT_KEY_ROWS).fetchall())
         state.known_lots = {
             r[0] for r in con.execute(_SELECT_KNOWN_LOTS).fetchall() if r[0] is not None
         }
@@ -333,6 +344,8 @@ class DuckDBStore(LedgerStore):
             pa.array([r.chain_sha256 for r in rows]),
             pa.array([_FLAG_SEPARATOR.join(r.flags) if r.flags else None for r in rows]),
             pa.array(bodies),
+            pa.array([r.signer for r in rows], pa.string()),
+            pa.array([r.signature for r in rows], pa.binary()),
         ], schema=_EVENT_SCHEMA)
         self._con.register(_NEW_EVENTS, batch)
         try:

@@ -12,6 +12,7 @@ from typing import Iterator, Sequence
 
 from ledger.clock import SiteClock
 from ledger.records import Gap, QuarantineEntry, RecordedEvent
+from ledger.signing import SigningPolicy
 from ledger.store import BatchPlan, Key, LedgerStore
 
 
@@ -20,8 +21,9 @@ class MemoryStore(LedgerStore):
 
     backend = "memory"
 
-    def __init__(self, clock: SiteClock | None = None) -> None:
-        super().__init__(clock)
+    def __init__(self, clock: SiteClock | None = None, *,
+                 signing: SigningPolicy | None = None) -> None:
+        super().__init__(clock, signing=signing)
         self._rows: list[RecordedEvent] = []
         self._index: dict[Key, int] = {}
         self._gaps: dict[int, Gap] = {}

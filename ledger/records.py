@@ -33,6 +33,8 @@ class RecordedEvent(NamedTuple):
     payload_sha256: bytes
     chain_sha256: bytes
     flags: tuple[str, ...] = ()
+    signer: str | None = None  # key id of the producer's signing key, when signed
+    signature: bytes | None = None
 
     @property
     def key(self) -> tuple[str, int, int]:
@@ -40,9 +42,11 @@ class RecordedEvent(NamedTuple):
         return (self.source, self.epoch, self.seq)
 
     def to_event(self, *, keep_recorded_time: bool = True) -> Event:
-        """Back to an :class:`~schemas.events.Event` (for copying between ledgers)."""
+        """Back to an :class:`~schemas.events.Event` (for copying between ledgers), with
+        its signature."""
         return Event(self.type, self.source, self.epoch, self.seq, self.valid_time_ns,
-                     self.payload, self.recorded_time_ns if keep_recorded_time else None)
+                     self.payload, self.recorded_time_ns if keep_recorded_time else None,
+                     self.signer, self.signature)
 
 
 class AppendOutcome(NamedTuple):

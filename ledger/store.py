@@ -32,7 +32,9 @@ from schemas.validate import REASON_CODES, InvalidEvent, check_event, is_time_ns
 from ledger.chain import GENESIS, chain_hash, payload_hash
 from ledger.clock import SiteClock, WallClock
 from ledger.errors import InterfaceError, LedgerError
-from ledger.verifying import CHAIN_MISMATCH, GapHistory, QuarantineLinks, flags_problem, quarantine_link
+from ledger.signing import KEY_TYPES, KeyRegistry, SigningPolicy, signature_block
+from ledger.verifying import (CHAIN_MISMATCH, GapHistory, QuarantineLinks, SignatureCheck,
+                              flags_problem, quarantine_link)
 from ledger.records import (
     FLAG_UNKNOWN_LOT,
     AppendOutcome,
@@ -101,6 +103,7 @@ class WriterState:
     latest_clock_event_ns: int | None = None
     streams: dict[tuple[str, int], StreamState] = field(default_factory=dict)
     known_lots: set[str] = field(default_factory=set)
+    keys: KeyRegistry = field(default_factory=KeyRegistry)
     next_gap_id: int = 0
     next_quarantine_id: int = 0
 
@@ -132,9 +135,11 @@ def _split_reason(reason: str) -> tuple[str, str]:
 class _BatchPlanner:
     """Decides one batch against a copy-on-write view of the writer state."""
 
-    def __init__(self, state: WriterState, clock: SiteClock) -> None:
+    def __init__(self, state: WriterState, clock: SiteClock,
+                 signing: SigningPolicy | None = None) -> None:
         self.base = state
         self.clock = clock
+        self.signing = signing
         self.state = WriterState(
             head_seq=state.head_seq,
             head_chain=state.head_chain,
@@ -143,11 +148,13 @@ class _BatchPlanner:
             latest_clock_event_ns=state.latest_clock_event_ns,
             streams=dict(state.streams),  # values copied on first touch
             known_lots=state.known_lots,  # copied on first change
+            keys=state.keys,  # copied on first change
             next_gap_id=state.next_gap_id,
             next_quarantine_id=state.next_quarantine_id,
         )
         self._touched: set[tuple[str, int]] = set()
         self._lots_copied = False
+        self._keys_copied = False
         self.plan = BatchPlan()
 
     # -- state helpers --------------------------------------------------------------
@@ -281,6 +288,13 @@ class _BatchPlanner:
                                  f"{key} is stored as global_seq {prior[0]} with another payload",
                                  existing=prior[0])
             return
+        if item.signer is not None or type_name in KEY_TYPES or (
+                self.signing is not None and type_name in self.signing.signed_types):
+            refused = s.keys.problem(type_name, source, epoch, seq, item.valid_time_ns, digest,
+                                     message, item.signer, item.signature, self.signing)
+            if refused:
+                self._quarantine(item, *refused)
+                return
         clock_event_ns = s.latest_clock_event_ns
         if type_name == "clock" and (clock_event_ns is None or item.valid_time_ns > clock_event_ns):
             clock_event_ns = item.valid_time_ns  # a tick is learned at its own time
@@ -301,16 +315,23 @@ class _BatchPlanner:
                     s.known_lots = set(s.known_lots)
                     self._lots_copied = True
                 s.known_lots.add(message.lot_id)
+        if type_name in KEY_TYPES:
+            if not self._keys_copied:
+                s.keys = s.keys.copy()
+                self._keys_copied = True
+            s.keys.learn(type_name, message)
         global_seq = s.head_seq + 1
         valid = item.valid_time_ns
+        signer, signature = item.signer, item.signature
         chain = chain_hash(s.link_chain, global_seq, type_name, source, epoch, seq, valid,
-                           recorded, digest)
+                           recorded, digest, signature_block(signer, signature))
         s.head_seq, s.head_chain, s.link_chain, s.last_recorded_ns = (global_seq, chain, chain,
                                                                       recorded)
         self._track_sequence(source, epoch, seq, recorded)
         plan = self.plan
         plan.rows.append(RecordedEvent(global_seq, type_name, source, epoch, seq, valid,
-                                       recorded, payload, digest, chain, flags))
+                                       recorded, payload, digest, chain, flags, signer,
+                                       signature))
         plan.bodies.append(body)
         plan.outcomes.append(AppendOutcome("appended", global_seq, None, None, flags))
 
@@ -341,14 +362,19 @@ class LedgerStore(abc.ABC):
     ----------
     clock : SiteClock, optional
         Source of recorded time (default: the wall clock).
+    signing : SigningPolicy, optional
+        The types that must be signed and the admin key trusted (default: signatures
+        are checked when present, none is required).
     """
 
     #: short backend name for messages ("duckdb", "memory")
     backend: str = "abstract"
 
-    def __init__(self, clock: SiteClock | None = None, *, read_only: bool = False) -> None:
+    def __init__(self, clock: SiteClock | None = None, *, read_only: bool = False,
+                 signing: SigningPolicy | None = None) -> None:
         self.clock: SiteClock = clock or WallClock()
         self.read_only = read_only
+        self.signing = signing
         self._lock = threading.RLock()
         self._closed = False
         self._state = WriterState()
@@ -375,7 +401,7 @@ class LedgerStore(abc.ABC):
         with self._lock:
             self._check_writable()
             stored = self._lookup(keys_to_look_up(self._state, batch)) if batch else {}
-            plan = _BatchPlanner(self._state, self.clock).run(batch, stored)
+            plan = _BatchPlanner(self._state, self.clock, self.signing).run(batch, stored)
             if plan.rows or plan.quarantine or plan.opened_gaps or plan.closed_gaps:
                 self._commit(plan)
             assert plan.state is not None
@@ -452,6 +478,7 @@ class LedgerStore(abc.ABC):
             lots: set[str] = set()
             gaps = GapHistory()
             links = QuarantineLinks(self.quarantine())
+            signatures = SignatureCheck(self.signing)
             for row in self._rows_for_verify():
                 if row.global_seq != count:
                     return VerifyReport(False, count, count,
@@ -466,10 +493,10 @@ class LedgerStore(abc.ABC):
                     return VerifyReport(False, count, row.global_seq, "recorded time goes backwards")
                 expected = chain_hash(previous, row.global_seq, row.type, row.source, row.epoch,
                                       row.seq, row.valid_time_ns, row.recorded_time_ns,
-                                      row.payload_sha256)
+                                      row.payload_sha256, signature_block(row.signer, row.signature))
                 if expected != row.chain_sha256:
                     return VerifyReport(False, count, row.global_seq, CHAIN_MISMATCH)
-                problem = flags_problem(row, lots) or gaps.row(row)
+                problem = flags_problem(row, lots) or gaps.row(row) or signatures.row(row)
                 if problem:
                     return VerifyReport(False, count, row.global_seq, problem)
                 previous, last_recorded = row.chain_sha256, row.recorded_time_ns

@@ -4,8 +4,8 @@ A backend's test module subclasses :class:`LedgerStoreContract` and implements
 ``create_store`` (and, for persistent backends, ``reopen``) plus ``tamper``::
 
     class TestMemoryStore(LedgerStoreContract):
-        def create_store(self, clock):
-            return MemoryStore(clock)
+        def create_store(self, clock, directory, signing=None):
+            return MemoryStore(clock, signing=signing)
         ...
 
 Requires pytest; the property test also needs hypothesis (the ``dev`` extra), imported when
@@ -27,7 +27,9 @@ from schemas.events import Event, Malformed, make_event, set_timestamp_ns
 from ledger.chain import GENESIS, chain_hash, payload_hash
 from ledger.clock import EventClock, ManualClock
 from ledger.records import FLAG_UNKNOWN_LOT, Gap, QuarantineEntry, RecordedEvent, VerifyReport
+from ledger.signing import SigningPolicy
 from ledger.store import LedgerStore
+from ledger.testing_signing import SigningContract, rechained
 from ledger.verifying import CHAIN_MISMATCH
 
 
@@ -84,18 +86,6 @@ def _flip(b: bytes) -> bytes:
     return bytes([b[0] ^ 0x01]) + b[1:]
 
 
-def _rechain(rows: list[RecordedEvent], start: int) -> list[RecordedEvent]:
-    previous = rows[start - 1].chain_sha256 if start > 0 else GENESIS
-    out = rows[:start]
-    for r in rows[start:]:
-        r = r._replace(chain_sha256=chain_hash(previous, r.global_seq, r.type, r.source, r.epoch,
-                                                r.seq, r.valid_time_ns, r.recorded_time_ns,
-                                                r.payload_sha256))
-        out.append(r)
-        previous = r.chain_sha256
-    return out
-
-
 def tampered_rows(rows: list[RecordedEvent], global_seq: int, field: str) -> list[RecordedEvent]:
     """``rows`` (every stored row, in global order) after one tamper case at ``global_seq``.
 
@@ -125,13 +115,13 @@ def tampered_rows(rows: list[RecordedEvent], global_seq: int, field: str) -> lis
     elif field == "insert":
         forged = r._replace(seq=r.seq + 1_000)
         rows[i:] = [forged] + [x._replace(global_seq=x.global_seq + 1) for x in rows[i:]]
-        rows[:i + 1] = _rechain(rows[:i + 1], i)
+        rows[:i + 1] = rechained(rows[:i + 1], i)
     elif field == "reorder":
         a, b = rows[i], rows[i + 1]
         rows[i], rows[i + 1] = b._replace(global_seq=a.global_seq), a._replace(global_seq=b.global_seq)
     elif field == "rechain_backwards":
         rows[i] = r._replace(recorded_time_ns=rows[i - 1].recorded_time_ns - 1)
-        rows = _rechain(rows, i)
+        rows = rechained(rows, i)
     else:
         raise ValueError(f"unknown tamper case {field!r}")
     return rows
@@ -200,15 +190,16 @@ def tampered_side(quarantine: list[QuarantineEntry], gaps: list[Gap],
     return quarantine, gaps
 
 
-class LedgerStoreContract(abc.ABC):
+class LedgerStoreContract(SigningContract):
     """Behaviour every :class:`~ledger.store.LedgerStore` backend must show."""
 
     #: whether the backend keeps data across ``reopen``
     persistent: bool = False
 
     @abc.abstractmethod
-    def create_store(self, clock: ManualClock, directory: Path) -> LedgerStore:
-        """A new, empty store in ``directory`` using ``clock``."""
+    def create_store(self, clock: ManualClock, directory: Path,
+                     signing: SigningPolicy | None = None) -> LedgerStore:
+        """A new, empty store in ``directory`` using ``clock`` (and ``signing``)."""
 
     def reopen(self, store: LedgerStore, clock: ManualClock) -> LedgerStore:
         """Close ``store`` and open the same ledger again (persistent backends)."""
@@ -548,8 +539,8 @@ class LedgerStoreContract(abc.ABC):
             named = ("quarantine entry" if case[0] == "quarantine" else "gap row") in (
                 report.problem or "")
             # a deleted entry shows at the first row chained after it
-            rechained = case[0] == "quarantine" and report.problem == CHAIN_MISMATCH
-            if report.ok or not (named or rechained):
+            chained_after = case[0] == "quarantine" and report.problem == CHAIN_MISMATCH
+            if report.ok or not (named or chained_after):
                 failures.append(f"{case}: {report}")
             store.close()
         assert failures == []

@@ -10,6 +10,7 @@ import dataclasses
 from schemas.events import decode_payload
 
 from ledger.chain import quarantine_hash
+from ledger.signing import KEY_TYPES, KeyRegistry, SigningPolicy
 from ledger.records import FLAG_UNKNOWN_LOT, Gap, QuarantineEntry, RecordedEvent
 
 
@@ -137,3 +138,30 @@ def flags_problem(row: RecordedEvent, lots: set[str]) -> str | None:
     if tuple(row.flags) != expected:
         return (f"flags {list(row.flags)} where the payloads before it give {list(expected)}")
     return None
+
+
+class SignatureCheck:
+    """Every stored signature re-checked in global order against the key registry the
+    rows before it declare (as the writer checked it when it stored the row)."""
+
+    def __init__(self, policy: SigningPolicy | None) -> None:
+        # a policy's required types are not re-imposed: rows stored before a site
+        # started signing are unsigned by right; the chain covers a removed signature
+        self.policy = None if policy is None else SigningPolicy(frozenset(), policy.admin_key_id)
+        self.keys = KeyRegistry()
+
+    def row(self, row: RecordedEvent) -> str | None:
+        if row.signer is None and row.type not in KEY_TYPES:
+            return None
+        try:
+            message = decode_payload(row.type, row.payload)
+        except Exception:  # noqa: BLE001 - a stored payload always decoded; say so if not
+            return "payload does not decode"
+        refused = self.keys.problem(row.type, row.source, row.epoch, row.seq, row.valid_time_ns,
+                                    row.payload_sha256, message, row.signer, row.signature,
+                                    self.policy)
+        if refused:
+            return f"signature: {refused[0]}: {refused[1]}"
+        if row.type in KEY_TYPES:
+            self.keys.learn(row.type, message)
+        return None

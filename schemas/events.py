@@ -48,6 +48,8 @@ EVENT_TYPES: dict[str, type[Message]] = {
     "reclaim_cut": pb.ReclaimCut,
     "assay": pb.Assay,
     "clock": pb.Clock,
+    "source_key_declared": pb.SourceKeyDeclared,
+    "source_key_revoked": pb.SourceKeyRevoked,
 }
 
 #: High-rate sensor streams; everything else is a low-rate domain event.
@@ -89,6 +91,8 @@ class Event:
     valid_time_ns: int
     payload: bytes
     recorded_time_ns: int | None = None
+    signer: str | None = None  # key id of the producer's signing key, when signed
+    signature: bytes | None = None  # Ed25519 over signed_message(...), 64 bytes
 
     @property
     def key(self) -> tuple[str, int, int]:
@@ -210,24 +214,58 @@ def parse_key_expr(key: str) -> tuple[str, str, str]:
     return parts[1], parts[3], parts[4]
 
 
-# version byte, epoch u64, seq u64, valid_time_ns i64; little-endian
+# version byte, epoch u64, seq u64, valid_time_ns i64; little-endian.  Version 2 (a
+# signed event) goes on with the signer's key id (u8 length, ASCII) and the signature
+# (u8 length, bytes).
 _ATTACHMENT = struct.Struct("<BQQq")
 _ATTACHMENT_VERSION = 1
+_SIGNED_ATTACHMENT_VERSION = 2
 
 
-def encode_attachment(epoch: int, seq: int, valid_time_ns: int) -> bytes:
-    """Identity and valid time as the 25-byte Zenoh sample attachment."""
-    return _ATTACHMENT.pack(_ATTACHMENT_VERSION, epoch, seq, valid_time_ns)
+def encode_attachment(epoch: int, seq: int, valid_time_ns: int, signer: str | None = None,
+                      signature: bytes | None = None) -> bytes:
+    """Identity and valid time as the Zenoh sample attachment: 25 bytes, or with the
+    signer's key id and signature after them when the event is signed."""
+    if signer is None or signature is None:
+        return _ATTACHMENT.pack(_ATTACHMENT_VERSION, epoch, seq, valid_time_ns)
+    key_id = signer.encode("ascii")
+    if len(key_id) > 255 or len(signature) > 255:
+        raise ValueError("signer key id and signature must be at most 255 bytes each")
+    return (_ATTACHMENT.pack(_SIGNED_ATTACHMENT_VERSION, epoch, seq, valid_time_ns)
+            + bytes([len(key_id)]) + key_id + bytes([len(signature)]) + signature)
+
+
+def decode_signed_attachment(data: bytes) -> tuple[int, int, int, str | None, bytes | None]:
+    """Inverse of :func:`encode_attachment`: ``(epoch, seq, valid_time_ns, signer,
+    signature)``, the last two None for an unsigned event; raises ValueError."""
+    if len(data) < _ATTACHMENT.size:
+        raise ValueError(f"attachment is {len(data)} bytes, expected {_ATTACHMENT.size}")
+    version, epoch, seq, valid_time_ns = _ATTACHMENT.unpack_from(data)
+    if version == _ATTACHMENT_VERSION:
+        if len(data) != _ATTACHMENT.size:
+            raise ValueError(f"attachment is {len(data)} bytes, expected {_ATTACHMENT.size}")
+        return epoch, seq, valid_time_ns, None, None
+    if version != _SIGNED_ATTACHMENT_VERSION:
+        raise ValueError(f"attachment version {version} is not supported")
+    pos = _ATTACHMENT.size
+    parts = []
+    for _ in range(2):
+        if pos >= len(data) or pos + 1 + data[pos] > len(data):
+            raise ValueError("signed attachment is cut short")
+        parts.append(bytes(data[pos + 1:pos + 1 + data[pos]]))
+        pos += 1 + data[pos]
+    if pos != len(data):
+        raise ValueError(f"signed attachment has {len(data) - pos} bytes too many")
+    try:
+        signer = parts[0].decode("ascii")
+    except UnicodeDecodeError:
+        raise ValueError("signer key id is not ASCII") from None
+    return epoch, seq, valid_time_ns, signer, parts[1]
 
 
 def decode_attachment(data: bytes) -> tuple[int, int, int]:
-    """Inverse of :func:`encode_attachment`: ``(epoch, seq, valid_time_ns)``."""
-    if len(data) != _ATTACHMENT.size:
-        raise ValueError(f"attachment is {len(data)} bytes, expected {_ATTACHMENT.size}")
-    version, epoch, seq, valid_time_ns = _ATTACHMENT.unpack(data)
-    if version != _ATTACHMENT_VERSION:
-        raise ValueError(f"attachment version {version} is not supported")
-    return epoch, seq, valid_time_ns
+    """``(epoch, seq, valid_time_ns)`` of an attachment, signed or not."""
+    return decode_signed_attachment(data)[:3]
 
 
 def event_from_sample(key: str, payload: bytes, attachment: bytes | None) -> Event | Malformed:
@@ -244,9 +282,19 @@ def event_from_sample(key: str, payload: bytes, attachment: bytes | None) -> Eve
         return Malformed(raw=bytes(payload), reason="bad_attachment: missing",
                          type=type_name, source=source)
     try:
-        epoch, seq, valid_time_ns = decode_attachment(bytes(attachment))
+        epoch, seq, valid_time_ns, signer, signature = decode_signed_attachment(bytes(attachment))
     except (ValueError, struct.error) as exc:
         return Malformed(raw=bytes(payload), reason=f"bad_attachment: {exc}",
                          type=type_name, source=source)
-    return Event(type_name, source, epoch, seq, valid_time_ns, bytes(payload))
+    return Event(type_name, source, epoch, seq, valid_time_ns, bytes(payload), None,
+                 signer, signature)
+
+
+def signed_message(type_name: str, source: str, epoch: int, seq: int, valid_time_ns: int,
+                   payload_sha256: bytes) -> bytes:
+    """The bytes a producer signs: the event's identity, valid time and payload hash, so
+    a signature cannot be moved to another event."""
+    names = b"\0".join(t.encode("utf-8", "surrogatepass") for t in (type_name, source))
+    return (b"stockpile-event-v1\0" + names + b"\0"
+            + struct.pack("<qqq", epoch, seq, valid_time_ns) + payload_sha256)
 

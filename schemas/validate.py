@@ -32,6 +32,12 @@ REASON_CODES: dict[str, str] = {
     "bad_identity": "source, epoch or sequence malformed or out of range",
     "bad_key": "Zenoh key expression is not a stockpile event key",
     "bad_attachment": "Zenoh attachment missing or malformed",
+    "unsigned": "a type the site signs arrived without a signature",
+    "bad_signature": "the signature does not hold for this event and key",
+    "unknown_key": "signed with a key no admin declared",
+    "revoked_key": "signed with a key revoked before the event's valid time",
+    "key_not_valid": "the event's valid time lies outside its key's validity period",
+    "key_role": "the key's role may not produce this event type",
     "malformed": "input line is not a valid event record",
     "unknown_type": "event type is not in the schema",
     "undecodable": "payload does not parse as the type's protobuf message",
@@ -78,6 +84,8 @@ REQUIRED_IDS: dict[str, tuple[str, ...]] = {
     "stack_ended": ("pile_id", "pass_id"),
     "reclaim_cut": ("pile_id", "cut_id"),
     "assay": ("assay_id", "lot_id"),
+    "source_key_declared": ("key_id", "role", "name"),
+    "source_key_revoked": ("key_id",),
 }
 
 #: Enum fields that must hold a defined, non-zero value.
@@ -491,6 +499,14 @@ def _check_assay(m) -> None:
     _require(m.supersedes != m.assay_id, "out_of_range", "an assay cannot supersede itself")
 
 
+def _check_source_key(m) -> None:
+    _require(len(m.public_key) == 32, "out_of_range",
+             f"public_key is {len(m.public_key)} bytes, an Ed25519 key is 32")
+    _require(
+        (m.valid_from.seconds, m.valid_from.nanos) < (m.valid_until.seconds, m.valid_until.nanos),
+        "out_of_range", "valid_from is not before valid_until")
+
+
 _TYPE_CHECKS = {
     "scan": _check_scan,
     "location_fix": _check_location_fix,
@@ -503,4 +519,5 @@ _TYPE_CHECKS = {
     "stack_ended": _check_stack_ended,
     "reclaim_cut": _check_reclaim_cut,
     "assay": _check_assay,
+    "source_key_declared": _check_source_key,
 }

@@ -16,14 +16,19 @@ from ledger.testing import LedgerStoreContract, tampered_rows
 class TestMemoryStore(LedgerStoreContract):
     persistent = False
 
-    def create_store(self, clock, directory):
-        return MemoryStore(clock)
+    def create_store(self, clock, directory, signing=None):
+        return MemoryStore(clock, signing=signing)
 
     def tamper(self, store, global_seq, field):
         # the rows as the store keeps them, changed in place (its index and writer state
         # are left as they were: only verify looks)
         store._rows[:] = tampered_rows(store._rows, global_seq, field)
         store._recorded[:] = [r.recorded_time_ns for r in store._rows]
+        return store
+
+    def replace_rows(self, store, rows):
+        store._rows[:] = rows
+        store._recorded[:] = [r.recorded_time_ns for r in rows]
         return store
 
     def replace_side_tables(self, store, quarantine, gaps):
@@ -35,12 +40,12 @@ class TestMemoryStore(LedgerStoreContract):
 class TestDuckDBStore(LedgerStoreContract):
     persistent = True
 
-    def create_store(self, clock, directory):
-        return DuckDBStore(directory / "ledger.duckdb", clock)
+    def create_store(self, clock, directory, signing=None):
+        return DuckDBStore(directory / "ledger.duckdb", clock, signing=signing)
 
     def reopen(self, store, clock):
         store.close()
-        return DuckDBStore(store.path, clock)
+        return DuckDBStore(store.path, clock, signing=store.signing)
 
     def tamper(self, store, global_seq, field):
         # event_log rewritten with SQL in another connection, the file reopened read-only
@@ -79,6 +84,21 @@ class TestDuckDBStore(LedgerStoreContract):
         if gaps:
             con.executemany("INSERT INTO gaps VALUES (?, ?, ?, ?, ?, ?, ?)",
                             [list(dataclasses.astuple(g)) for g in gaps])
+        con.execute("COMMIT")
+        con.close()
+        return DuckDBStore(path, ManualClock(0), read_only=True)
+
+    def replace_rows(self, store, rows):
+        path = store.path
+        store.close()
+        con = duckdb.connect(str(path))
+        con.execute("BEGIN TRANSACTION")
+        con.execute("DELETE FROM event_log")
+        con.executemany(
+            "INSERT INTO event_log (global_seq, type, source, epoch, seq, valid_time_ns, "
+            "recorded_time_ns, payload, payload_sha256, chain_sha256, flags, signer, signature) "
+            "VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+            [list(r[:10]) + [",".join(r.flags) or None, r.signer, r.signature] for r in rows])
         con.execute("COMMIT")
         con.close()
         return DuckDBStore(path, ManualClock(0), read_only=True)

@@ -1,0 +1,141 @@
+"""Signed events: the site's signing policy, the registry of declared source keys, and the
+check the writer (and ``verify``) makes of each signed or must-be-signed event.
+
+The registry is built from the ledger's own ``source_key_declared`` and
+``source_key_revoked`` rows, in global order, so it is the same for the writer and for
+anyone re-checking the ledger later.  Rules (docs/security.md, "Signed events"):
+
+- a signature, when present, must hold for :func:`schemas.events.signed_message` of the
+  event with a declared key, valid at the event's valid time, not revoked from a time at
+  or before it, whose role (:data:`security.event_keys.ROLE_TYPES`) may produce the type;
+- a type in :attr:`SigningPolicy.signed_types` must be signed (``unsigned`` otherwise);
+- key declarations and revocations are always signed by an admin key; the first admin
+  key is a self-signed ``admin`` declaration, accepted when its key id is the policy's
+  ``admin_key_id`` (or, with no pinned admin key, when no admin key is declared yet).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+from schemas.events import decode_payload, signed_message
+from schemas.events import timestamp_ns as timestamp_to_ns
+from security.event_keys import ROLE_TYPES, key_id_of, signature_holds
+
+KEY_TYPES = frozenset({"source_key_declared", "source_key_revoked"})
+
+
+@dataclass(frozen=True)
+class SigningPolicy:
+    """What a site requires: the types that must be signed, and the admin key it trusts
+    (the key id of the site admin's public key; None: the first self-declared one)."""
+
+    signed_types: frozenset[str] = frozenset()
+    admin_key_id: str | None = None
+
+
+@dataclass(frozen=True)
+class KeyRecord:
+    """A declared source key (times in ns, ``revoked_from_ns`` None while trusted)."""
+
+    key_id: str
+    public_key: bytes
+    role: str
+    name: str
+    valid_from_ns: int
+    valid_until_ns: int
+    revoked_from_ns: int | None = None
+
+
+@dataclass
+class KeyRegistry:
+    """Declared keys by key id; the writer copies it before a batch changes it."""
+
+    keys: dict[str, KeyRecord] = field(default_factory=dict)
+
+    def copy(self) -> KeyRegistry:
+        return KeyRegistry(dict(self.keys))
+
+    def describe(self, key_id: str | None) -> str:
+        """``name (role)`` of a key id, for reports."""
+        record = self.keys.get(key_id or "")
+        return "" if record is None else f"{record.name} ({record.role})"
+
+    def problem(self, type_name: str, source: str, epoch: int, seq: int, valid_time_ns: int,
+                payload_sha256: bytes, message, signer: str | None, signature: bytes | None,
+                policy: SigningPolicy | None) -> tuple[str, str] | None:
+        """``(code, detail)`` when the event may not be stored as it is signed, else None.
+
+        ``message`` is the decoded payload (read for a key declaration)."""
+        if signer is None or signature is None:
+            if type_name in KEY_TYPES:
+                return "unsigned", f"a {type_name} must be signed by an admin key"
+            if policy is not None and type_name in policy.signed_types:
+                return "unsigned", f"this site requires {type_name} to be signed"
+            return None
+        record = self.keys.get(signer)
+        if record is None and type_name == "source_key_declared" and message.key_id == signer:
+            record = self._anchor(message, policy)
+            if isinstance(record, tuple):
+                return record
+        if record is None:
+            return "unknown_key", f"key {signer} was never declared by an admin"
+        signed = signed_message(type_name, source, epoch, seq, valid_time_ns, payload_sha256)
+        if not signature_holds(record.public_key, signature, signed):
+            return "bad_signature", f"the signature does not hold for key {signer} ({record.name})"
+        if record.revoked_from_ns is not None and valid_time_ns >= record.revoked_from_ns:
+            return "revoked_key", (f"key {signer} ({record.name}) is revoked from "
+                                   f"{record.revoked_from_ns} ns")
+        if not record.valid_from_ns <= valid_time_ns < record.valid_until_ns:
+            return "key_not_valid", (f"valid time {valid_time_ns} ns is outside key {signer}'s "
+                                     f"period {record.valid_from_ns}..{record.valid_until_ns} ns")
+        if type_name not in ROLE_TYPES.get(record.role, frozenset()):
+            return "key_role", f"a {record.role} key ({record.name}) may not sign {type_name}"
+        return None
+
+    def _anchor(self, message, policy: SigningPolicy | None) -> KeyRecord | tuple[str, str] | None:
+        """The record of a self-signed admin declaration, if it may be the trust anchor."""
+        if message.role != "admin" or key_id_of(message.public_key) != message.key_id:
+            return None
+        pinned = None if policy is None else policy.admin_key_id
+        if pinned is not None and pinned != message.key_id:
+            return "unknown_key", (f"self-declared admin key {message.key_id} is not the "
+                                   f"site's admin key {pinned}")
+        if pinned is None and any(r.role == "admin" for r in self.keys.values()):
+            return "unknown_key", (f"self-declared admin key {message.key_id}: this ledger "
+                                   "already has an admin key")
+        return _record(message)
+
+    def learn(self, type_name: str, message) -> None:
+        """Take in a stored key declaration or revocation."""
+        if type_name == "source_key_declared":
+            old = self.keys.get(message.key_id)
+            revoked = None if old is None else old.revoked_from_ns  # a revocation stays
+            self.keys[message.key_id] = replace(_record(message), revoked_from_ns=revoked)
+        elif type_name == "source_key_revoked" and message.key_id in self.keys:
+            revoked = timestamp_to_ns(message.time)
+            old = self.keys[message.key_id]
+            if old.revoked_from_ns is None or revoked < old.revoked_from_ns:
+                self.keys[message.key_id] = replace(old, revoked_from_ns=revoked)
+
+
+def _record(message) -> KeyRecord:
+    return KeyRecord(message.key_id, bytes(message.public_key), message.role, message.name,
+                     timestamp_to_ns(message.valid_from), timestamp_to_ns(message.valid_until))
+
+
+def registry_from_rows(rows) -> KeyRegistry:
+    """The registry of a ledger's stored key rows (``(type, payload)`` pairs in order)."""
+    registry = KeyRegistry()
+    for type_name, payload in rows:
+        registry.learn(type_name, decode_payload(type_name, payload))
+    return registry
+
+
+def signature_block(signer: str | None, signature: bytes | None) -> bytes:
+    """What a signed row adds to its chain value (empty for an unsigned row)."""
+    if signer is None or signature is None:
+        return b""
+    key_id = signer.encode("ascii")
+    return b"S" + len(key_id).to_bytes(2, "little") + key_id + \
+        len(signature).to_bytes(2, "little") + bytes(signature)
