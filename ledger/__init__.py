@@ -50,13 +50,14 @@ from ledger.records import (
 )
 from ledger.holder import open_held, read_holder
 from ledger.memory import MemoryStore
+from ledger.signing import SigningPolicy
 from ledger.store import LedgerStore
 
 MEMORY = ":memory:"
 
 
 def open_ledger(path: str | os.PathLike[str], clock: SiteClock | None = None, *,
-                read_only: bool = False) -> LedgerStore:
+                read_only: bool = False, signing: SigningPolicy | None = None) -> LedgerStore:
     """Open (or create) a ledger: a DuckDB file, or ``":memory:"`` for the in-memory store.
 
     Read-only, a file that a running ledger service holds is read through that service
@@ -65,13 +66,13 @@ def open_ledger(path: str | os.PathLike[str], clock: SiteClock | None = None, *,
     if str(path) == MEMORY:
         if read_only:
             raise InterfaceError("an in-memory ledger cannot be opened read-only")
-        return MemoryStore(clock)
+        return MemoryStore(clock, signing=signing)
     # deferred: duckdb and pyarrow are heavy, and most processes that import the ledger
     # package (the edge services) never open a DuckDB file (see docs/design-notes.md)
     from ledger.duckdb_store import DuckDBStore
 
     try:
-        return DuckDBStore(path, clock, read_only=read_only)
+        return DuckDBStore(path, clock, read_only=read_only, signing=signing)
     except LedgerLocked as locked:
         if read_only:
             return open_held(Path(path), locked)

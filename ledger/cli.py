@@ -21,6 +21,7 @@ from schemas.jsonl import decode_line, encode_line
 from ledger import open_ledger
 from ledger.clock import clock_by_name
 from ledger.records import STATUSES, LedgerStats
+from ledger.signing import add_signing_options, policy_from_args
 from ledger.store import LedgerStore
 from ledger.checkpoint import check_checkpoint, latest_checkpoint, read_checkpoint
 from ledger.wire import stats_to_json
@@ -90,7 +91,7 @@ def export_lines(store: LedgerStore, out: IO[str], *, types: list[str] | None = 
     n = 0
     for row in rows:
         out.write(encode_line(row.type, row.source, row.epoch, row.seq, row.valid_time_ns,
-                              row.payload, row.recorded_time_ns))
+                              row.payload, row.recorded_time_ns, row.signer, row.signature))
         out.write("\n")
         n += 1
         if progress is not None and n % 1_000 == 0:
@@ -130,7 +131,7 @@ def cmd_import(args: argparse.Namespace) -> int:
     source = sys.stdin if args.file == "-" else None
     if source is None and not Path(args.file).is_file():
         raise FileNotFoundError(f"no such file: {args.file}")
-    with open_ledger(args.ledger, clock) as store:
+    with open_ledger(args.ledger, clock, signing=policy_from_args(args)) as store:
         handle = source or open(args.file, "rb")
         size_bytes = 0 if source is not None else Path(args.file).stat().st_size
         try:
@@ -177,14 +178,20 @@ def cmd_export(args: argparse.Namespace) -> int:
 def cmd_verify(args: argparse.Namespace) -> int:
     checkpoint = _checkpoint_arg(args.checkpoint) if args.checkpoint else None
     ca_pem = Path(args.ca).read_bytes() if args.ca else None
-    with open_ledger(args.ledger, read_only=True) as store:
+    signing = policy_from_args(args)
+    with open_ledger(args.ledger, read_only=True, signing=signing) as store:
         report = store.verify()
+        signed = sum(1 for row in store.read() if row.signer is not None)
         head = store.head()
         found = check_checkpoint(store, checkpoint, ca_pem=ca_pem) if checkpoint else None
     ok = report.ok
     if report.ok:
         print(f"ok: {report.rows_checked:,} rows verified, head global_seq {head.global_seq}, "
               f"chain {head.chain_sha256.hex()}")
+        anchor = ("the admin key given" if signing and signing.admin_key_id
+                  else "the ledger's own admin declaration (pin it with --admin-key)")
+        if signed:
+            print(f"ok: {signed:,} signatures hold, keys anchored by {anchor}")
     else:
         where = ("" if report.first_bad_seq is None
                  else f"first bad row global_seq {report.first_bad_seq}: ")
@@ -239,6 +246,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     add_clock(p, help="recorded time from the wall clock or from the file's clock events "
               "(lines with recorded_time_ns keep theirs)")
     p.add_argument("--json", action="store_true", help="print the counts as JSON")
+    add_signing_options(p)
     p.set_defaults(func=cmd_import)
 
     p = sub.add_parser("export", help="print events as canonical JSON lines",
@@ -260,6 +268,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--ca", metavar="CA.pem",
                    help="the site CA's certificate: the checkpoint must be signed by one of "
                    "its certificates")
+    p.add_argument("--admin-key", metavar="FILE",
+                   help="the site admin's public signing key: the key declarations in the "
+                   "ledger must chain to it (default: the ledger's own admin declaration)")
     p.set_defaults(func=cmd_verify)
 
     p = sub.add_parser("stats", help="counts per type and source, gaps, quarantine, time ranges",

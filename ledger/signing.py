@@ -16,11 +16,13 @@ anyone re-checking the ledger later.  Rules (docs/security.md, "Signed events"):
 
 from __future__ import annotations
 
+import hashlib
 from dataclasses import dataclass, field, replace
 
-from schemas.events import decode_payload, signed_message
+from schemas.events import Event, decode_payload, signed_message
 from schemas.events import timestamp_ns as timestamp_to_ns
-from security.event_keys import ROLE_TYPES, key_id_of, signature_holds
+from security.event_keys import (MONEY_TYPES, ROLE_TYPES, SigningKey, key_id_of,
+                                 load_public_key, sign, signature_holds)
 
 KEY_TYPES = frozenset({"source_key_declared", "source_key_revoked"})
 
@@ -117,6 +119,39 @@ class KeyRegistry:
             old = self.keys[message.key_id]
             if old.revoked_from_ns is None or revoked < old.revoked_from_ns:
                 self.keys[message.key_id] = replace(old, revoked_from_ns=revoked)
+
+
+def sign_event(event: Event, key: SigningKey) -> Event:
+    """``event`` signed by ``key``: its signer and signature set."""
+    message = signed_message(event.type, event.source, event.epoch, event.seq,
+                             event.valid_time_ns, hashlib.sha256(event.payload).digest())
+    return replace(event, signer=key.key_id, signature=sign(key, message))
+
+
+def add_signing_options(parser) -> None:
+    """``--admin-key FILE`` and ``--signed-types T,...``: the site's signing policy."""
+    parser.add_argument("--admin-key", metavar="FILE",
+                        help="the site admin's public signing key (NAME.sign.pub): the trust "
+                        "anchor of the source keys declared in the ledger")
+    parser.add_argument("--signed-types", metavar="T,...",
+                        help="event types that must be signed (default with --admin-key: "
+                        f"{','.join(sorted(MONEY_TYPES))}; 'none' for none)")
+
+
+def policy_from_args(args) -> SigningPolicy | None:
+    """The policy of :func:`add_signing_options`' arguments (None when neither is given);
+    raises ValueError on an unreadable key."""
+    admin_key, types = getattr(args, "admin_key", None), getattr(args, "signed_types", None)
+    if admin_key is None and types is None:
+        return None
+    admin_id = None if admin_key is None else key_id_of(load_public_key(admin_key))
+    if types is None:
+        signed = MONEY_TYPES
+    elif types.strip() in ("", "none"):
+        signed = frozenset()
+    else:
+        signed = frozenset(t.strip() for t in types.split(",") if t.strip())
+    return SigningPolicy(signed, admin_id)
 
 
 def _record(message) -> KeyRecord:

@@ -10,11 +10,11 @@ import tempfile
 from pathlib import Path
 
 from schemas import pb
-from schemas.events import Event, make_event, set_timestamp_ns, signed_message
+from schemas.events import Event, make_event, set_timestamp_ns
 
 from ledger.chain import chain_hash, payload_hash
 from ledger.clock import ManualClock
-from ledger.signing import SigningPolicy, signature_block
+from ledger.signing import SigningPolicy, sign_event, signature_block
 from ledger.store import LedgerStore
 from ledger.verifying import CHAIN_MISMATCH
 from security.event_keys import SigningKey, load_signing_key, new_signing_key, sign
@@ -25,9 +25,7 @@ YEAR_NS = 365 * 86_400 * 10**9
 
 def signed(event: Event, key: SigningKey) -> Event:
     """``event`` signed with ``key`` (signer and signature set)."""
-    message = signed_message(event.type, event.source, event.epoch, event.seq,
-                             event.valid_time_ns, payload_hash(event.payload))
-    return dataclasses.replace(event, signer=key.key_id, signature=sign(key, message))
+    return sign_event(event, key)
 
 
 def make_keys(directory: Path, *names: str) -> dict[str, SigningKey]:

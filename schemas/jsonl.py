@@ -3,12 +3,15 @@
 ::
 
     {"type": ..., "source": ..., "epoch": ..., "seq": ..., "valid_time_ns": ...,
-     "recorded_time_ns": ..., "body": {...}}
+     "recorded_time_ns": ..., "signer": ..., "signature": ..., "body": {...}}
 
 ``body`` is the protobuf JSON mapping of the payload.  Field names are emitted as
 written in the ``.proto`` (``window_end``); on input camelCase (``windowEnd``) is
 accepted too.  ``recorded_time_ns`` is optional on input: when present the ledger
-keeps it instead of stamping its own.
+keeps it instead of stamping its own.  A signed event carries its signer's key id and
+its signature (base64); the payload is the deterministic serialisation of ``body``, the
+bytes producers sign (:func:`schemas.events.make_event`), so a signature survives
+export and import.
 
 The encoding is canonical: the same event always gives the same line (keys of
 ``body`` sorted, no insignificant white space), so ``export -> import -> export``
@@ -17,6 +20,8 @@ gives identical lines.
 
 from __future__ import annotations
 
+import base64
+import binascii
 import json
 import math
 from typing import Any
@@ -48,6 +53,8 @@ def encode_line(
     valid_time_ns: int,
     payload: bytes,
     recorded_time_ns: int | None = None,
+    signer: str | None = None,
+    signature: bytes | None = None,
 ) -> str:
     """One canonical JSON line (without the newline) for an event."""
     body = body_json(decode_payload(type_name, payload))
@@ -55,6 +62,9 @@ def encode_line(
             "valid_time_ns": valid_time_ns}
     if recorded_time_ns is not None:
         head["recorded_time_ns"] = recorded_time_ns
+    if signer is not None and signature is not None:
+        head["signer"] = signer
+        head["signature"] = base64.b64encode(signature).decode("ascii")
     text = json.dumps(head, separators=(",", ":"), ensure_ascii=False)
     return f'{text[:-1]},"body":{body}}}'
 
@@ -92,6 +102,14 @@ def decode_line(line: str | bytes, *, where: str = "") -> Event | Malformed:
     if recorded is not None and (not isinstance(recorded, int) or isinstance(recorded, bool)):
         return Malformed(raw=raw, reason=f"malformed: {prefix}recorded_time_ns must be an integer",
                          **ident)
+    signer, signature = record.get("signer"), record.get("signature")
+    if signer is not None or signature is not None:
+        try:
+            if not isinstance(signer, str) or not isinstance(signature, str):
+                raise ValueError("signer and signature must both be strings")
+            signature = base64.b64decode(signature, validate=True)
+        except (ValueError, binascii.Error) as exc:
+            return Malformed(raw=raw, reason=f"malformed: {prefix}bad signature ({exc})", **ident)
     if type_name not in EVENT_TYPES:
         return Malformed(raw=raw, reason=f"unknown_type: {prefix}unknown event type {type_name!r}",
                          **ident)
@@ -111,6 +129,8 @@ def decode_line(line: str | bytes, *, where: str = "") -> Event | Malformed:
         valid_time_ns=ident["valid_time_ns"],
         payload=message.SerializeToString(deterministic=True),
         recorded_time_ns=recorded,
+        signer=signer,
+        signature=signature,
     )
 
 

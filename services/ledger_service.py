@@ -73,6 +73,7 @@ import zenoh.ext as zext
 
 from common.options import add_batch_size, add_clock, add_duration
 from ledger import clock_by_name, open_ledger
+from ledger.signing import SigningPolicy, add_signing_options, policy_from_args
 from ledger.wire import stats_to_json
 from ledger.errors import LedgerError
 from ledger.holder import LedgerHolder, remove_holder, this_host, write_holder
@@ -134,6 +135,8 @@ class Config:
         ``<ledger>.checkpoints`` beside a ledger file, none for an in-memory one.
     checkpoint_every_s : float
         Seconds between checkpoints while the head moves; one more at every clean stop.
+    signing : SigningPolicy or None
+        Types that must be signed and the admin key trusted (:mod:`ledger.signing`).
     """
 
     site: str
@@ -148,6 +151,7 @@ class Config:
     chunk_bytes: int = DEFAULT_CHUNK_BYTES
     checkpoint_dir: str | None = None
     checkpoint_every_s: float = DEFAULT_CHECKPOINT_EVERY_S
+    signing: SigningPolicy | None = None
 
     def __post_init__(self) -> None:
         if self.batch_size < 1:
@@ -177,6 +181,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_duration(parser, "--checkpoint-every", default=DEFAULT_CHECKPOINT_EVERY_S,
                  help="time between checkpoints while the ledger grows, with a unit, wall "
                  "time (default 1h); one more at every clean stop")
+    add_signing_options(parser)
 
 
 def config_from_args(args: argparse.Namespace) -> Config:
@@ -184,7 +189,8 @@ def config_from_args(args: argparse.Namespace) -> Config:
                   status_period_s=args.status_period, clock=args.clock,
                   batch_size=args.batch_size, batch_interval_s=args.batch_interval,
                   queue_size=args.queue_size, history=not args.no_history,
-                  checkpoint_dir=args.checkpoints, checkpoint_every_s=args.checkpoint_every)
+                  checkpoint_dir=args.checkpoints, checkpoint_every_s=args.checkpoint_every,
+                  signing=policy_from_args(args))
 
 
 # -- writing ------------------------------------------------------------------------------
@@ -475,7 +481,8 @@ def main(config: Config, *, stopper: Stopper | None = None) -> int:
     try:
         if config.ledger_path != ":memory:":
             Path(config.ledger_path).parent.mkdir(parents=True, exist_ok=True)
-        store = open_ledger(config.ledger_path, clock_by_name(config.clock))
+        store = open_ledger(config.ledger_path, clock_by_name(config.clock),
+                            signing=config.signing)
     except (LedgerError, OSError, ValueError) as exc:
         log(SERVICE, "cannot open the ledger", level="error", ledger=config.ledger_path,
             error=str(exc).splitlines()[0])

@@ -17,7 +17,9 @@ import zenoh
 import zenoh.ext as zext
 from google.protobuf.message import Message
 
+from ledger.signing import sign_event
 from schemas.events import Event, encode_attachment, is_valid_source, key_expr, make_event
+from security.event_keys import SigningKey
 
 __all__ = ["DEFAULT_CACHE_SAMPLES", "HEARTBEAT_PERIOD_S", "EventPublisher",
            "declare_ledger_publisher"]
@@ -72,10 +74,14 @@ class EventPublisher:
         Samples kept per key for recovery.
     priority : zenoh.Priority, optional
         Default ``Priority.DATA``.
+    signing_key : SigningKey, optional
+        When given, every event is signed with it (signer and signature ride in the
+        attachment).
     """
 
     def __init__(self, session, site: str, source: str, *, epoch: int | None = None,
-                 cache_samples: int = DEFAULT_CACHE_SAMPLES, priority=None) -> None:
+                 cache_samples: int = DEFAULT_CACHE_SAMPLES, priority=None,
+                 signing_key: SigningKey | None = None) -> None:
         if not is_valid_source(source):
             raise ValueError(f"bad source name {source!r}")
         self.session, self.site, self.source = session, site, source
@@ -83,6 +89,7 @@ class EventPublisher:
         self.cache_samples = int(cache_samples)
         self.priority = zenoh.Priority.DATA if priority is None else priority
         self.seq = 0
+        self.signing_key = signing_key
         self._publishers: dict[str, Any] = {}
         self._lock = threading.Lock()
 
@@ -127,9 +134,12 @@ class EventPublisher:
         """
         with self._lock:
             event = make_event(message, source=self.source, epoch=self.epoch, seq=self.seq)
+            if self.signing_key is not None:
+                event = sign_event(event, self.signing_key)
             self._publisher(event.type).put(
                 event.payload,
-                attachment=encode_attachment(event.epoch, event.seq, event.valid_time_ns))
+                attachment=encode_attachment(event.epoch, event.seq, event.valid_time_ns,
+                                             event.signer, event.signature))
             self.seq += 1
             return event
 

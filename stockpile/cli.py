@@ -106,6 +106,11 @@ def _security_cli() -> ModuleType:
     return cli
 
 
+def _keys_cli() -> ModuleType:
+    from ledger import keys_cli  # deferred: see COMMAND_MODULES
+    return keys_cli
+
+
 #: every top-level command, in ``stockpile --help`` order.  A module is imported only
 #: when the parser is built, so the base install (no extras) runs the commands it can
 #: and names the extra for the others.
@@ -138,6 +143,8 @@ COMMAND_MODULES: tuple[CommandModule, ...] = (
                   {"sql": "SQL on a ledger's views, read-only"}),
     CommandModule(_security_cli, (),
                   {"pki": "the site PKI: a site CA, a certificate per service, revocation"}),
+    CommandModule(_keys_cli, (),
+                  {"keys": "producers' signing keys and the admin's declarations of them"}),
 )
 
 

@@ -18,7 +18,9 @@ import pytest
 import zenoh
 
 from ledger import open_ledger
-from schemas.events import encode_attachment, key_expr, set_timestamp_ns
+from ledger.signing import sign_event
+from schemas.events import encode_attachment, key_expr, make_event, set_timestamp_ns
+from security.event_keys import load_signing_key
 from schemas.stockpile.v1 import events_pb2 as pb
 from services.ledger_client import LedgerClient, LedgerUnavailable
 from services.publishing import EventPublisher
@@ -38,10 +40,34 @@ def _pki(*args: str) -> None:
     assert done.returncode == 0, done.stderr
 
 
+def _keys(*args: str) -> str:
+    done = subprocess.run([PYTHON, "-m", "stockpile.cli", "keys", *args], capture_output=True,
+                          text=True, timeout=60)
+    assert done.returncode == 0, done.stdout + done.stderr
+    return done.stdout
+
+
+def _signing_keys(keys: Path, ledger: Path) -> list[str]:
+    """The site admin's key (the anchor), the lab's, and an old lab key revoked from T0:
+    declared in the ledger before the service starts; the ledger service's arguments."""
+    for name in ("admin", "lab1", "lab1-old", "stranger"):
+        _keys("new", "--name", name, "--out", str(keys))
+    admin = ("--admin", str(keys / "admin.sign.key"), "--ledger", str(ledger))
+    _keys("declare", *admin, "--key", str(keys / "admin.sign.pub"), "--role", "admin",
+          "--name", "site admin", "--valid-from", "0", "--valid-days", "36500")
+    for name in ("lab1", "lab1-old"):
+        _keys("declare", *admin, "--key", str(keys / f"{name}.sign.pub"), "--role", "lab",
+              "--name", name, "--valid-from", "0", "--valid-days", "36500")
+    old_id = load_signing_key(keys / "lab1-old.sign.key").key_id
+    _keys("revoke", *admin, "--key-id", old_id, "--from", str(T0_NS), "--reason", "left the lab")
+    return ["--admin-key", str(keys / "admin.sign.pub")]
+
+
 @contextlib.contextmanager
-def running_yard(base: Path):
-    """A site PKI, a foreign CA, the router and the ledger service over mTLS; on exit
-    both processes are stopped (and must exit 0)."""
+def running_yard(base: Path, *, signed: bool = False):
+    """A site PKI, a foreign CA, the router and the ledger service over mTLS (with
+    ``signed``, a ledger that requires signed assays from declared keys); on exit both
+    processes are stopped (and must exit 0)."""
     pki, foreign, mixed = base / "pki", base / "foreign", base / "mixed"
     _pki("init", "--site", SITE, "--out", str(pki))
     for name, role in NAMES.items():
@@ -61,9 +87,11 @@ def running_yard(base: Path):
     try:
         wait_until(lambda: any(l.get("msg") == "routing" for l in log_lines(router_log)), 30,
                    "the router to listen")
+        signing = _signing_keys(base / "keys", base / "yard.duckdb") if signed else []
         ledger = stockpile("service", "ledger", "--site", SITE, "--ledger",
                            str(base / "yard.duckdb"), "--mode", "client", "--connect", endpoint,
-                           "--tls-dir", str(pki), "--tls-name", "ledger", stderr_path=ledger_log)
+                           "--tls-dir", str(pki), "--tls-name", "ledger", *signing,
+                           stderr_path=ledger_log)
         auditor = _client(endpoint, pki, "audit1")
         wait_until(lambda: _answers(auditor), 60, "the ledger to answer the auditor")
         yield {"endpoint": endpoint, "pki": pki, "mixed": mixed, "router_log": router_log,
@@ -169,6 +197,48 @@ def _attempts(yard: dict) -> None:
     stats = auditor.stats()
     assert stats["events"] == 1 and stats["per_source"] == {"lab1": 1}
     assert stats["quarantined"] == 0
+
+
+def test_the_ledger_keeps_the_labs_signed_assay_and_quarantines_the_rest(tmp_path):
+    """A client with a valid lab certificate: its assay signed with the lab's declared key
+    is appended; unsigned, wrongly signed, signed with an undeclared key and with a revoked
+    key, each is quarantined with its reason."""
+    with running_yard(tmp_path, signed=True) as yard:
+        keys = tmp_path / "keys"
+        lab_key = load_signing_key(keys / "lab1.sign.key")
+        lab = _client(yard["endpoint"], yard["pki"], "lab1")
+        good = EventPublisher(lab, SITE, "lab1", epoch=LAB_EPOCH, signing_key=lab_key)
+        good.publish(_assay("AS-0001", 62.5))
+        EventPublisher(lab, SITE, "lab1", epoch=LAB_EPOCH + 1).publish(_assay("AS-0002", 70.0))
+        # the lab's key id with a signature over another payload
+        other = sign_event(make_event(_assay("AS-0001", 62.5), source="lab1", epoch=1, seq=0),
+                           lab_key)
+        forged = make_event(_assay("AS-0003", 70.0), source="lab1", epoch=LAB_EPOCH + 2, seq=0)
+        lab.put(key_expr(SITE, "assay", "lab1"), forged.payload,
+                attachment=encode_attachment(forged.epoch, 0, forged.valid_time_ns,
+                                             lab_key.key_id, other.signature))
+        for epoch, name in ((LAB_EPOCH + 3, "stranger"), (LAB_EPOCH + 4, "lab1-old")):
+            EventPublisher(lab, SITE, "lab1", epoch=epoch,
+                           signing_key=load_signing_key(keys / f"{name}.sign.key")
+                           ).publish(_assay(f"AS-{name}", 70.0))
+        auditor = LedgerClient(yard["auditor"], SITE, timeout_s=10)
+        auditor.wait_for(lambda h: auditor.stats()["quarantined"] >= 4
+                         and auditor.stats()["per_type"].get("assay") == 1, 60)
+        lab.close()
+    with open_ledger(tmp_path / "yard.duckdb", read_only=True) as store:
+        [row] = list(store.read(types=["assay"]))
+        assert (row.source, row.epoch, row.signer) == ("lab1", LAB_EPOCH, lab_key.key_id)
+        assert pb.Assay.FromString(row.payload).analytes["Fe"] == 62.5
+        assert sorted((q.epoch, q.code) for q in store.quarantine()) == [
+            (LAB_EPOCH + 1, "unsigned"), (LAB_EPOCH + 2, "bad_signature"),
+            (LAB_EPOCH + 3, "unknown_key"), (LAB_EPOCH + 4, "revoked_key")]
+        assert store.verify().ok
+    done = subprocess.run([PYTHON, "-m", "stockpile.cli", "ledger", "verify", "--ledger",
+                           str(tmp_path / "yard.duckdb"), "--admin-key",
+                           str(tmp_path / "keys" / "admin.sign.pub")],
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert "ok: 5 signatures hold, keys anchored by the admin key given" in done.stdout
 
 
 def test_the_generated_acl_denies_by_default_and_drops_revoked_names():
