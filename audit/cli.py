@@ -263,7 +263,8 @@ def cmd_assays(args: argparse.Namespace) -> int:
                "labs": [lab.__dict__ for lab in report.labs],
                "superseded": report.superseded, "provisional": report.provisional,
                "unknown_lots": report.unknown_lots,
-               "lots_without_assays": report.lots_without_assays})
+               "lots_without_assays": report.lots_without_assays,
+               "signatures": report.signatures})
         return 0
     print(f"{report.assays} assays as known at {format_time_ns(report.known_time_ns)}")
     print("\n  lateness per lab (recorded time - end of the sampling window, hours)")
@@ -302,6 +303,7 @@ def cmd_assays(args: argparse.Namespace) -> int:
         print(table(["assay", "lot", "lab", "recorded (UTC)", "declared by K"], body, indent=4))
     else:
         print("    none")
+    _print_signers(report.signatures)
     print(f"\n  lots without assays ({len(report.lots_without_assays)})")
     if report.lots_without_assays:
         body = [[lot["lot_id"], _when(lot["declared_ns"]), _num(lot["planned_tonnes_t"])]
@@ -310,6 +312,23 @@ def cmd_assays(args: argparse.Namespace) -> int:
     else:
         print("    none")
     return 0
+
+
+def _print_signers(signatures: list[dict]) -> None:
+    """Who vouched for the results: per signing key, its assays (unsigned ones apart)."""
+    by_signer: dict = {}
+    for s in signatures:
+        by_signer.setdefault(s["signer"], []).append(s)
+    print(f"\n  who signed the results ({len(by_signer)} signers, unsigned counted apart)")
+    body = []
+    for signer, group in sorted(by_signer.items(), key=lambda kv: (kv[0] is None, kv[0] or "")):
+        ids = [s["assay_id"] for s in group]
+        shown = ", ".join(ids[:5]) + (f", ... ({len(ids) - 5} more)" if len(ids) > 5 else "")
+        who = (f"{group[0]['signer_name']} ({group[0]['signer_role']})"
+               if group[0]["signer_name"] else "(undeclared key)") if signer else "unsigned"
+        body.append([signer or "-", who, str(len(group)), shown])
+    print(table(["key id", "holder", "assays", "assay ids"], body, indent=4) if body
+          else "    none")
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:

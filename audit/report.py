@@ -36,7 +36,7 @@ from __future__ import annotations
 import bisect
 import math
 import statistics
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Callable, Iterator, Sequence
 
 from schemas.events import decode_payload
@@ -192,7 +192,8 @@ class AssayReport:
     PROVISIONAL assay with what replaced it (``replaced_by``: an assay id, or ``None`` while
     it still counts); ``unknown_lots``: assays whose lot was not declared when they were
     recorded (``declared_by_k`` says whether it is now); ``lots_without_assays``: declared
-    lots with no assay.
+    lots with no assay; ``signatures``: per assay, who vouched for it (``signer`` key id,
+    the name and role its declaration gave; None for an unsigned assay).
     """
 
     known_time_ns: int
@@ -202,6 +203,7 @@ class AssayReport:
     provisional: list[dict[str, Any]]
     unknown_lots: list[dict[str, Any]]
     lots_without_assays: list[dict[str, Any]]
+    signatures: list[dict[str, Any]] = field(default_factory=list)
 
 
 # -- helpers ------------------------------------------------------------------------------
@@ -517,8 +519,13 @@ def audit_assays(store, known_time_ns: int | None = None) -> AssayReport:
     lots: dict[str, dict[str, Any]] = {}
     rows: list[dict[str, Any]] = []
     records: list[AssayRecord] = []
-    for event in store.as_of(FAR_FUTURE_NS, known, types=["lot_declared", "assay"]):
+    keys: dict[str, Any] = {}
+    for event in store.as_of(FAR_FUTURE_NS, known, types=["lot_declared", "assay",
+                                                          "source_key_declared"]):
         msg = decode_payload(event.type, event.payload)
+        if event.type == "source_key_declared":
+            keys[msg.key_id] = msg
+            continue
         if event.type == "lot_declared":
             lots.setdefault(msg.lot_id, {"lot_id": msg.lot_id,
                                          "declared_ns": event.recorded_time_ns,
@@ -534,7 +541,7 @@ def audit_assays(store, known_time_ns: int | None = None) -> AssayReport:
             "recorded_ns": event.recorded_time_ns, "global_seq": event.global_seq,
             "lateness_h": (event.recorded_time_ns - record.window_end_ns) / NS_PER_H,
             "unknown_lot_when_recorded": "unknown_lot" in (event.flags or ()),
-            "analytes": dict(record.analytes)})
+            "analytes": dict(record.analytes), "signer": event.signer})
     # lateness per lab
     by_lab: dict[str, list[float]] = {}
     for row in rows:
@@ -585,4 +592,8 @@ def audit_assays(store, known_time_ns: int | None = None) -> AssayReport:
                for r in rows if r["unknown_lot_when_recorded"] or r["lot_id"] not in lots]
     assayed_lots = {r["lot_id"] for r in rows}
     without = [dict(lot) for lot_id, lot in sorted(lots.items()) if lot_id not in assayed_lots]
-    return AssayReport(known, len(rows), labs, superseded, provisional, unknown, without)
+    signatures = [dict(assay_id=r["assay_id"], lot_id=r["lot_id"], global_seq=r["global_seq"],
+                       signer=r["signer"], signer_name=getattr(keys.get(r["signer"]), "name", None),
+                       signer_role=getattr(keys.get(r["signer"]), "role", None)) for r in rows]
+    return AssayReport(known, len(rows), labs, superseded, provisional, unknown, without,
+                       signatures)

@@ -3,13 +3,16 @@
 The ledger service answers catch-up and as-of queries with chunks of records in
 this form (JSON would cost more than the ledger itself for scans).  A chunk is::
 
-    magic b"SLR1" | u32 record count | records ...
+    magic b"SLR2" | u32 record count | records ...
 
 and a record, all integers little-endian::
 
     i64 global_seq | u64 epoch | u64 seq | i64 valid_time_ns | i64 recorded_time_ns
     | u8 len(type) | u8 len(source) | u16 len(flags) | u32 len(payload)
-    | 32 B payload_sha256 | 32 B chain_sha256 | type | source | flags (comma-joined) | payload
+    | u8 len(signer) | u8 len(signature) | 32 B payload_sha256 | 32 B chain_sha256
+    | type | source | flags (comma-joined) | payload | signer | signature
+
+(an unsigned record has empty signer and signature).
 
 :func:`decode_records` raises :class:`ValueError` on anything malformed, never
 returns a partial chunk.
@@ -29,9 +32,9 @@ from typing import Any, Iterable
 
 from ledger.records import Gap, Head, LedgerStats, QuarantineEntry, RecordedEvent, StreamInfo
 
-MAGIC = b"SLR1"
+MAGIC = b"SLR2"
 _CHUNK = struct.Struct("<4sI")
-_RECORD = struct.Struct("<qQQqqBBHI32s32s")
+_RECORD = struct.Struct("<qQQqqBBHIBB32s32s")
 
 
 def encode_records(records: Iterable[RecordedEvent]) -> bytes:
@@ -43,13 +46,18 @@ def encode_records(records: Iterable[RecordedEvent]) -> bytes:
         type_b = r.type.encode()
         source_b = r.source.encode()
         flags_b = ",".join(r.flags).encode()
+        signer_b = b"" if r.signer is None else r.signer.encode("ascii")
+        signature = b"" if r.signature is None else r.signature
         parts.append(pack(r.global_seq, r.epoch, r.seq, r.valid_time_ns, r.recorded_time_ns,
                           len(type_b), len(source_b), len(flags_b), len(r.payload),
-                          r.payload_sha256, r.chain_sha256))
+                          len(signer_b), len(signature), r.payload_sha256, r.chain_sha256))
         parts.append(type_b)
         parts.append(source_b)
         parts.append(flags_b)
         parts.append(r.payload)
+        if signer_b:
+            parts.append(signer_b)
+            parts.append(signature)
         n += 1
     return _CHUNK.pack(MAGIC, n) + b"".join(parts)
 
@@ -69,10 +77,10 @@ def decode_records(data: bytes) -> list[RecordedEvent]:
     for i in range(count):
         if pos + size > len(view):
             raise ValueError(f"record chunk truncated in record {i} of {count}")
-        (global_seq, epoch, seq, valid, recorded, lt, ls, lf, lp,
+        (global_seq, epoch, seq, valid, recorded, lt, ls, lf, lp, lk, lg,
          psha, chain) = unpack(view, pos)
         pos += size
-        end = pos + lt + ls + lf + lp
+        end = pos + lt + ls + lf + lp + lk + lg
         if end > len(view):
             raise ValueError(f"record chunk truncated in record {i} of {count}")
         type_name = bytes(view[pos:pos + lt]).decode()
@@ -83,9 +91,14 @@ def decode_records(data: bytes) -> list[RecordedEvent]:
         pos += lf
         payload = bytes(view[pos:pos + lp])
         pos += lp
+        signer = signature = None
+        if lk or lg:
+            signer = bytes(view[pos:pos + lk]).decode("ascii")
+            signature = bytes(view[pos + lk:pos + lk + lg])
+            pos += lk + lg
         flags = tuple(flags_text.split(",")) if flags_text else ()
         out.append(RecordedEvent(global_seq, type_name, source, epoch, seq, valid, recorded,
-                                 payload, psha, chain, flags))
+                                 payload, psha, chain, flags, signer, signature))
     if pos != len(view):
         raise ValueError(f"record chunk has {len(view) - pos} bytes after its {count} records")
     return out

@@ -20,23 +20,25 @@ def record(n: int, *, type_name="joint_reading", source="a.src", flags=(), paylo
 
 
 RECORDS = [record(0), record(1, source="grü.src", flags=("unknown_lot",), payload=b""),
-           record(2, type_name="assay", flags=("a", "b"), payload=bytes(range(256)))]
+           record(2, type_name="assay", flags=("a", "b"), payload=bytes(range(256)))._replace(
+               signer="0123abcd" * 4, signature=bytes(range(64)))]
 
 
 def by_hand(r: RecordedEvent) -> bytes:
     """One record as the module docstring lays it out, little-endian."""
     t, s, f = r.type.encode(), r.source.encode(), ",".join(r.flags).encode()
+    k, g = (r.signer or "").encode(), r.signature or b""
     return (r.global_seq.to_bytes(8, "little", signed=True) + r.epoch.to_bytes(8, "little")
             + r.seq.to_bytes(8, "little") + r.valid_time_ns.to_bytes(8, "little", signed=True)
             + r.recorded_time_ns.to_bytes(8, "little", signed=True)
             + bytes([len(t), len(s)]) + len(f).to_bytes(2, "little")
-            + len(r.payload).to_bytes(4, "little") + r.payload_sha256 + r.chain_sha256
-            + t + s + f + r.payload)
+            + len(r.payload).to_bytes(4, "little") + bytes([len(k), len(g)])
+            + r.payload_sha256 + r.chain_sha256 + t + s + f + r.payload + k + g)
 
 
 def test_a_chunk_is_the_documented_layout_and_decodes_back():
     chunk = encode_records(RECORDS)
-    assert chunk == b"SLR1" + (3).to_bytes(4, "little") + b"".join(by_hand(r) for r in RECORDS)
+    assert chunk == b"SLR2" + (3).to_bytes(4, "little") + b"".join(by_hand(r) for r in RECORDS)
     assert decode_records(chunk) == RECORDS
     assert decode_records(encode_records([])) == [] and encode_records([]) == MAGIC + bytes(4)
 
@@ -57,7 +59,7 @@ FIRST = len(by_hand(RECORDS[0]))
 @pytest.mark.parametrize("data,words", [
     (b"", "shorter than its header"),
     (CHUNK[:7], "shorter than its header"),
-    (b"SLR2" + CHUNK[4:], "magic b'SLR2'"),
+    (b"SLR1" + CHUNK[4:], "magic b'SLR1'"),
     (b"slr1" + CHUNK[4:], "magic"),
     (CHUNK[:8 + 10], "truncated in record 0 of 3"),                 # inside a record header
     (CHUNK[:8 + 100], "truncated in record 0 of 3"),                # inside its names/payload

@@ -10,6 +10,7 @@ file afterwards.
 from __future__ import annotations
 
 import contextlib
+import json
 import shutil
 import subprocess
 from pathlib import Path
@@ -239,6 +240,14 @@ def test_the_ledger_keeps_the_labs_signed_assay_and_quarantines_the_rest(tmp_pat
                           capture_output=True, text=True, timeout=120)
     assert done.returncode == 0, done.stdout + done.stderr
     assert "ok: 5 signatures hold, keys anchored by the admin key given" in done.stdout
+    # the audit says who vouched for the result
+    audit = subprocess.run([PYTHON, "-m", "stockpile.cli", "audit", "assays", "--ledger",
+                            str(tmp_path / "yard.duckdb"), "--json"],
+                           capture_output=True, text=True, timeout=120)
+    assert audit.returncode == 0, audit.stderr
+    [vouched] = json.loads(audit.stdout)["signatures"]
+    assert (vouched["assay_id"], vouched["signer"], vouched["signer_name"],
+            vouched["signer_role"]) == ("AS-0001", lab_key.key_id, "lab1", "lab")
 
 
 def test_the_generated_acl_denies_by_default_and_drops_revoked_names():
