@@ -20,6 +20,12 @@ A checkpoint file is one JSON object: the signed fields (``site``, ``global_seq`
 certificate's common name), ``signature`` (base64 DER, ECDSA-SHA256 over the canonical
 JSON of the signed fields) and ``certificate`` (PEM).  An unsigned checkpoint (a yard
 without TLS) has ``signature`` null and proves only what the place it is kept proves.
+
+The recorder keeps every checkpoint the ledger service publishes in its MCAP file: one
+message per checkpoint, its JSON bytes unchanged, on a schema-less channel with message
+encoding ``json`` whose topic is the key it was published on,
+``stockpile/<site>/@ledger/checkpoint`` (:func:`is_checkpoint_channel`).
+:func:`read_mcap_checkpoints` reads them back with the ``mcap`` library.
 """
 
 from __future__ import annotations
@@ -29,12 +35,18 @@ import json
 import os
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import Iterator
+
+from mcap.reader import NonSeekingReader, make_reader
 
 from ledger.store import LedgerStore
 from security.signing import SignatureInvalid, check, common_name, sign
 
 SIGNED_FIELDS = ("site", "global_seq", "chain_sha256", "recorded_time_ns", "made_ns")
 FINDINGS = ("contains", "truncated", "rewritten", "bad-signature", "empty")
+#: the message encoding of a checkpoint channel in an MCAP file (schema-less JSON)
+MCAP_ENCODING = "json"
+_MCAP_MAGIC = b"\x89MCAP0\r\n"
 
 
 @dataclass(frozen=True)
@@ -96,15 +108,88 @@ def write_checkpoint(checkpoint: Checkpoint, directory: str | Path) -> Path:
 def read_checkpoint(path: str | Path) -> Checkpoint:
     """A checkpoint file; ValueError when it is not one."""
     try:
-        data = json.loads(Path(path).read_text())
+        text = Path(path).read_bytes()
+    except OSError as exc:
+        raise ValueError(f"{path} is not a checkpoint: {exc}") from None
+    return checkpoint_from_json(text, str(path))
+
+
+def checkpoint_from_json(text: bytes | str, where: str) -> Checkpoint:
+    """A checkpoint from its JSON (a file's or a message's); ValueError naming ``where``."""
+    try:
+        data = json.loads(text)
         return Checkpoint(site=str(data["site"]), global_seq=int(data["global_seq"]),
                           chain_sha256=str(data["chain_sha256"]),
                           recorded_time_ns=None if data["recorded_time_ns"] is None
                           else int(data["recorded_time_ns"]),
                           made_ns=int(data["made_ns"]), signer=str(data.get("signer", "")),
                           signature=data.get("signature"), certificate=data.get("certificate"))
-    except (OSError, ValueError, KeyError, TypeError) as exc:
-        raise ValueError(f"{path} is not a checkpoint: {exc}") from None
+    except (ValueError, KeyError, TypeError) as exc:
+        raise ValueError(f"{where} is not a checkpoint: {exc}") from None
+
+
+def checkpoint_topic(site: str) -> str:
+    """The MCAP topic (and Zenoh key) of ``site``'s checkpoints."""
+    return f"stockpile/{site}/@ledger/checkpoint"
+
+
+def is_checkpoint_channel(topic: str, message_encoding: str) -> bool:
+    """Whether an MCAP channel carries checkpoints (:func:`checkpoint_topic`, JSON)."""
+    parts = topic.split("/")
+    return (len(parts) == 4 and parts[0] == "stockpile" and parts[2:] == ["@ledger", "checkpoint"]
+            and message_encoding == MCAP_ENCODING)
+
+
+def is_mcap(path: str | Path) -> bool:
+    """Whether ``path`` is a file that starts like an MCAP file."""
+    try:
+        with open(path, "rb") as f:
+            return f.read(len(_MCAP_MAGIC)) == _MCAP_MAGIC
+    except OSError:
+        return False
+
+
+def read_mcap_checkpoints(path: str | Path) -> tuple[list[tuple[int, Checkpoint]], str | None]:
+    """The checkpoints an MCAP file holds, in file order, each with its message's log time
+    (ns), and what stopped the reading early (a file cut short or damaged: the checkpoints
+    before the damage are returned), or None.  ValueError for a message that is not a
+    checkpoint."""
+    raw: list[tuple[str, int, bytes]] = []
+    problem = None
+    try:
+        raw.extend(_checkpoint_messages(Path(path)))
+    except Exception as exc:  # noqa: BLE001 - the mcap library's errors for a damaged file
+        text = str(exc).strip()
+        problem = (f"{type(exc).__name__}: {text.splitlines()[0]}" if text else
+                   f"it ends early or is damaged ({type(exc).__name__})")
+    return [(log_time, checkpoint_from_json(
+        data, f"{path}: the message on {topic} logged at {log_time}"))
+        for topic, log_time, data in raw], problem
+
+
+def _checkpoint_messages(path: Path) -> Iterator[tuple[str, int, bytes]]:
+    """(topic, log time, bytes) of the checkpoint messages: through the summary's chunk
+    indexes when the file has them, else one linear pass."""
+    with open(path, "rb") as stream:
+        reader = make_reader(stream, validate_crcs=True)
+        try:
+            summary = reader.get_summary()
+        except Exception:  # noqa: BLE001 - no footer: a file cut short, read linearly
+            summary = None
+        if summary is not None and summary.chunk_indexes:
+            topics = [c.topic for c in summary.channels.values()
+                      if is_checkpoint_channel(c.topic, c.message_encoding)]
+            if not topics:
+                return
+            for _schema, channel, message in reader.iter_messages(topics=topics,
+                                                                  log_time_order=False):
+                yield channel.topic, message.log_time, message.data
+            return
+        stream.seek(0)
+        for _schema, channel, message in NonSeekingReader(stream, validate_crcs=True
+                                                          ).iter_messages(log_time_order=False):
+            if is_checkpoint_channel(channel.topic, channel.message_encoding):
+                yield channel.topic, message.log_time, message.data
 
 
 def latest_checkpoint(directory: str | Path) -> Path | None:

@@ -23,7 +23,8 @@ from ledger.clock import clock_by_name
 from ledger.records import STATUSES, LedgerStats
 from ledger.signing import add_signing_options, policy_from_args
 from ledger.store import LedgerStore
-from ledger.checkpoint import check_checkpoint, latest_checkpoint, read_checkpoint
+from ledger.checkpoint import (Checkpoint, check_checkpoint, is_mcap, latest_checkpoint,
+                               read_checkpoint, read_mcap_checkpoints)
 from ledger.wire import stats_to_json
 from schemas.times import format_time_ns, parse_time_ns
 
@@ -176,14 +177,14 @@ def cmd_export(args: argparse.Namespace) -> int:
 
 
 def cmd_verify(args: argparse.Namespace) -> int:
-    checkpoint = _checkpoint_arg(args.checkpoint) if args.checkpoint else None
+    checkpoints = _checkpoint_arg(args.checkpoint) if args.checkpoint else []
     ca_pem = Path(args.ca).read_bytes() if args.ca else None
     signing = policy_from_args(args)
     with open_ledger(args.ledger, read_only=True, signing=signing) as store:
         report = store.verify()
         signed = sum(1 for row in store.read() if row.signer is not None)
         head = store.head()
-        found = check_checkpoint(store, checkpoint, ca_pem=ca_pem) if checkpoint else None
+        found = [(label, check_checkpoint(store, cp, ca_pem=ca_pem)) for label, cp in checkpoints]
     ok = report.ok
     if report.ok:
         print(f"ok: {report.rows_checked:,} rows verified, head global_seq {head.global_seq}, "
@@ -197,19 +198,31 @@ def cmd_verify(args: argparse.Namespace) -> int:
                  else f"first bad row global_seq {report.first_bad_seq}: ")
         print(f"FAILED: {where}{report.problem} ({report.rows_checked:,} rows before it are "
               "intact)")
-    if found is not None:
-        signer = f" (signed by {found.signer})" if found.signer else " (unsigned)"
-        if found.ok:
-            print(f"ok: checkpoint{signer}: {found.detail}")
+    for label, result in found:
+        signer = f" (signed by {result.signer})" if result.signer else " (unsigned)"
+        if result.ok:
+            print(f"ok: checkpoint{label}{signer}: {result.detail}")
         else:
-            print(f"FAILED: checkpoint {found.finding.upper()}{signer}: {found.detail}")
+            print(f"FAILED: checkpoint {result.finding.upper()}{label}{signer}: {result.detail}")
             ok = False
     return EXIT_OK if ok else EXIT_VERIFY_FAILED
 
 
-def _checkpoint_arg(path: str):
-    """A checkpoint file, or the latest one of a directory."""
+def _checkpoint_arg(path: str) -> list[tuple[str, Checkpoint]]:
+    """(label, checkpoint) to check: a checkpoint file, the latest one of a directory, or
+    every checkpoint a recorded MCAP file holds (labelled ``i/n of FILE``)."""
     target = Path(path)
+    if is_mcap(target):
+        checkpoints, problem = read_mcap_checkpoints(target)
+        if problem is not None:
+            print(f"stockpile: warning: {target} is damaged ({problem}); the "
+                  f"{len(checkpoints)} checkpoints before the damage are checked",
+                  file=sys.stderr)
+        if not checkpoints:
+            raise ValueError(f"no checkpoints in {target}" + (f" ({problem})" if problem else
+                             " (was a ledger service publishing them while it recorded?)"))
+        return [(f" {i}/{len(checkpoints)} of {target}", cp)
+                for i, (_log_time, cp) in enumerate(checkpoints, 1)]
     if target.is_dir():
         latest = latest_checkpoint(target)
         if latest is None:
@@ -217,7 +230,7 @@ def _checkpoint_arg(path: str):
         target = latest
     elif not target.exists():
         raise FileNotFoundError(f"no such checkpoint: {target}")
-    return read_checkpoint(target)
+    return [("", read_checkpoint(target))]
 
 
 def cmd_stats(args: argparse.Namespace) -> int:
@@ -262,9 +275,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                        "--checkpoint prove the ledger still holds a checkpointed prefix (not "
                        "truncated, not rewritten). Exit 1 if a check fails.")
     p.add_argument("--ledger", required=True, help="ledger file")
-    p.add_argument("--checkpoint", metavar="FILE|DIR",
-                   help="a checkpoint file the ledger service wrote, or a directory of them "
-                   "(the latest is used)")
+    p.add_argument("--checkpoint", metavar="FILE|DIR|MCAP",
+                   help="a checkpoint file the ledger service wrote, a directory of them "
+                   "(the latest is used), or a session the recorder wrote (each is checked)")
     p.add_argument("--ca", metavar="CA.pem",
                    help="the site CA's certificate: the checkpoint must be signed by one of "
                    "its certificates")

@@ -4,7 +4,8 @@
 :class:`Entry` items (type, source, epoch, sequence, both times); a channel's
 :class:`Identity` comes from its topic, schema and metadata (:func:`resolve_channel`),
 and messages on channels that are not stockpile event channels are counted, not
-yielded.  :func:`malformed_from_attachment` reads back a sample the recorder kept as
+yielded; the ledger's checkpoints (:func:`ledger.checkpoint.is_checkpoint_channel`) are
+neither events nor unknown, and are passed over.  :func:`malformed_from_attachment` reads back a sample the recorder kept as
 ``stockpile.malformed/<n>``.
 """
 
@@ -14,6 +15,7 @@ import json
 from dataclasses import dataclass
 from typing import Callable, Iterator, NamedTuple
 
+from ledger.checkpoint import is_checkpoint_channel
 from replay.mcap_format import ENCODING, MALFORMED_PREFIX, SEQ_LOW_BITS, from_u64
 from replay.mcap_records import AttachmentRecord, ChannelInfo, RawMessage, SchemaInfo
 from replay.mcap_scan import McapScan
@@ -102,7 +104,7 @@ def read_entries(scan: McapScan, *, topics: Callable[[str], bool] | None = None,
     """The stockpile events of a file, in file order.
 
     Messages on channels that are not stockpile event channels are counted in
-    ``scan.report.unknown`` and skipped.  ``topics`` keeps only matching topics.
+    ``scan.report.unknown`` and skipped; checkpoint messages are skipped uncounted.  ``topics`` keeps only matching topics.
     The offsets select by log time, in nanoseconds after the start of the file:
     the later of its first message's log and publish times (a ledger's first events
     can carry a recorded time before the site clock started).  ``malformed``, when given, collects the
@@ -149,4 +151,6 @@ def _resolve(scan: McapScan, channel_id: int,
         return "its channel definition was lost"
     if topics is not None and not topics(channel.topic):
         return None
+    if is_checkpoint_channel(channel.topic, channel.message_encoding):
+        return None     # the ledger's checkpoints: kept in the file, not events
     return resolve_channel(channel, scan.schemas.get(channel.schema_id))

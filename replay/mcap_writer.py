@@ -2,8 +2,10 @@
 
 :class:`EventWriter` writes one file: zstd chunks with CRCs, one channel per (topic,
 source epoch) with the event's identity in its metadata (:func:`channel_metadata`),
-the protobuf schemas of the event types (:func:`schema_of`), metadata records, and
-samples that were not events kept as ``stockpile.malformed/<n>`` attachments.
+the protobuf schemas of the event types (:func:`schema_of`), metadata records,
+samples that were not events kept as ``stockpile.malformed/<n>`` attachments, and the
+ledger's checkpoints, byte for byte, on a schema-less JSON channel
+(:meth:`EventWriter.write_checkpoint`, :mod:`ledger.checkpoint`).
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ from typing import IO
 from mcap.writer import CompressionType, Writer
 from mcap_protobuf.schema import build_file_descriptor_set
 
+from ledger.checkpoint import MCAP_ENCODING as CHECKPOINT_ENCODING
 from replay.mcap_format import (
     DEFAULT_CHUNK_BYTES,
     ENCODING,
@@ -74,6 +77,8 @@ class EventWriter:
         self.add_message = self._writer.add_message
         self.messages = 0
         self.malformed = 0
+        self.checkpoints = 0
+        self._checkpoint_channels: dict[str, int] = {}
         self.closed = False
 
     # -- schemas and channels ---------------------------------------------------------
@@ -116,6 +121,21 @@ class EventWriter:
         """A :class:`schemas.events.Event` (or a ledger row) of ``site``."""
         self.write(key_expr(site, event.type, event.source), event.type, event.source,
                    event.epoch, event.seq, event.valid_time_ns, event.payload, log_time_ns)
+
+    def write_checkpoint(self, topic: str, payload: bytes, log_time_ns: int) -> None:
+        """A ledger checkpoint as received on ``topic`` (``stockpile/<site>/@ledger/checkpoint``):
+        its JSON bytes unchanged, on a schema-less channel with message encoding ``json``;
+        the message's sequence counts the file's checkpoints, both times are ``log_time_ns``.
+        Not an event: readers of events skip the channel."""
+        channel_id = self._checkpoint_channels.get(topic)
+        if channel_id is None:
+            channel_id = self._writer.register_channel(
+                topic=topic, message_encoding=CHECKPOINT_ENCODING, schema_id=0,
+                metadata={"kind": "ledger.checkpoint"})
+            self._checkpoint_channels[topic] = channel_id
+        self._writer.add_message(channel_id, log_time_ns & MASK64, bytes(payload),
+                                 log_time_ns & MASK64, self.checkpoints & SEQ_LOW_MASK)
+        self.checkpoints += 1
 
     def add_metadata(self, name: str, data: dict[str, object]) -> None:
         """A metadata record; values are written as strings (JSON for non-strings)."""

@@ -22,6 +22,11 @@ Data flow::
   the OS every ``flush_interval_s`` (1 s), so a recorder killed with SIGKILL loses at
   most that much; ``stockpile record --recover BROKEN FIXED`` salvages the rest
   (:mod:`replay.recover`).  SIGINT/SIGTERM close the file properly.
+- **Checkpoints.** The ledger service's signed checkpoints of the chain head
+  (``stockpile/<site>/@ledger/checkpoint``) are written, byte for byte, on their own
+  schema-less JSON channel (:meth:`EventWriter.write_checkpoint`), so that a recorded
+  session can prove later that a ledger still holds what it held
+  (``stockpile ledger verify --checkpoint SESSION.mcap``).
 - **Time.** ``log_time`` is the receive time in site-clock time (``--clock wall``:
   the machine's UTC clock; ``--clock site``: the site's ``clock`` events, as the
   scanner service does), never going backwards, across the files of a split too.
@@ -34,6 +39,7 @@ from __future__ import annotations
 
 import argparse
 import gc
+import json
 import struct
 import threading
 import time
@@ -44,6 +50,7 @@ from typing import Callable
 import zenoh.ext as zext
 
 from common.options import add_clock, add_duration
+from ledger.checkpoint import checkpoint_topic
 from replay.mcap_format import DEFAULT_CHUNK_BYTES, MASK64, SEQ_LOW_MASK, library_id
 from replay.mcap_writer import EventWriter
 from replay.record_parts import (
@@ -163,6 +170,13 @@ def config_from_args(args: argparse.Namespace) -> Config:
 # -- the recorder ----------------------------------------------------------------------------
 
 
+class _Checkpoint:
+    __slots__ = ("key", "payload", "arrived_s")
+
+    def __init__(self, key: str, payload: bytes, arrived_s: float) -> None:
+        self.key, self.payload, self.arrived_s = key, payload, arrived_s
+
+
 class _Miss:
     __slots__ = ("publisher", "count", "arrived_s")
 
@@ -212,6 +226,10 @@ class Recorder:
     def offer(self, key: str, payload: bytes, attachment: bytes | None) -> None:
         """Queue one received sample (blocks while the queue is full)."""
         self.queue.put((key, payload, attachment, time.monotonic()))
+
+    def offer_checkpoint(self, key: str, payload: bytes) -> None:
+        """Queue one checkpoint the ledger service published on ``key``."""
+        self.queue.put(_Checkpoint(key, payload, time.monotonic()))
 
     def note_miss(self, publisher: str, count: int) -> None:
         """Zenoh reported ``count`` samples of ``publisher`` missed."""
@@ -286,6 +304,7 @@ class Recorder:
                 "clock": self.config.clock, "recorder": library_id(),
                 "wall_start_ns": self._file_started_ns, "wall_end_ns": time.time_ns(),
                 "messages": file.messages, "malformed": file.malformed,
+                "checkpoints": file.checkpoints,
                 "log_time_from_valid_time": self._stamped_by_valid,
                 "open_gaps": self.streams.open_gaps()}
         file.close(("stockpile.recording", meta))
@@ -333,7 +352,12 @@ class Recorder:
             if type(item) is not tuple:
                 if item is not WAKE:
                     self._last_log_ns = last if last > -(1 << 63) else None
-                    self._write_miss(item, timing, ref_s)
+                    if type(item) is _Checkpoint:
+                        self._write_checkpoint(item, timing, ref_s)
+                    else:
+                        self._write_miss(item, timing, ref_s)
+                    if self._last_log_ns is not None:
+                        last = self._last_log_ns
                 continue
             key, payload, attachment, arrived_s = item
             if attachment is not None and timing is not None:
@@ -427,6 +451,21 @@ class Recorder:
         self._log("gap opened", level="warning", source=source, epoch=epoch, first_seq=gap[0],
                   last_seq=gap[1], missing=gap[1] - gap[0] + 1)
 
+    def _write_checkpoint(self, item: _Checkpoint, timing, ref_s: float) -> None:
+        assert self._file is not None
+        log_ns = self._last_log_ns or 0
+        if timing is not None:
+            log_ns = timing[0] + int((item.arrived_s - ref_s) * timing[1])
+        self._file.write_checkpoint(item.key, item.payload, self._monotone(log_ns))
+        self.status.add("checkpoints")
+        try:
+            global_seq = json.loads(item.payload)["global_seq"]
+        except (ValueError, KeyError, TypeError):
+            self._log("checkpoint recorded, but it is not a checkpoint's JSON", level="warning",
+                      key=item.key, bytes=len(item.payload))
+            return
+        self._log("checkpoint recorded", key=item.key, global_seq=global_seq)
+
     def _write_miss(self, miss: _Miss, timing, ref_s: float) -> None:
         assert self._file is not None
         log_ns = self._last_log_ns or 0
@@ -488,12 +527,15 @@ def _record(config: Config, runtime: ServiceRuntime, recorder: Recorder,
                                                       subscriber_detection=True)
         subscribers.append(subscriber)
         listeners.append(subscriber.sample_miss_listener(on_miss))
+    checkpoints = session.declare_subscriber(
+        checkpoint_topic(config.site),
+        lambda sample: recorder.offer_checkpoint(str(sample.key_expr), sample.payload.to_bytes()))
     # what start-up built lives as long as the process: keep the cyclic GC from walking
     # it again and again while samples stream through
     gc.collect()
     gc.freeze()
-    runtime.log("serving", subscribe=",".join(config.key_exprs), out=config.out,
-                clock=config.clock)
+    runtime.log("serving", subscribe=",".join((*config.key_exprs, checkpoint_topic(config.site))),
+                out=config.out, clock=config.clock)
     runtime.announce()
     runtime.stopper.wait(config.duration_s)
     # clean stop: no new samples, then drain the queue and close the file
@@ -501,6 +543,7 @@ def _record(config: Config, runtime: ServiceRuntime, recorder: Recorder,
         listener.undeclare()
     for subscriber in subscribers:
         subscriber.undeclare()
+    checkpoints.undeclare()
     recorder.close()
     writer.join()
     site_time.close()

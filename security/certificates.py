@@ -54,6 +54,17 @@ def load_crl(path: Path | str, *, ca_cert_path: Path | str | None = None
     return crl
 
 
+def crl_next_update(path: Path | str) -> str | None:
+    """The nextUpdate of the CRL at ``path`` (``2027-11-28T20:00:00Z``), None when the
+    file is missing or has none."""
+    try:
+        crl = load_crl(path)
+    except (OSError, ValueError):
+        return None
+    moment = crl.next_update_utc
+    return None if moment is None else iso_utc(moment)
+
+
 def is_revoked(crl: x509.CertificateRevocationList,
                certificate: x509.Certificate | int | str | Path) -> bool:
     """Whether ``crl`` lists ``certificate`` (a certificate, its serial as an int or hex,

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import json
+from pathlib import Path
 
 from common.options import add_out, positive_int
 from security import certificates, pki
@@ -24,8 +25,7 @@ def _cmd_issue(args: argparse.Namespace) -> int:
     cert = pki.issue(args.ca, args.role, args.name, out_dir=args.out,
                      valid_days=args.valid_days, sans=args.san, force=args.force)
     files = [str(cert.cert_path), f"{cert.key_path} (mode 0600)"]
-    if cert.ca_copy_path is not None:
-        files.append(str(cert.ca_copy_path))
+    files += [str(p) for p in (cert.ca_copy_path, cert.crl_copy_path) if p is not None]
     hosts = list(cert.dns_names) + list(cert.ip_addresses)
     print(f"issued {cert.name} (role {cert.role}, serial {cert.serial}, valid until "
           f"{pki.iso_utc(cert.not_after)}{', hosts ' + ' '.join(hosts) if hosts else ''}): "
@@ -42,15 +42,24 @@ def _cmd_revoke(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_crl(args: argparse.Namespace) -> int:
+    result = pki.renew_crl(args.ca, valid_days=args.valid_days)
+    print(f"signed CRL number {result.crl_number} ({result.revoked} revoked), next update "
+          f"{pki.iso_utc(result.next_update)}: wrote {result.crl_path}")
+    return 0
+
+
 def _cmd_list(args: argparse.Namespace) -> int:
     index = pki.read_index(args.ca)
     rows = [dict(entry, status=certificates.certificate_status(entry)) for entry in index.certificates]
+    next_update = certificates.crl_next_update(Path(args.ca) / pki.CRL)
     if args.json:
         print(json.dumps({"site": index.site, "ca": index.ca, "crl_number": index.crl_number,
-                          "certificates": rows}, indent=2))
+                          "crl_next_update": next_update, "certificates": rows}, indent=2))
         return 0
     print(f"site {index.site}: CA serial {index.ca['serial']}, valid until "
-          f"{index.ca['not_after']}; {len(rows)} certificates")
+          f"{index.ca['not_after']}; CRL number {index.crl_number}, next update "
+          f"{next_update or '-'}; {len(rows)} certificates")
     if rows:
         width = max(len("NAME"), *(len(r["name"]) for r in rows))
         print(f"{'NAME':<{width}}  {'ROLE':<9}  {'STATUS':<7}  {'NOT AFTER':<20}  SERIAL")
@@ -61,12 +70,12 @@ def _cmd_list(args: argparse.Namespace) -> int:
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    """Add ``pki`` (``init``, ``issue``, ``revoke``, ``list``) to the ``stockpile`` parser."""
+    """Add ``pki`` (``init``, ``issue``, ``revoke``, ``crl``, ``list``) to the ``stockpile`` parser."""
     p = subparsers.add_parser(
         "pki", help="the site PKI: a site CA, a certificate per service, revocation",
         description="The site's own certificate authority: make it (init), issue a "
-        "certificate and key to each service for its role (issue), revoke one (revoke) and "
-        "list what was issued (list). Keys are ECDSA P-256, written with mode 0600 and never "
+        "certificate and key to each service for its role (issue), revoke one (revoke), "
+        "re-sign the revocation list before it lapses (crl) and list what was issued (list). Keys are ECDSA P-256, written with mode 0600 and never "
         "printed.")
     sub = p.add_subparsers(dest="pki_command", metavar="ACTION", required=True)
 
@@ -87,8 +96,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     issue = sub.add_parser(
         "issue", help="issue a service its certificate and key",
         description="Issue NAME a certificate for ROLE signed by the site CA: NAME.pem and "
-        "NAME.key (mode 0600) in the CA directory, or in --out DIR with a copy of ca.pem "
-        "(a service's TLS directory). The common name is NAME, the role is the subject's OU. "
+        "NAME.key (mode 0600) in the CA directory, or in --out DIR with copies of ca.pem and "
+        "crl.pem (a service's TLS directory). The common name is NAME, the role is the subject's OU. "
         "Refuses to replace an existing key unless --force.")
     issue.add_argument("--ca", required=True, metavar="DIR", help="the site CA's directory")
     issue.add_argument("--role", required=True, metavar="ROLE",
@@ -96,7 +105,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     issue.add_argument("--name", required=True, metavar="NAME",
                        help="the service's name: the certificate's common name and file names")
     add_out(issue, metavar="DIR",
-            help="write NAME.pem, NAME.key and ca.pem here (default: the CA directory)")
+            help="write NAME.pem, NAME.key, ca.pem and crl.pem here (default: the CA "
+            "directory)")
     issue.add_argument("--valid-days", type=_positive_days, default=pki.DEFAULT_CERT_VALID_DAYS,
                        metavar="N", help="days the certificate is valid "
                        f"(default {pki.DEFAULT_CERT_VALID_DAYS} days; at most until the CA "
@@ -122,6 +132,17 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         metavar="R", help="why: " + ", ".join(pki.REVOCATION_REASONS)
                         + " (default unspecified)")
     revoke.set_defaults(func=_cmd_revoke)
+
+    crl = sub.add_parser(
+        "crl", help="re-sign the revocation list",
+        description="Re-sign crl.pem with the same revoked certificates, a higher CRL number "
+        "and a new next update. A CRL is valid until its next update: renew it before then "
+        "and copy it to wherever certificates are checked.")
+    crl.add_argument("--ca", required=True, metavar="DIR", help="the site CA's directory")
+    crl.add_argument("--valid-days", type=_positive_days, default=pki.DEFAULT_CRL_VALID_DAYS,
+                     metavar="N", help="days until the CRL's next update "
+                     f"(default {pki.DEFAULT_CRL_VALID_DAYS} days)")
+    crl.set_defaults(func=_cmd_crl)
 
     listing = sub.add_parser(
         "list", help="list the certificates issued",

@@ -18,14 +18,16 @@ Layout of the CA directory (``init_ca``; ``issue`` writes there unless given ``o
     ca.pem        the site CA's certificate (public: every service needs it)
     ca.key        the site CA's private key (0600; keep it on the CA machine)
     crl.pem       the certificate revocation list, signed by the CA (public)
-    index.json    every certificate issued: name, role, serial, validity, revocation
+    index.json    every certificate issued: name, role, serial, validity, revocation, and
+                  where it was written (relative to the CA directory, so that the
+                  directory can be moved or restored elsewhere)
     .lock         held while ``issue`` or ``revoke`` rewrites the index
     NAME.pem      the certificate issued to NAME
     NAME.key      NAME's private key (0600)
 
-``issue(..., out_dir=DIR)`` writes ``NAME.pem``, ``NAME.key`` and a copy of ``ca.pem`` to
-DIR instead: a directory a service is given as its TLS directory (``ca.pem``,
-``NAME.pem``, ``NAME.key``), without the CA's key.  The CA directory stays the record:
+``issue(..., out_dir=DIR)`` writes ``NAME.pem``, ``NAME.key`` and copies of ``ca.pem`` and
+``crl.pem`` to DIR instead: a directory a service is given as its TLS directory, without
+the CA's key.  :func:`renew_crl` re-signs ``crl.pem`` before its nextUpdate lapses.  The CA directory stays the record:
 ``index.json`` lists the certificate either way.
 """
 
@@ -46,6 +48,10 @@ from cryptography import x509
 from cryptography.hazmat.primitives import hashes, serialization
 from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
+
+from security.files import PUBLIC_MODE as _PUBLIC_MODE
+from security.files import write_private as _write_private, write_public as _write_public
+from security.crl import DEFAULT_CRL_VALID_DAYS, REVOCATION_REASONS, sign_crl
 
 #: the roles the product knows; a certificate records one (its subject's OU)
 ROLES: tuple[str, ...] = ("router", "scanner", "gnss", "plc", "localizer", "lab", "ledger",
@@ -69,26 +75,12 @@ RESERVED_NAMES = frozenset({"ca", "crl", "index"})
 
 DEFAULT_CA_VALID_DAYS = 3650
 DEFAULT_CERT_VALID_DAYS = 365
-#: how long a CRL is valid after it is signed (``init_ca`` and every ``revoke`` sign one)
-DEFAULT_CRL_VALID_DAYS = 365
 #: a certificate is valid from this long before it was issued (clocks of the yard differ)
 NOT_BEFORE_SKEW_S = 300
 
-#: the revocation reasons ``revoke`` takes (RFC 5280 names, with dashes)
-REVOCATION_REASONS: dict[str, x509.ReasonFlags] = {
-    "unspecified": x509.ReasonFlags.unspecified,
-    "key-compromise": x509.ReasonFlags.key_compromise,
-    "ca-compromise": x509.ReasonFlags.ca_compromise,
-    "affiliation-changed": x509.ReasonFlags.affiliation_changed,
-    "superseded": x509.ReasonFlags.superseded,
-    "cessation-of-operation": x509.ReasonFlags.cessation_of_operation,
-    "privilege-withdrawn": x509.ReasonFlags.privilege_withdrawn,
-}
 
 _NAME_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,63}")
 _SECONDS_PER_DAY = 86_400
-_PUBLIC_MODE = 0o644
-_PRIVATE_MODE = 0o600
 _DIR_MODE = 0o700
 
 
@@ -111,8 +103,8 @@ class CaResult:
 
 @dataclass(frozen=True)
 class IssuedCertificate:
-    """What :func:`issue` wrote (``ca_copy_path``: the copy of ``ca.pem`` in ``out_dir``,
-    None when it was written to the CA directory)."""
+    """What :func:`issue` wrote (``ca_copy_path``, ``crl_copy_path``: the copies of
+    ``ca.pem`` and ``crl.pem`` in ``out_dir``, None when it was the CA directory)."""
 
     name: str
     role: str
@@ -123,6 +115,19 @@ class IssuedCertificate:
     ca_copy_path: Path | None
     dns_names: tuple[str, ...] = ()
     ip_addresses: tuple[str, ...] = ()
+    crl_copy_path: Path | None = None
+
+
+@dataclass(frozen=True)
+class CrlRenewal:
+    """What :func:`renew_crl` wrote: the CRL, its number, when it was signed and when it
+    lapses, and how many serials it lists."""
+
+    crl_path: Path
+    crl_number: int
+    last_update: dt.datetime
+    next_update: dt.datetime
+    revoked: int
 
 
 @dataclass(frozen=True)
@@ -208,46 +213,6 @@ def _check_valid_days(valid_days: int) -> int:
     return valid_days
 
 
-def _write_private(path: Path, data: bytes, *, force: bool) -> None:
-    """Write a private key with mode 0600 from creation: a new file is created exclusively;
-    with ``force`` a temporary file (also created 0600) replaces the old one."""
-    if not force:
-        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, _PRIVATE_MODE)
-        try:
-            _write_fd(fd, data)
-        except BaseException:
-            path.unlink(missing_ok=True)     # no half-written key left to refuse later
-            raise
-        return
-    _replace_atomically(path, data, _PRIVATE_MODE)
-
-
-def _write_public(path: Path, data: bytes) -> None:
-    """Write a public file (certificate, CRL, index) atomically: a temporary file, then
-    rename."""
-    _replace_atomically(path, data, _PUBLIC_MODE)
-
-
-def _replace_atomically(path: Path, data: bytes, mode: int) -> None:
-    """Write ``data`` to a temporary file created exclusively with ``mode``, then rename it
-    over ``path`` (a reader never sees half of it; a failure leaves no temporary file)."""
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, mode)
-    try:
-        _write_fd(fd, data)
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-
-
-def _write_fd(fd: int, data: bytes) -> None:
-    with os.fdopen(fd, "wb") as handle:
-        handle.write(data)
-        handle.flush()
-        os.fsync(handle.fileno())
-
-
 def _refuse_existing(paths: Iterable[Path], what: str) -> None:
     existing = [str(p) for p in paths if p.exists()]
     if existing:
@@ -316,8 +281,26 @@ def read_index(ca_dir: Path) -> Index:
         raise ValueError(f"{path} is damaged ({type(exc).__name__}: {exc})") from None
 
 
+def certificate_path(ca_dir: Path | str, entry: dict) -> Path:
+    """Where an index entry's certificate was written: ``cert_path`` is relative to the
+    CA directory (an index of an older version holds absolute paths, kept as they are)."""
+    path = Path(entry["cert_path"])
+    return path if path.is_absolute() else Path(ca_dir) / path
+
+
+def _relative_to_ca(ca_dir: Path, path: Path) -> str:
+    return os.path.relpath(path.resolve(), Path(ca_dir).resolve())
+
+
 def _write_index(ca_dir: Path, index: Index) -> Path:
+    """Write ``index.json``; an older entry's absolute ``cert_path`` inside the CA
+    directory is rewritten relative to it."""
     path = Path(ca_dir) / INDEX
+    root = Path(ca_dir).resolve()
+    for entry in index.certificates:
+        old = Path(entry.get("cert_path") or ".")
+        if old.is_absolute() and old.is_relative_to(root):
+            entry["cert_path"] = _relative_to_ca(ca_dir, old)
     _write_public(path, (json.dumps(index.to_json(), indent=2) + "\n").encode())
     return path
 
@@ -333,29 +316,6 @@ def _name_attrs(common_name: str, site: str, unit: str | None) -> x509.Name:
 def _first(name: x509.Name, oid: x509.ObjectIdentifier) -> str | None:
     values = name.get_attributes_for_oid(oid)
     return str(values[0].value) if values else None
-
-
-def _sign_crl(ca_cert: x509.Certificate, ca_key: ec.EllipticCurvePrivateKey, index: Index,
-              now: dt.datetime, *, valid_days: int = DEFAULT_CRL_VALID_DAYS) -> bytes:
-    builder = (x509.CertificateRevocationListBuilder()
-               .issuer_name(ca_cert.subject)
-               .last_update(now)
-               .next_update(now + dt.timedelta(days=valid_days))
-               .add_extension(x509.CRLNumber(index.crl_number), critical=False)
-               .add_extension(x509.AuthorityKeyIdentifier.from_issuer_public_key(
-                   ca_key.public_key()), critical=False))
-    for entry in index.certificates:
-        if not entry.get("revoked"):
-            continue
-        revoked = (x509.RevokedCertificateBuilder()
-                   .serial_number(parse_serial(entry["serial"]))
-                   .revocation_date(dt.datetime.fromisoformat(entry["revoked_at"]))
-                   .add_extension(x509.CRLReason(REVOCATION_REASONS[entry["revocation_reason"]]),
-                                  critical=False)
-                   .build())
-        builder = builder.add_revoked_certificate(revoked)
-    crl = builder.sign(ca_key, hashes.SHA256())
-    return crl.public_bytes(serialization.Encoding.PEM)
 
 
 # -- the CA ----------------------------------------------------------------------------------
@@ -406,7 +366,7 @@ def init_ca(site: str, out_dir: Path | str, *, valid_days: int = DEFAULT_CA_VALI
 
     _write_private(out / CA_KEY, _key_pem(key), force=force)
     _write_public(out / CA_CERT, _cert_pem(cert))
-    _write_public(out / CRL, _sign_crl(cert, key, index, now))
+    _write_public(out / CRL, sign_crl(cert, key, index.crl_number, index.certificates, now))
     _write_index(out, index)
     (out / LOCK).touch(mode=_PUBLIC_MODE, exist_ok=True)
     return CaResult(site=site, ca_dir=out, cert_path=out / CA_CERT, key_path=out / CA_KEY,
@@ -458,6 +418,7 @@ def _issue_locked(ca_dir: Path, role: str, name: str, *, out_dir: Path | str | N
     separate = out.resolve() != ca_dir.resolve()
     cert_path, key_path = out / f"{name}.pem", out / f"{name}.key"
     ca_copy = out / CA_CERT if separate else None
+    crl_copy = out / CRL if separate else None
     ca_pem = _cert_pem(ca_cert)
     if not force:
         _refuse_existing([key_path, cert_path], f"a certificate or key for {name!r}")
@@ -511,21 +472,22 @@ def _issue_locked(ca_dir: Path, role: str, name: str, *, out_dir: Path | str | N
         out.mkdir(mode=_DIR_MODE, parents=True, exist_ok=True)
     _write_private(key_path, _key_pem(key), force=force)
     _write_public(cert_path, _cert_pem(cert))
-    if ca_copy is not None:
+    if ca_copy is not None and crl_copy is not None:
         _write_public(ca_copy, ca_pem)
+        _write_public(crl_copy, (ca_dir / CRL).read_bytes())
     index.certificates.append({
         "name": name, "role": role, "serial": serial,
         "not_before": iso_utc(cert.not_valid_before_utc),
         "not_after": iso_utc(cert.not_valid_after_utc),
         "dns_names": dns, "ip_addresses": ips,
-        "cert_path": str(cert_path.resolve()),
+        "cert_path": _relative_to_ca(ca_dir, cert_path),
         "revoked": False, "revoked_at": None, "revocation_reason": None,
     })
     _write_index(ca_dir, index)
     return IssuedCertificate(name=name, role=role, serial=serial,
                              not_after=cert.not_valid_after_utc, cert_path=cert_path,
                              key_path=key_path, ca_copy_path=ca_copy, dns_names=tuple(dns),
-                             ip_addresses=tuple(ips))
+                             ip_addresses=tuple(ips), crl_copy_path=crl_copy)
 
 
 def revoke(ca_dir: Path | str, name_or_serial: str, reason: str = "unspecified", *,
@@ -582,7 +544,29 @@ def _revoke_locked(ca_dir: Path, name_or_serial: str, reason: str, *, by: str | 
         entry.update(revoked=True, revoked_at=iso_utc(now), revocation_reason=reason)
     index.crl_number += 1
     crl_path = ca_dir / CRL
-    _write_public(crl_path, _sign_crl(ca_cert, ca_key, index, now))
+    _write_public(crl_path, sign_crl(ca_cert, ca_key, index.crl_number, index.certificates,
+                                       now))
     index_path = _write_index(ca_dir, index)
     return Revocation(revoked=tuple(dict(e) for e in targets), reason=reason,
                       crl_path=crl_path, index_path=index_path, crl_number=index.crl_number)
+
+
+def renew_crl(ca_dir: Path | str, *, valid_days: int = DEFAULT_CRL_VALID_DAYS,
+              now: dt.datetime | None = None) -> CrlRenewal:
+    """Re-sign ``crl.pem`` with the same revoked serials, a higher CRL number, lastUpdate
+    now and nextUpdate ``valid_days`` later (a CRL past its nextUpdate is refused by
+    checkers that require a current one)."""
+    _check_valid_days(valid_days)
+    ca_dir = Path(ca_dir)
+    _load_ca(ca_dir)                     # a clear error before the lock file is made
+    now = _utc_now(now)
+    with _locked(ca_dir):
+        ca_cert, ca_key, index = _load_ca(ca_dir)
+        index.crl_number += 1
+        crl_path = ca_dir / CRL
+        _write_public(crl_path, sign_crl(ca_cert, ca_key, index.crl_number, index.certificates,
+                                         now, valid_days=valid_days))
+        _write_index(ca_dir, index)
+    return CrlRenewal(crl_path=crl_path, crl_number=index.crl_number, last_update=now,
+                      next_update=now + dt.timedelta(days=valid_days),
+                      revoked=sum(1 for e in index.certificates if e.get("revoked")))

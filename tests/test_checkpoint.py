@@ -199,3 +199,38 @@ def test_plain_verify_catches_an_edited_gap_row(tmp_path, edit, problem):
         con.execute(edit)
     done = _verify(ledger)
     assert done.returncode == 1 and problem in done.stdout, done.stdout
+
+
+def test_checkpoints_in_an_mcap_file_are_checked_each(signed, tmp_path):
+    """The recorder's convention (``EventWriter.write_checkpoint``): the JSON bytes on a
+    schema-less channel; an altered copy in the file is its own finding."""
+    from replay.mcap_writer import EventWriter
+    from ledger.checkpoint import checkpoint_topic, read_mcap_checkpoints
+
+    original = signed["cp"].read_bytes()
+    data = json.loads(original)
+    data["global_seq"] = N_EVENTS - 20
+    session = tmp_path / "session.mcap"
+    writer = EventWriter(session)
+    writer.write_checkpoint(checkpoint_topic(SITE), original, T0_NS)
+    writer.write_checkpoint(checkpoint_topic(SITE), json.dumps(data).encode(), T0_NS + 1)
+    writer.close()
+    found, problem = read_mcap_checkpoints(session)
+    assert problem is None and [t for t, _cp in found] == [T0_NS, T0_NS + 1]
+    assert found[0][1] == read_checkpoint(signed["cp"])
+    done = _verify(signed["ledger"], "--checkpoint", str(session), "--ca",
+                   str(signed["pki"] / "ca.pem"))
+    assert done.returncode == 1, done.stdout + done.stderr
+    lines = done.stdout.splitlines()
+    assert lines[1] == (f"ok: checkpoint 1/2 of {session} (signed by ledger): the ledger holds "
+                        f"the checkpointed prefix up to global_seq {N_EVENTS - 1}")
+    assert lines[2].startswith(f"FAILED: checkpoint BAD-SIGNATURE 2/2 of {session} (unsigned): "
+                               "the checkpoint does not hold")
+    # a message on the channel that is not a checkpoint: one line, exit 2
+    broken = tmp_path / "broken.mcap"
+    writer = EventWriter(broken)
+    writer.write_checkpoint(checkpoint_topic(SITE), b"not json", T0_NS)
+    writer.close()
+    done = _verify(signed["ledger"], "--checkpoint", str(broken))
+    assert done.returncode == 2 and done.stdout == ""
+    assert len(done.stderr.splitlines()) == 1 and "is not a checkpoint" in done.stderr

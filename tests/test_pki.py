@@ -156,9 +156,15 @@ def test_issue_to_a_tls_directory_and_rotate(tmp_path):
     first = stockpile("pki", "issue", "--ca", str(ca_dir), "--role", "lab", "--name", "lab-2",
                       "--out", str(tls), "--valid-days", "10")
     assert first.returncode == 0, first.stderr
-    assert sorted(p.name for p in tls.iterdir()) == ["ca.pem", "lab-2.key", "lab-2.pem"]
+    assert sorted(p.name for p in tls.iterdir()) == ["ca.pem", "crl.pem", "lab-2.key",
+                                                     "lab-2.pem"]
     assert mode(tls / "lab-2.key") == 0o600 and mode(tls) == 0o700
+    assert mode(tls / "crl.pem") == 0o644
     assert (tls / "ca.pem").read_bytes() == (ca_dir / "ca.pem").read_bytes()
+    assert (tls / "crl.pem").read_bytes() == (ca_dir / "crl.pem").read_bytes()
+    assert str(tls / "crl.pem") in first.stdout
+    # the service directory checks a peer on its own: chain and revocation list
+    certificates.verify_certificate(tls / "lab-2.pem", tls / "ca.pem", crl_path=tls / "crl.pem")
     assert not (ca_dir / "lab-2.key").exists()
     old_key, old_cert = (tls / "lab-2.key").read_bytes(), certificates.certificate_info(tls / "lab-2.pem")
 
@@ -320,6 +326,8 @@ def test_a_bad_role_is_a_one_line_error_exit_2(tmp_path):
     (["revoke", "--name", "x", "--reason", "bored"], "invalid choice"),
     (["revoke", "--serial", "xyz"], "not a serial number"),
     (["issue", "--role", "lab", "--name", "x", "--valid-days", "0"], "must be positive"),
+    (["crl", "--valid-days", "0"], "must be positive"),
+    (["crl", "--valid-days", "2d"], "whole number of days"),
 ])
 def test_bad_input_is_a_one_line_error_exit_2(argv, needle, tmp_path, capsys):
     """The same path in-process (stockpile.cli.main; a process start each is slow)."""
@@ -439,3 +447,104 @@ def test_concurrent_issues_lose_no_index_entry(tmp_path):
     assert not errors
     assert sorted(e["name"] for e in pki.read_index(ca_dir).certificates) == sorted(
         f"scanner-{i}" for i in range(8))
+
+
+def test_crl_renewal_keeps_the_revoked_serials_and_moves_next_update(tmp_path):
+    """A CRL lapses at its nextUpdate: ``pki crl`` re-signs it with the same serials."""
+    ca_dir = tmp_path / "ca"
+    pki.init_ca("yard", ca_dir)
+    lab = pki.issue(ca_dir, "lab", "lab-1")
+    keep = pki.issue(ca_dir, "ledger", "ledger-1")
+    pki.revoke(ca_dir, "lab-1", "key-compromise")
+    before = certificates.load_crl(ca_dir / "crl.pem", ca_cert_path=ca_dir / "ca.pem")
+    key_before = (ca_dir / "ca.key").read_bytes()
+    started = dt.datetime.now(UTC).replace(microsecond=0)
+    out = stockpile("pki", "crl", "--ca", str(ca_dir), "--valid-days", "7")
+    assert out.returncode == 0, out.stderr
+    assert len(out.stdout.splitlines()) == 1 and out.stderr == ""
+    assert out.stdout.startswith("signed CRL number 2 (1 revoked), next update ")
+    assert str(ca_dir / "crl.pem") in out.stdout and "PRIVATE" not in out.stdout
+    crl = certificates.load_crl(ca_dir / "crl.pem", ca_cert_path=ca_dir / "ca.pem")
+    number = crl.extensions.get_extension_for_class(x509.CRLNumber).value.crl_number
+    assert number == 2 and pki.read_index(ca_dir).crl_number == 2
+    assert certificates.is_revoked(crl, lab.serial) and not certificates.is_revoked(crl, keep.serial)
+    assert crl.last_update_utc >= before.last_update_utc
+    lapse = crl.next_update_utc - started
+    assert dt.timedelta(days=7) <= lapse <= dt.timedelta(days=7, seconds=120)
+    assert certificates.crl_next_update(ca_dir / "crl.pem") == pki.iso_utc(crl.next_update_utc)
+    assert mode(ca_dir / "crl.pem") == 0o644 and mode(ca_dir / "ca.key") == 0o600
+    assert (ca_dir / "ca.key").read_bytes() == key_before
+    listed = stockpile("pki", "list", "--ca", str(ca_dir))
+    assert f"CRL number 2, next update {pki.iso_utc(crl.next_update_utc)}" in listed.stdout
+    # in-process: the default is a year; a missing CA is one line
+    renewed = pki.renew_crl(ca_dir, now=started + dt.timedelta(days=1))
+    assert renewed.crl_number == 3 and renewed.revoked == 1
+    assert renewed.next_update == started + dt.timedelta(days=1 + pki.DEFAULT_CRL_VALID_DAYS)
+    missing = stockpile("pki", "crl", "--ca", str(tmp_path / "none"))
+    assert missing.returncode == 2 and len(missing.stderr.splitlines()) == 1
+    assert "is not a site CA directory" in missing.stderr
+    if OPENSSL:
+        signed = openssl("crl", "-in", str(ca_dir / "crl.pem"), "-noout",
+                         "-CAfile", str(ca_dir / "ca.pem"))
+        assert signed.returncode == 0 and "verify OK" in signed.stdout + signed.stderr
+        chain = openssl("verify", "-crl_check", "-CAfile", str(ca_dir / "ca.pem"),
+                        "-CRLfile", str(ca_dir / "crl.pem"), str(lab.cert_path))
+        assert chain.returncode != 0 and "revoked" in chain.stdout + chain.stderr
+
+
+def test_a_pki_directory_can_be_backed_up_and_restored_elsewhere(tmp_path):
+    """index.json holds paths relative to the PKI directory: a copy restored at another
+    place is a working CA, with its keys still 0600."""
+    original = tmp_path / "srv" / "pki"
+    pki.init_ca("yard", original)
+    pki.issue(original, "lab", "lab-1")
+    pki.issue(original, "ledger", "ledger-1", out_dir=original / "tls" / "ledger-1")
+    index = pki.read_index(original)
+    assert [e["cert_path"] for e in index.certificates] == ["lab-1.pem",
+                                                             "tls/ledger-1/ledger-1.pem"]
+    assert str(tmp_path) not in (original / "index.json").read_text()
+
+    backup = tmp_path / "backup.tar"
+    shutil.make_archive(str(backup.with_suffix("")), "tar", root_dir=original)
+    shutil.rmtree(original)
+    restored = tmp_path / "elsewhere" / "pki-restored"
+    restored.mkdir(parents=True)
+    shutil.unpack_archive(str(backup), str(restored))
+    assert mode(restored / "ca.key") == 0o600 and mode(restored / "lab-1.key") == 0o600
+    for entry in pki.read_index(restored).certificates:
+        path = pki.certificate_path(restored, entry)
+        assert path.is_file() and path.is_relative_to(restored)
+        certificates.verify_certificate(path, restored / "ca.pem", crl_path=restored / "crl.pem")
+    # the restored CA issues, revokes and renews its CRL
+    for argv in (["issue", "--ca", str(restored), "--role", "scanner", "--name", "scan-1"],
+                 ["revoke", "--ca", str(restored), "--name", "lab-1"],
+                 ["crl", "--ca", str(restored)],
+                 ["list", "--ca", str(restored)]):
+        out = stockpile("pki", *argv)
+        assert out.returncode == 0, (argv, out.stderr)
+    entries = {e["name"]: e for e in pki.read_index(restored).certificates}
+    assert entries["scan-1"]["cert_path"] == "scan-1.pem" and entries["lab-1"]["revoked"]
+    crl = certificates.load_crl(restored / "crl.pem", ca_cert_path=restored / "ca.pem")
+    assert certificates.is_revoked(crl, restored / "lab-1.pem")
+
+
+def test_an_older_index_with_absolute_paths_keeps_working(tmp_path):
+    ca_dir = tmp_path / "ca"
+    pki.init_ca("yard", ca_dir)
+    lab = pki.issue(ca_dir, "lab", "lab-1")
+    away = pki.issue(ca_dir, "gnss", "gnss-1", out_dir=tmp_path / "tls")
+    # what an earlier version wrote: absolute paths
+    data = json.loads((ca_dir / "index.json").read_text())
+    data["certificates"][0]["cert_path"] = str(lab.cert_path.resolve())
+    data["certificates"][1]["cert_path"] = str(away.cert_path.resolve())
+    (ca_dir / "index.json").write_text(json.dumps(data, indent=2))
+    entries = pki.read_index(ca_dir).certificates
+    assert [pki.certificate_path(ca_dir, e) for e in entries] == [
+        lab.cert_path.resolve(), away.cert_path.resolve()]
+    listed = stockpile("pki", "list", "--ca", str(ca_dir), "--json")
+    assert listed.returncode == 0, listed.stderr
+    assert [r["status"] for r in json.loads(listed.stdout)["certificates"]] == ["valid", "valid"]
+    # the next write keeps every entry and makes a path inside the CA directory relative
+    pki.issue(ca_dir, "lab", "lab-2")
+    paths = [e["cert_path"] for e in pki.read_index(ca_dir).certificates]
+    assert paths == ["lab-1.pem", str(away.cert_path.resolve()), "lab-2.pem"]
