@@ -100,20 +100,27 @@ def _target(p: argparse.ArgumentParser) -> None:
                    help="the site admin's private signing key")
     where = p.add_mutually_exclusive_group(required=True)
     where.add_argument("--ledger", help="append the event to this ledger")
-    where.add_argument("--out", metavar="FILE.jsonl",
+    where.add_argument("--out", metavar="PATH",
                        help="append the event to this JSON lines file instead")
 
 
 def register(subparsers) -> None:
     top = subparsers.add_parser("keys", help="producers' signing keys and their declarations",
-                                description=__doc__.split("\n\n")[1])
+                                description="Make a producer's Ed25519 signing key, and "
+                                "write the site admin's signed declaration or revocation of a "
+                                "key to a ledger or a JSON lines file (docs/security.md).")
     sub = top.add_subparsers(dest="keys_command", required=True, metavar="COMMAND")
-    p = sub.add_parser("new", help="make a signing key pair (private key 0600)")
+    p = sub.add_parser("new", help="make a signing key pair (private key 0600)",
+                       description="Make an Ed25519 signing key pair: NAME.sign.key (mode "
+                       "0600) and NAME.sign.pub in DIR; print its key id.")
     p.add_argument("--name", required=True, help="file name stem, e.g. the service's name")
     p.add_argument("--out", required=True, metavar="DIR", help="where the key files go")
     p.set_defaults(func=cmd_new)
 
-    p = sub.add_parser("declare", help="the admin's signed declaration of a public key")
+    p = sub.add_parser("declare", help="the admin's signed declaration of a public key",
+                       description="Write the site admin's signed source_key_declared event "
+                       "for a public key, its role and validity, to a ledger or a JSON lines "
+                       "file. The admin's own key with --role admin is the site's trust anchor.")
     _target(p)
     p.add_argument("--key", required=True, metavar="NAME.sign.pub", help="the public key declared")
     p.add_argument("--role", required=True, choices=sorted(ROLE_TYPES),
@@ -124,7 +131,9 @@ def register(subparsers) -> None:
     p.add_argument("--valid-days", type=int, default=366, help="validity in days (default 366)")
     p.set_defaults(func=cmd_declare)
 
-    p = sub.add_parser("revoke", help="the admin's signed revocation of a key")
+    p = sub.add_parser("revoke", help="the admin's signed revocation of a key",
+                       description="Write the site admin's signed source_key_revoked event: "
+                       "events the key signed with a valid time from --from on are refused.")
     _target(p)
     p.add_argument("--key-id", required=True, help="the key id to revoke")
     p.add_argument("--from", dest="revoked_from", metavar="T",

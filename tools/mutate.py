@@ -46,6 +46,11 @@ MODULES: dict[str, tuple[str, list[str]]] = {
             "_load_state", "_lookup", "_commit", "_insert_rows", "_write_rest",
             "_new_analytes", "_query", "_filters", "read", "as_of", "gaps", "quarantine")]),
     "memory commit/read/as-of": ("ledger/memory.py", ["ledger.memory.*"]),
+    "verify checks": ("ledger/verifying.py", ["ledger.verifying.*"]),
+    "signed events": ("ledger/signing.py", [
+        "ledger.signing.xǁKeyRegistryǁ*", "ledger.signing.x_sign_event__mutmut_*",
+        "ledger.signing.x_signature_block__mutmut_*", "ledger.signing.x_registry_from_rows__mutmut_*",
+        "ledger.signing.x__record__mutmut_*"]),
     "snapshot reuse": ("projector/query.py", [
         "projector.query.xǁSnapshotStoreǁfind__mutmut_*",
         "projector.query.x__unchanged_since__mutmut_*",
