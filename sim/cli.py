@@ -13,6 +13,7 @@ from pathlib import Path
 
 import zenoh
 
+from security.event_keys import load_signing_key
 from services.service import Stopper, log
 from services.zenoh_config import DEFAULT_LISTEN, add_zenoh_arguments, config_from_args
 from sim.publish import ZenohSink
@@ -28,6 +29,15 @@ def _wait_liveliness(session, key: str, timeout_s: float) -> bool:
         return seen.wait(timeout_s)
     finally:
         sub.undeclare()
+
+
+def load_source_keys(directory: str | Path) -> dict:
+    """source -> signing key, for every ``SOURCE.sign.key`` in ``directory``."""
+    folder = Path(directory)
+    if not folder.is_dir():
+        raise ValueError(f"--signing-keys: no directory {folder}")
+    return {path.name[:-len(".sign.key")]: load_signing_key(path)
+            for path in sorted(folder.glob("*.sign.key"))}
 
 
 def run_sim(args: argparse.Namespace) -> int:
@@ -63,9 +73,11 @@ def run_sim(args: argparse.Namespace) -> int:
     noise = "" if args.noise_seed is None else f", sensor noise seed {args.noise_seed}"
     print(f"simulating scenario {scenario.name!r}, seed {args.seed}{noise} -> {out}", flush=True)
     try:
+        keys = load_source_keys(args.signing_keys) if args.signing_keys else {}
         sim = Simulation(scenario, args.seed, out, sinks=sinks, scanner_pty=ptys.get("scanner"),
                          gnss_pty=ptys.get("gnss"), scan_events=args.scan_events,
                          cut_surfaces=args.truth_cut_surfaces, noise_seed=args.noise_seed,
+                         signing_keys=keys,
                          progress=lambda line: print(f"  {line}", file=sys.stderr, flush=True))
         duration_h = None if args.duration is None else args.duration / 3600.0
         stats = sim.run(duration_h=duration_h, speed=args.speed, idle_speed=args.idle_speed)
@@ -138,6 +150,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--pty", action="store_true",
                    help="also write the scanner and GNSS streams to pseudo-terminals (paths printed)")
     p.add_argument("--zenoh", action="store_true", help="also publish the events on zenoh")
+    p.add_argument("--signing-keys", metavar="DIR",
+                   help="sign each source's events with DIR/SOURCE.sign.key where that file "
+                   "exists (stockpile keys new --name SOURCE)")
     p.add_argument("--scan-events", choices=("off", "truth", "encoders"), default="off",
                    help="also emit, per scan, a 'scan' event (source MACHINE.scanner, as the "
                    "scanner service decodes the LMS200 telegram) and the scanner's "

@@ -19,7 +19,9 @@ from typing import Protocol
 import zenoh
 from google.protobuf.message import Message
 
+from ledger.signing import sign_event
 from schemas.events import Event, encode_attachment, key_expr, make_event
+from security.event_keys import SigningKey
 from schemas.jsonl import encode_line
 from services.service import declare_ledger_publisher
 
@@ -31,14 +33,18 @@ class Sink(Protocol):
 
 
 class Producer:
-    """One event source with its epoch and next sequence number."""
+    """One event source with its epoch and next sequence number; with ``key``, every event
+    it emits is signed with that key."""
 
-    def __init__(self, source: str, epoch: int, sinks: list[Sink]) -> None:
-        self.source, self.epoch, self.sinks = source, epoch, sinks
+    def __init__(self, source: str, epoch: int, sinks: list[Sink],
+                 key: SigningKey | None = None) -> None:
+        self.source, self.epoch, self.sinks, self.key = source, epoch, sinks, key
         self.seq = 0
 
     def emit(self, message: Message) -> Event:
         event = make_event(message, source=self.source, epoch=self.epoch, seq=self.seq)
+        if self.key is not None:
+            event = sign_event(event, self.key)
         self.seq += 1
         for sink in self.sinks:
             sink.emit(event)
@@ -55,7 +61,8 @@ class JsonlSink:
 
     def emit(self, event: Event) -> None:
         self._file.write(encode_line(event.type, event.source, event.epoch, event.seq,
-                                     event.valid_time_ns, event.payload))
+                                     event.valid_time_ns, event.payload, None, event.signer,
+                                     event.signature))
         self._file.write("\n")
         self.count += 1
 
@@ -101,7 +108,8 @@ class ZenohSink:
     def emit(self, event: Event) -> None:
         publisher = self._publisher(event.type, event.source)
         publisher.put(event.payload,
-                      attachment=encode_attachment(event.epoch, event.seq, event.valid_time_ns))
+                      attachment=encode_attachment(event.epoch, event.seq, event.valid_time_ns,
+                                                   event.signer, event.signature))
         self.count += 1
 
     def wait_for_subscriber(self, type_name: str, source: str, timeout_s: float) -> bool:

@@ -69,6 +69,7 @@ import numpy as np
 from devices import lms200
 from devices.nmea import format_gga
 from schemas.times import NS_PER_H, NS_PER_S
+from security.event_keys import SigningKey
 from services.scanner import default_frame_id, scan_field, scan_message
 from sim import messages
 from sim.encoders import EncoderModel
@@ -148,6 +149,8 @@ class Simulation:
     #: ``seed`` alone), so the spread of a projector's errors over noise seeds is what
     #: the measurement noise alone causes
     noise_seed: int | None = None
+    #: source -> the key its events are signed with (sources not named: unsigned)
+    signing_keys: dict[str, SigningKey] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         sc = self.scenario
@@ -205,7 +208,8 @@ class Simulation:
         sc = self.scenario
         all_sinks = [self.jsonl, *self.sinks]
         epoch = sc.start_ns // NS_PER_S
-        producers = {name: Producer(source, epoch, all_sinks) for name, source in (
+        keys = self.signing_keys
+        producers = {name: Producer(source, epoch, all_sinks, keys.get(source)) for name, source in (
             ("config", "yard.config"), ("clock", "sim.clock"),
             ("encoders", f"{sc.machine_id}.encoders"), ("stacker", f"{sc.stacker_id}.plc"),
             ("reclaimer", f"{sc.machine_id}.plc"), ("lims", "lims"), ("lab", "lab1"))}

@@ -32,9 +32,13 @@ import numpy as np
 from schemas.events import decode_payload
 
 from ledger import open_ledger
+from ledger.signing import KEY_TYPES
 from projector.query import project
 from services.ledger_client import LedgerClient
 from sim.kinematics import Machine, wheel_centre
+from security.event_keys import MONEY_TYPES
+from sim.scenario import scenario_by_name
+from stockpile.demo_signing import money_sources, prepare_signing
 from stockpile.orchestrate import Supervisor, fresh_ledger_path
 
 SITE_OF_SCENARIO = "capelambert"
@@ -314,10 +318,12 @@ def _common(yard: Supervisor, site: str, name: str) -> list[str]:
     return ["--site", site, "--status-period", "5", *yard.client_args_for(name)]
 
 
-def _start_services(yard: Supervisor, ledger_path: Path, site: str, record: Path | None) -> None:
-    """Start the ledger, the recorder (when ``record`` is given) and the localizer."""
+def _start_services(yard: Supervisor, ledger_path: Path, site: str, record: Path | None,
+                    signing: list[str]) -> None:
+    """Start the ledger (``signing``: its signing options), the recorder (when ``record``
+    is given) and the localizer."""
     yard.start("ledger", ["service", "ledger", "--ledger", str(ledger_path), "--clock", "events",
-                          *_common(yard, site, "ledger")])
+                          *signing, *_common(yard, site, "ledger")])
     yard.wait_live("ledger")
     if record is not None:
         yard.start("recorder", ["service", "recorder", "--out", str(record), "--clock", "events",
@@ -330,14 +336,14 @@ def _start_services(yard: Supervisor, ledger_path: Path, site: str, record: Path
 
 def _start_sim_and_sensors(yard: Supervisor, sim_dir: Path, *, site: str,
                            scenario: str, seed: int, speed: float, idle_speed: float,
-                           duration_h: float | None):
+                           duration_h: float | None, signing: list[str]):
     """Start the simulator on pseudo-terminals and the scanner and GNSS services on its ports."""
     live = f"stockpile/{site}/@live"
     sim_args = ["sim", "--scenario", scenario, "--seed", str(seed), "--out", str(sim_dir),
                 "--pty", "--zenoh", "--speed", str(speed), "--idle-speed", str(idle_speed),
                 "--wait-subscriber", "60", "--linger", "600",
                 "--wait-live", f"{live}/scanner/**", "--wait-live", f"{live}/gnss/**",
-                "--wait-live", f"{live}/localizer/**", *yard.client_args_for("sim")]
+                "--wait-live", f"{live}/localizer/**", *signing, *yard.client_args_for("sim")]
     if duration_h is not None:
         sim_args += ["--duration", f"{duration_h * 3600:g}s"]
     sim = yard.start("sim", sim_args)
@@ -401,6 +407,8 @@ def _check_ledger(ledger_path: Path, published: dict[str, tuple[int, int]],
         checks = {"stats": store.stats(), "exact": check_exactly_once(store, published),
                   "verify": store.verify(), "gaps": store.gaps(open_only=True),
                   "quarantine": store.quarantine(), "book": pile_book(store),
+                  "signed": sum(1 for r in store.read(types=sorted(MONEY_TYPES | KEY_TYPES))
+                                if r.signer is not None),
                   "rmse": localizer_rmse(store, sim_dir / "truth.npz"),
                   "timing": scan_timing(store, sim_dir / "truth.npz"),
                   "truth": json.loads((sim_dir / "truth.json").read_text())}
@@ -409,7 +417,8 @@ def _check_ledger(ledger_path: Path, published: dict[str, tuple[int, int]],
     return checks
 
 
-def _say_ledger(stats, exact: list[dict[str, Any]], verify, gaps, quarantine) -> None:
+def _say_ledger(stats, exact: list[dict[str, Any]], verify, gaps, quarantine,
+                signed: int) -> None:
     """Print the events per type and the exactly-once check per source."""
     _say("\n== events per type in the ledger")
     for type_name, n in sorted(stats.per_type.items(), key=lambda kv: -kv[1]):
@@ -420,7 +429,8 @@ def _say_ledger(stats, exact: list[dict[str, Any]], verify, gaps, quarantine) ->
         _say(f"   {row['source']:<16} published {row['published'] or 0:>7,}  ledgered "
              f"{row['ledgered']:>7,}  duplicates {row['duplicates']}  {mark}")
     _say(f"   gaps open: {len(gaps)}; quarantined: {len(quarantine)}; chain "
-         f"{'verified' if verify.ok else 'BROKEN'} ({verify.rows_checked:,} rows)")
+         f"{'verified' if verify.ok else 'BROKEN'} ({verify.rows_checked:,} rows, "
+         f"{signed:,} signatures checked)")
     for entry in quarantine[:5]:
         _say(f"   quarantined {entry.type} from {entry.source}: {entry.reason[:100]}")
 
@@ -488,22 +498,28 @@ def run_yard_demo(out_dir: Path, *, seed: int = 1, speed: float = 40.0, idle_spe
     ledger_path = fresh_ledger_path(out_dir / "ledger.duckdb")
     sim_dir = out_dir / "sim"
     members = {} if insecure else DEMO_MEMBERS
+    sc = scenario_by_name(scenario)
+    signing = prepare_signing(out_dir, ledger_path, money_sources(sc.machine_id, sc.stacker_id),
+                              sc.start_ns)
     with Supervisor(out_dir, site=site, members=members) as yard:
         link = "plain TCP" if insecure else f"mutual TLS, access by role, PKI in {yard.pki}"
         _say(f"== the yard as processes: zenoh router on {yard.endpoint} (loopback, scouting "
              f"off, {link}); logs in {yard.logs}")
-        _start_services(yard, ledger_path, site, record)
+        _say(f"   signed events: assays, lots, stacking and reclaim events and the yard's "
+             f"declarations, keys in {out_dir / 'keys'}; the ledger requires them")
+        _start_services(yard, ledger_path, site, record, signing.ledger_args)
         sim = _start_sim_and_sensors(yard, sim_dir, site=site, scenario=scenario,
                                      seed=seed, speed=speed, idle_speed=idle_speed,
-                                     duration_h=duration_h)
+                                     duration_h=duration_h, signing=signing.sim_args)
         pacing, sim_max_lag_s = _wait_sim_end(sim)
         published, rc = _drain_and_stop(yard, site, record)
+        published.update(signing.published)
 
     c = _check_ledger(ledger_path, published, sim_dir)
     stats, exact, verify, gaps, quarantine = (c["stats"], c["exact"], c["verify"], c["gaps"],
                                               c["quarantine"])
     book, rmse, timing, model = c["book"], c["rmse"], c["timing"], c["model"]
-    _say_ledger(stats, exact, verify, gaps, quarantine)
+    _say_ledger(stats, exact, verify, gaps, quarantine, c["signed"])
     _say_pile_book(book, c["truth"])
     _say_localizer(rmse, timing, speed, pacing)
     _say("\n== the layered model as of the end (stockpile project) against the simulator's truth")
@@ -511,6 +527,7 @@ def run_yard_demo(out_dir: Path, *, seed: int = 1, speed: float = 40.0, idle_spe
     ok = (verify.ok and not gaps and all(r["exact"] and not r["open_gaps"] for r in exact)
           and all(code == 0 for code in rc.values()))
     summary = {"ok": ok, "exit_codes": rc, "published": published, "exactly_once": exact,
+               "signed_events": c["signed"],
                "per_type": stats.per_type, "open_gaps": len(gaps), "quarantined": len(quarantine),
                "verify_ok": verify.ok, "pile_book": book, "projector": model, "localizer": rmse,
                "scan_timing": timing, "speed": speed, "sim_pacing": pacing,
