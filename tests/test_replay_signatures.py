@@ -118,6 +118,16 @@ def test_export_then_replay_into_a_ledger_requiring_signatures_is_the_same_ledge
     code, out, _ = run(capsys, "replay", str(exported), "--ledger", str(fresh),
                        "--admin-key", admin_key, "--no-progress")
     assert code == 0 and f"0 appended, {n} duplicate" in out
+    # --topics selects a signature channel by its events' topic
+    only = tmp_path / "assays.duckdb"
+    with open_ledger(only, ManualClock(T0_NS)) as store:
+        store.append([r.to_event() for r in original[:2]])   # the key declarations
+    code, out, err = run(capsys, "replay", str(exported), "--ledger", str(only), "--admin-key",
+                         admin_key, "--topics", f"stockpile/{SITE}/@v1/assay/**",
+                         "--no-progress")
+    assert code == 0 and f"{N_ASSAYS} appended, 0 duplicate, 0 conflict, 0 rejected" in out, \
+        out + err
+    assert _rows(only) == original
 
 
 def test_the_file_holds_one_signature_message_before_each_signed_event(signed_ledger, exported):
