@@ -11,7 +11,9 @@ signed assays through an ``EventPublisher`` (the helpers of ``tests/zenoh_helper
    row for row (signer and signature included), verifies with the same head chain and
    quarantines nothing; the file holds one signature message before each signed event.
 2. record -> replay --ledger --admin-key: the lab's signed assays are appended with the
-   signatures the lab made.
+   signatures the lab made (its unsigned ones quarantined as ``unsigned``); record ->
+   replay --publish: a subscriber receives each event exactly as the lab published it,
+   signed ones with their version-2 attachment.
 3. A signature message tampered with in the file: that event is quarantined as
    ``bad_signature``, every other one kept.
 """
@@ -31,6 +33,7 @@ from ledger import open_ledger
 from ledger.clock import ManualClock
 from ledger.signing import SigningPolicy
 from ledger.testing_signing import assay, key_declared, make_keys, signed
+from replay.recover import recover
 from replay.mcap_format import SIGNATURE_SUFFIX, decode_signature, encode_signature
 from replay.replay import iter_events
 from schemas.events import Event, set_timestamp_ns
@@ -156,6 +159,14 @@ def test_the_file_holds_one_signature_message_before_each_signed_event(signed_le
         assert decode_signature(message.data) == (row.signer, row.signature)
     assert [(e.signer, e.signature) for e in iter_events(exported)] == [
         (r.signer, r.signature) for r in rows.values()]
+
+
+
+def test_recover_keeps_the_signature_channels(exported, tmp_path):
+    fixed = tmp_path / "fixed.mcap"
+    assert not recover(exported, fixed).report.damaged
+    assert list(iter_events(fixed)) == list(iter_events(exported))
+    assert all(e.signature is not None for e in iter_events(fixed))
 
 
 def _schema_of(messages, channel):
