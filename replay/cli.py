@@ -20,6 +20,7 @@ from common.options import (add_batch_size, add_clock, add_deprecated_positional
                             add_progress, add_types, out_path)
 from ledger import open_ledger
 from ledger.clock import clock_by_name
+from ledger.signing import add_signing_options, policy_from_args
 from replay import record
 from replay.export import export_ledger
 from replay.recover import recover
@@ -101,7 +102,8 @@ def cmd_replay(args: argparse.Namespace) -> int:
 def _replay_ledger(args: argparse.Namespace, topics) -> int:
     if args.rate is not None or args.max or args.loop:
         raise ValueError("--rate, --max and --loop are for --publish")
-    with open_ledger(args.ledger, clock_by_name(args.clock)) as store, \
+    signing = policy_from_args(args)
+    with open_ledger(args.ledger, clock_by_name(args.clock), signing=signing) as store, \
             progress(desc="replay", enabled=enabled_from_args(args)) as bar:
         result = replay_to_ledger(args.input, store,
                                   preserve_recorded_time=args.preserve_recorded_time,
@@ -114,6 +116,9 @@ def _replay_ledger(args: argparse.Namespace, topics) -> int:
           f"{c['rejected']:,} rejected; head global_seq {result.head_global_seq}")
     if result.malformed:
         print(f"  {result.malformed:,} recorded malformed samples went to the quarantine")
+    if result.signed:
+        print(f"  {result.signed:,} signed events kept their signatures"
+              + ("" if signing is None else " (checked against the site's signing policy)"))
     recorded = "the file's log times" if args.preserve_recorded_time else f"the {args.clock} clock"
     print(f"  {result.site_span_s / 3600:.2f} site h in {result.wall_s:.2f} s "
           f"({result.speed_up:,.0f}x real time; recorded time = {recorded})")
@@ -125,6 +130,8 @@ def _replay_ledger(args: argparse.Namespace, topics) -> int:
 
 
 def _replay_publish(args: argparse.Namespace, topics) -> int:
+    if args.admin_key is not None or args.signed_types is not None:
+        raise ValueError("--admin-key and --signed-types are for --ledger")
     if args.rate is not None and args.max:
         raise ValueError("give --rate R or --max, not both")
     rate = None if args.max else (1.0 if args.rate is None else args.rate)
@@ -215,7 +222,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "replay", help="replay an MCAP file onto Zenoh (--publish) or into a ledger (--ledger)",
         description="Replay a recording. --publish republishes byte-identical payloads with "
         "their original identities, paced by valid time; --ledger appends straight into a "
-        "ledger as fast as it goes, keeping the file's log times as recorded times.")
+        "ledger as fast as it goes, keeping the file's log times as recorded times. Signed "
+        "events keep their signer and signature either way; with --admin-key the ledger "
+        "quarantines what is not properly signed, as it would live.")
     p.add_argument("input", metavar="IN.mcap", help="the MCAP file")
     target = p.add_argument_group("target (one of)")
     target.add_argument("--publish", action="store_true", help="publish on Zenoh")
@@ -245,6 +254,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     add_clock(led, help="with --no-preserve-recorded-time: recorded time from the wall clock "
               "or the file's clock events")
     add_batch_size(led)
+    add_signing_options(led)
     add_progress(p)
     p.set_defaults(func=cmd_replay)
 

@@ -15,6 +15,12 @@ publish_time        the valid time (UTC ns)
 log_time            when it was learned, in site-clock time: the receive time for a
                     recording, the ledger's recorded time for an export
 chunks              zstd, with CRCs of every chunk, attachment and the data section
+signature channel   a signed event's companion: topic ``<event topic>/@signature``,
+                    schema-less, message encoding ``json``, metadata ``kind`` =
+                    ``stockpile.signature`` plus the event channel's ``type``,
+                    ``source``, ``epoch`` (and ``seq_high``); one message per signed
+                    event, written just before it with the same sequence and times,
+                    holding ``{"signer": key id, "signature": base64}``
 ==================  =================================================================
 
 MCAP times are unsigned; a valid or recorded time before 1970 (a negative int64) is
@@ -36,6 +42,9 @@ linear pass over a file) and :mod:`replay.mcap_entries`
 
 from __future__ import annotations
 
+import base64
+import binascii
+import json
 from importlib.metadata import PackageNotFoundError, version
 
 MAGIC = b"\x89MCAP0\r\n"
@@ -47,6 +56,10 @@ SEQ_LOW_MASK = (1 << SEQ_LOW_BITS) - 1
 DEFAULT_CHUNK_BYTES = 1 << 20
 MALFORMED_PREFIX = "stockpile.malformed/"
 MALFORMED_MEDIA_TYPE = "application/json"
+#: a signed event's companion channel: topic = the event's topic + this suffix
+SIGNATURE_SUFFIX = "/@signature"
+SIGNATURE_ENCODING = "json"
+SIGNATURE_KIND = "stockpile.signature"
 
 
 def library_id() -> str:
@@ -65,6 +78,28 @@ def to_u64(time_ns: int) -> int:
 def from_u64(value: int) -> int:
     """Inverse of :func:`to_u64`."""
     return value - (1 << 64) if value >= 1 << 63 else value
+
+
+def encode_signature(signer: str, signature: bytes) -> bytes:
+    """A signature channel's message: ``{"signer": key id, "signature": base64}`` (the
+    field names of JSON lines), compact JSON."""
+    return json.dumps({"signer": signer, "signature": base64.b64encode(signature).decode()},
+                      separators=(",", ":")).encode()
+
+
+def decode_signature(data: bytes) -> tuple[str, bytes]:
+    """Inverse of :func:`encode_signature`: ``(signer, signature)``; raises ValueError."""
+    try:
+        body = json.loads(data)
+        signer, text = body["signer"], body["signature"]
+        if not isinstance(signer, str) or not signer or not isinstance(text, str):
+            raise ValueError("signer and signature must be non-empty strings")
+        signature = base64.b64decode(text, validate=True)
+    except (KeyError, TypeError, binascii.Error, UnicodeDecodeError) as exc:
+        raise ValueError(f"not a signature message: {exc}") from None
+    if not signature or len(signature) > 255 or not signer.isascii() or len(signer) > 255:
+        raise ValueError("signer must be ASCII and both at most 255 bytes, signature not empty")
+    return signer, signature
 
 
 class McapFormatError(ValueError):

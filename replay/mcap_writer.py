@@ -3,9 +3,12 @@
 :class:`EventWriter` writes one file: zstd chunks with CRCs, one channel per (topic,
 source epoch) with the event's identity in its metadata (:func:`channel_metadata`),
 the protobuf schemas of the event types (:func:`schema_of`), metadata records,
-samples that were not events kept as ``stockpile.malformed/<n>`` attachments, and the
+samples that were not events kept as ``stockpile.malformed/<n>`` attachments, the
 ledger's checkpoints, byte for byte, on a schema-less JSON channel
-(:meth:`EventWriter.write_checkpoint`, :mod:`ledger.checkpoint`).
+(:meth:`EventWriter.write_checkpoint`, :mod:`ledger.checkpoint`), and a signed event's
+signer and signature on the companion signature channel of its event channel
+(:meth:`EventWriter.write_signature`, :func:`signature_channel_metadata`), just before
+the event itself.
 """
 
 from __future__ import annotations
@@ -27,11 +30,15 @@ from replay.mcap_format import (
     MASK64,
     SEQ_LOW_BITS,
     SEQ_LOW_MASK,
+    SIGNATURE_ENCODING,
+    SIGNATURE_KIND,
+    SIGNATURE_SUFFIX,
+    encode_signature,
     library_id,
 )
 from schemas.events import EVENT_TYPES, key_expr
 
-__all__ = ["EventWriter", "channel_metadata", "schema_of"]
+__all__ = ["EventWriter", "channel_metadata", "schema_of", "signature_channel_metadata"]
 
 
 @lru_cache(maxsize=None)
@@ -47,6 +54,12 @@ def channel_metadata(type_name: str, source: str, epoch: int, seq_high: int = 0)
     if seq_high:
         meta["seq_high"] = str(int(seq_high))
     return meta
+
+
+def signature_channel_metadata(type_name: str, source: str, epoch: int,
+                               seq_high: int = 0) -> dict[str, str]:
+    """The metadata of the signature channel beside the ``(type, source, epoch)`` channel."""
+    return {"kind": SIGNATURE_KIND, **channel_metadata(type_name, source, epoch, seq_high)}
 
 
 class EventWriter:
@@ -78,7 +91,9 @@ class EventWriter:
         self.messages = 0
         self.malformed = 0
         self.checkpoints = 0
+        self.signatures = 0
         self._checkpoint_channels: dict[str, int] = {}
+        self._signature_channels: dict[tuple[str, int, int], int] = {}
         self.closed = False
 
     # -- schemas and channels ---------------------------------------------------------
@@ -105,22 +120,56 @@ class EventWriter:
                 self.low_channels[(topic, epoch)] = channel_id
         return channel_id
 
+    def signature_channel_id(self, topic: str, type_name: str, source: str, epoch: int,
+                             seq_high: int = 0) -> int:
+        """The signature channel beside the event channel of ``(topic, epoch, seq_high)``
+        (topic ``<topic>/@signature``, schema-less JSON), registered on first use."""
+        key = (topic, epoch, seq_high)
+        channel_id = self._signature_channels.get(key)
+        if channel_id is None:
+            channel_id = self._writer.register_channel(
+                topic=topic + SIGNATURE_SUFFIX, message_encoding=SIGNATURE_ENCODING, schema_id=0,
+                metadata=signature_channel_metadata(type_name, source, epoch, seq_high))
+            self._signature_channels[key] = channel_id
+        return channel_id
+
     # -- records ----------------------------------------------------------------------
 
     def write(self, topic: str, type_name: str, source: str, epoch: int, seq: int,
-              valid_time_ns: int, payload: bytes, log_time_ns: int) -> None:
-        """One event on ``topic`` (its key expression); ``log_time_ns`` in site time."""
+              valid_time_ns: int, payload: bytes, log_time_ns: int,
+              signer: str | None = None, signature: bytes | None = None) -> None:
+        """One event on ``topic`` (its key expression); ``log_time_ns`` in site time.
+        A signed event (``signer`` and ``signature``) has its signature message written
+        first (:meth:`write_signature`)."""
         channel_id = self._channels.get((topic, epoch, seq >> SEQ_LOW_BITS))
         if channel_id is None:
             channel_id = self.channel_id(topic, type_name, source, epoch, seq >> SEQ_LOW_BITS)
+        if signer is not None and signature is not None:
+            self.write_signature(topic, type_name, source, epoch, seq, valid_time_ns,
+                                 log_time_ns, signer, signature)
         self._writer.add_message(channel_id, log_time_ns & MASK64, payload,
                                  valid_time_ns & MASK64, seq & SEQ_LOW_MASK)
         self.messages += 1
 
+    def write_signature(self, topic: str, type_name: str, source: str, epoch: int, seq: int,
+                        valid_time_ns: int, log_time_ns: int, signer: str,
+                        signature: bytes) -> None:
+        """The signature message of the event ``(topic, epoch, seq)``: on its signature
+        channel, with the event's sequence, log and publish times; written before the
+        event so that a reader in file order holds it when the event comes."""
+        channel_id = self.signature_channel_id(topic, type_name, source, epoch,
+                                               seq >> SEQ_LOW_BITS)
+        self._writer.add_message(channel_id, log_time_ns & MASK64,
+                                 encode_signature(signer, signature),
+                                 valid_time_ns & MASK64, seq & SEQ_LOW_MASK)
+        self.signatures += 1
+
     def write_event(self, site: str, event, log_time_ns: int) -> None:
-        """A :class:`schemas.events.Event` (or a ledger row) of ``site``."""
+        """A :class:`schemas.events.Event` (or a ledger row) of ``site``, with its
+        signature when it is signed."""
         self.write(key_expr(site, event.type, event.source), event.type, event.source,
-                   event.epoch, event.seq, event.valid_time_ns, event.payload, log_time_ns)
+                   event.epoch, event.seq, event.valid_time_ns, event.payload, log_time_ns,
+                   event.signer, event.signature)
 
     def write_checkpoint(self, topic: str, payload: bytes, log_time_ns: int) -> None:
         """A ledger checkpoint as received on ``topic`` (``stockpile/<site>/@ledger/checkpoint``):

@@ -27,6 +27,10 @@ Data flow::
   schema-less JSON channel (:meth:`EventWriter.write_checkpoint`), so that a recorded
   session can prove later that a ledger still holds what it held
   (``stockpile ledger verify --checkpoint SESSION.mcap``).
+- **Signatures.** A signed event (a version-2 attachment with the producer's key id
+  and signature) has its signature written on the companion signature channel just
+  before the event (:meth:`EventWriter.write_signature`).  Signed samples leave the hot
+  loop for :meth:`Recorder._write_sample`; unsigned ones pay nothing more than before.
 - **Time.** ``log_time`` is the receive time in site-clock time (``--clock wall``:
   the machine's UTC clock; ``--clock site``: the site's ``clock`` events, as the
   scanner service does), never going backwards, across the files of a split too.
@@ -61,7 +65,7 @@ from replay.record_parts import (
     SampleQueue,
     StreamTracker,
 )
-from schemas.events import EVENT_TYPES, decode_attachment, parse_key_expr, site_key_expr
+from schemas.events import EVENT_TYPES, decode_signed_attachment, parse_key_expr, site_key_expr
 from schemas.times import NS_PER_S
 from services.service import ServiceRuntime, SiteTime, Stopper, ZenohOptions, log
 
@@ -304,7 +308,7 @@ class Recorder:
                 "clock": self.config.clock, "recorder": library_id(),
                 "wall_start_ns": self._file_started_ns, "wall_end_ns": time.time_ns(),
                 "messages": file.messages, "malformed": file.malformed,
-                "checkpoints": file.checkpoints,
+                "checkpoints": file.checkpoints, "signatures": file.signatures,
                 "log_time_from_valid_time": self._stamped_by_valid,
                 "open_gaps": self.streams.open_gaps()}
         file.close(("stockpile.recording", meta))
@@ -337,8 +341,8 @@ class Recorder:
 
     def _write_batch(self, batch: list) -> None:
         """Write a drained batch.  The loop is the recorder's hot path: the common case
-        (a known key, a readable attachment, the next sequence number) is inline; the
-        rest goes through :meth:`_write_sample`."""
+        (a known key, a readable unsigned attachment, the next sequence number) is
+        inline; the rest (signed events too) goes through :meth:`_write_sample`."""
         timing = self._log_times(batch)
         ref = batch[-1] if batch[-1] is not WAKE or len(batch) == 1 else batch[-2]
         ref_s = ref[3] if type(ref) is tuple else getattr(ref, "arrived_s", time.monotonic())
@@ -362,12 +366,13 @@ class Recorder:
             key, payload, attachment, arrived_s = item
             if attachment is not None and timing is not None:
                 try:
-                    epoch, seq, valid_ns = decode_attachment(attachment)
+                    epoch, seq, valid_ns, signer, _signature = decode_signed_attachment(
+                        attachment)
                 except (ValueError, struct.error):
                     epoch = -1
                 known = fast_path.get((key, epoch))
-                if known is not None and known[1][0] + 1 == seq and seq <= SEQ_LOW_MASK \
-                        and valid_ns >= 0:
+                if known is not None and signer is None and known[1][0] + 1 == seq \
+                        and seq <= SEQ_LOW_MASK and valid_ns >= 0:
                     channel, cell = known
                     cell[0] = seq
                     log_ns = base_ns + int((arrived_s - ref_s) * ns_per_s)
@@ -415,7 +420,8 @@ class Recorder:
                 reason = "bad_attachment: missing"
             else:
                 try:
-                    epoch, seq, valid_ns = decode_attachment(attachment)
+                    epoch, seq, valid_ns, signer, signature = decode_signed_attachment(
+                        attachment)
                 except (ValueError, struct.error) as exc:
                     reason = f"bad_attachment: {exc}"
         if reason is not None:
@@ -436,7 +442,8 @@ class Recorder:
         log_ns = self._monotone(log_ns)
         if gap is not None:
             self._record_gap(file, source, epoch, gap, log_ns)
-        file.write(key, type_name, source, epoch, seq, valid_ns, payload, log_ns)
+        file.write(key, type_name, source, epoch, seq, valid_ns, payload, log_ns, signer,
+                   signature)
         if seq <= SEQ_LOW_MASK:  # the next ones of this key and epoch take the fast path
             self._fast[(key, epoch)] = (file.channel_id(key, type_name, source, epoch),
                                         self.streams.cell(source, epoch))

@@ -5,11 +5,14 @@ order they were recorded or ledgered), in batches, as fast as the ledger takes t
 With ``preserve_recorded_time`` (the default) each event's recorded time is the
 message's ``log_time``, so a ledger exported to MCAP and replayed into an empty
 ledger is the same ledger: same global order, same recorded times, same hash chain,
-and as-of-known queries answer exactly as the original did.  Samples the recorder
-kept as malformed go to the ledger's quarantine, as they would have live.
+and as-of-known queries answer exactly as the original did.  A signed event keeps its
+signer and signature (from the file's signature channel), so a ledger that requires
+signatures checks it as it would have live.  Samples the recorder kept as malformed go
+to the ledger's quarantine, as they would have live.
 
 Onto Zenoh (:func:`replay_publish`): byte-identical payloads with the original
-identity attachments (epoch, sequence, valid time) on the original keys, through
+identity attachments (epoch, sequence, valid time; a signed event's signer and
+signature in a version-2 attachment) on the original keys, through
 the same AdvancedPublishers the yard's producers use (cache, congestion control
 BLOCK), so a ledger fed twice from the same file adds nothing the second time.
 
@@ -61,6 +64,7 @@ class LedgerReplay:
         ("appended", "duplicate", "conflict", "rejected"), 0))
     events: int = 0  # events read from the file and offered to the ledger
     malformed: int = 0  # recorded malformed samples sent to the quarantine
+    signed: int = 0  # of the events, how many carried a signature
     first_log_ns: int | None = None  # the later of the first event's log and valid times
     last_log_ns: int | None = None
     wall_s: float = 0.0
@@ -101,8 +105,11 @@ def replay_to_ledger(path: str | Path, store, *, preserve_recorded_time: bool = 
                 batch.extend(_quarantined(malformed, result))
             batch.append(Event(entry.type, entry.source, entry.epoch, entry.seq,
                                entry.valid_time_ns, entry.payload,
-                               entry.log_time_ns if preserve_recorded_time else None))
+                               entry.log_time_ns if preserve_recorded_time else None,
+                               entry.signer, entry.signature))
             result.events += 1
+            if entry.signer is not None:
+                result.signed += 1
             if result.first_log_ns is None:
                 result.first_log_ns = max(entry.log_time_ns, entry.valid_time_ns)
             result.last_log_ns = entry.log_time_ns
@@ -251,7 +258,8 @@ def _publish_pass(path, publishers: Publishers, result: PublishReplay, *, rate, 
                 return False
             key = entry.topic if site is None else key_expr(site, entry.type, entry.source)
             publishers.put(key, entry.payload,
-                           encode_attachment(entry.epoch, entry.seq, entry.valid_time_ns))
+                           encode_attachment(entry.epoch, entry.seq, entry.valid_time_ns,
+                                             entry.signer, entry.signature))
             result.published += 1
             if progress is not None:
                 progress.update_to(result.published, fraction=None if loop else _fraction(scan))
