@@ -38,6 +38,17 @@ def openssl(*args: str) -> subprocess.CompletedProcess:
     return subprocess.run([OPENSSL, *args], capture_output=True, text=True, timeout=60)
 
 
+def _openssl_sees_the_crl_signed_and_the_cert_revoked(ca_dir, cert_path) -> None:
+    """OpenSSL, an independent reader: the CRL verifies under the CA, and the certificate
+    fails a CRL-checked verification as revoked."""
+    signed = openssl("crl", "-in", str(ca_dir / "crl.pem"), "-noout",
+                     "-CAfile", str(ca_dir / "ca.pem"))
+    assert signed.returncode == 0 and "verify OK" in signed.stdout + signed.stderr
+    chain = openssl("verify", "-crl_check", "-CAfile", str(ca_dir / "ca.pem"),
+                    "-CRLfile", str(ca_dir / "crl.pem"), str(cert_path))
+    assert chain.returncode != 0 and "revoked" in chain.stdout + chain.stderr
+
+
 def mode(path: Path) -> int:
     return stat.S_IMODE(path.stat().st_mode)
 
@@ -253,12 +264,7 @@ def test_revoke_puts_the_serial_in_a_signed_crl(tmp_path):
         assert text.returncode == 0, text.stderr
         assert lab.serial in text.stdout.replace(":", "").upper()
         assert keep.serial not in text.stdout.replace(":", "").upper()
-        signed = openssl("crl", "-in", str(ca_dir / "crl.pem"), "-noout",
-                         "-CAfile", str(ca_dir / "ca.pem"))
-        assert signed.returncode == 0 and "verify OK" in signed.stdout + signed.stderr
-        chain = openssl("verify", "-crl_check", "-CAfile", str(ca_dir / "ca.pem"),
-                        "-CRLfile", str(ca_dir / "crl.pem"), str(lab.cert_path))
-        assert chain.returncode != 0 and "revoked" in chain.stdout + chain.stderr
+        _openssl_sees_the_crl_signed_and_the_cert_revoked(ca_dir, lab.cert_path)
         fine = openssl("verify", "-crl_check", "-CAfile", str(ca_dir / "ca.pem"),
                        "-CRLfile", str(ca_dir / "crl.pem"), str(keep.cert_path))
         assert fine.returncode == 0, fine.stdout + fine.stderr
@@ -484,12 +490,7 @@ def test_crl_renewal_keeps_the_revoked_serials_and_moves_next_update(tmp_path):
     assert missing.returncode == 2 and len(missing.stderr.splitlines()) == 1
     assert "is not a site CA directory" in missing.stderr
     if OPENSSL:
-        signed = openssl("crl", "-in", str(ca_dir / "crl.pem"), "-noout",
-                         "-CAfile", str(ca_dir / "ca.pem"))
-        assert signed.returncode == 0 and "verify OK" in signed.stdout + signed.stderr
-        chain = openssl("verify", "-crl_check", "-CAfile", str(ca_dir / "ca.pem"),
-                        "-CRLfile", str(ca_dir / "crl.pem"), str(lab.cert_path))
-        assert chain.returncode != 0 and "revoked" in chain.stdout + chain.stderr
+        _openssl_sees_the_crl_signed_and_the_cert_revoked(ca_dir, lab.cert_path)
 
 
 def test_a_pki_directory_can_be_backed_up_and_restored_elsewhere(tmp_path):

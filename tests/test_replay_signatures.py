@@ -40,6 +40,7 @@ from schemas.events import Event, set_timestamp_ns
 from schemas.stockpile.v1 import events_pb2 as pb
 from services.publishing import EventPublisher
 from services.service import ZenohOptions, open_session
+from cli_in_process import run
 from stockpile.cli import main as stockpile
 from zenoh_helpers import (EventSink, PYTHON, client_args, log_lines, open_router, site_pki,
                            stockpile as stockpile_process, stop_all, wait_liveliness, wait_until)
@@ -48,17 +49,6 @@ SITE = "sigyard"
 S = 10**9
 T0_NS = 1_790_000_000 * S
 N_ASSAYS = 6
-
-
-def run(capsys, *args: str) -> tuple[int, str, str]:
-    """``stockpile ARGS`` in this process: (exit code, stdout, stderr)."""
-    capsys.readouterr()
-    try:
-        code = stockpile(list(args))
-    except SystemExit as exc:  # argparse usage errors
-        code = int(exc.code or 0)
-    out = capsys.readouterr()
-    return code, out.out, out.err
 
 
 @pytest.fixture(scope="module")
