@@ -12,7 +12,7 @@ import hashlib
 
 import pytest
 
-from ledger.chain import GENESIS, chain_hash, payload_hash
+from ledger.chain import GENESIS, chain_hash, payload_hash, quarantine_hash
 from ledger.clock import ManualClock
 from ledger.duckdb_store import DuckDBStore
 from ledger.memory import MemoryStore
@@ -100,3 +100,46 @@ def test_a_ledger_stores_the_chain_computed_by_hand(backend, tmp_path):
     assert [r.payload_sha256 for r in rows] == [hashlib.sha256(e.payload).digest() for e in events]
     assert store.head().chain_sha256 == expected[-1]
     store.close()
+
+
+# -- quarantine entries: links of the same chain -------------------------------------------
+
+def quarantine_by_hand(previous: bytes, quarantine_id: int, after_global_seq: int,
+                       recorded_ns: int, optional: tuple, texts: tuple[bytes, ...],
+                       raw: bytes) -> bytes:
+    """link = sha256(previous || b"Q" || quarantine_id, after_global_seq, recorded_time_ns
+    (little-endian i64) || epoch, seq, valid_time_ns, existing_global_seq (each a presence
+    byte then i64; absent: 0 then eight zero bytes) || len(type) type || len(source) source
+    || len(code) code || len(detail) detail (lengths little-endian u32, the texts given here
+    as their UTF-8 bytes, lone surrogates kept) || sha256(raw))."""
+    out = bytearray(previous) + b"Q"
+    for value in (quarantine_id, after_global_seq, recorded_ns):
+        out += value.to_bytes(8, "little", signed=True)
+    for value in optional:
+        out += b"\0" + bytes(8) if value is None else b"\1" + value.to_bytes(8, "little", signed=True)
+    for raw_text in texts:
+        out += len(raw_text).to_bytes(4, "little") + raw_text
+    out += hashlib.sha256(raw).digest()
+    return hashlib.sha256(bytes(out)).digest()
+
+
+def test_a_quarantine_link_is_the_documented_layout():
+    # a conflict (existing global seq set) of a source with non-ASCII and a detail with a
+    # lone surrogate (as text decoded with surrogateescape carries it): encoded, not refused
+    link = quarantine_hash(PREVIOUS, 3, 7, 1_793_491_200_000_000_123, 2**40 + 3, 12, -5, 6,
+                           "joint_reading", "bwr1.jöint", "conflict", "bad \udcff byte", b"\x08raw")
+    assert link == quarantine_by_hand(
+        PREVIOUS, 3, 7, 1_793_491_200_000_000_123, (2**40 + 3, 12, -5, 6),
+        (b"joint_reading", b"bwr1.j\xc3\xb6int", b"conflict", b"bad \xed\xb3\xbf byte"), b"\x08raw")
+    # the stored existing global seq is part of the link: present (even 0) or absent differ
+    without = quarantine_hash(PREVIOUS, 3, 7, 1_793_491_200_000_000_123, 2**40 + 3, 12, -5, None,
+                              "joint_reading", "bwr1.jöint", "conflict", "bad \udcff byte", b"\x08raw")
+    assert without != link
+    assert without == quarantine_by_hand(
+        PREVIOUS, 3, 7, 1_793_491_200_000_000_123, (2**40 + 3, 12, -5, None),
+        (b"joint_reading", b"bwr1.j\xc3\xb6int", b"conflict", b"bad \xed\xb3\xbf byte"), b"\x08raw")
+    zero = quarantine_hash(GENESIS, 0, -1, 5, None, None, None, 0, "", "", "malformed", "", b"")
+    assert zero == quarantine_by_hand(GENESIS, 0, -1, 5, (None, None, None, 0),
+                                      (b"", b"", b"malformed", b""), b"")
+    assert zero != quarantine_hash(GENESIS, 0, -1, 5, None, None, None, None, "", "", "malformed",
+                                   "", b"")

@@ -7,17 +7,20 @@ state must survive a restart).
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import struct
 
 import pytest
 
-from ledger.chain import GENESIS
+from ledger.chain import GENESIS, chain_hash
 from ledger.clock import EventClock, ManualClock
 from ledger.duckdb_store import DuckDBStore
 from ledger.memory import MemoryStore
-from ledger.records import FLAG_UNKNOWN_LOT, AppendOutcome, Head, QuarantineEntry
+from ledger.records import FLAG_UNKNOWN_LOT, AppendOutcome, Head, QuarantineEntry, VerifyReport
+from ledger.signing import SigningPolicy
 from ledger.testing import joint_event
+from ledger.testing_signing import assay, key_declared, make_keys, signed
 from schemas import pb
 from schemas.events import Event, Malformed, make_event, set_timestamp_ns
 
@@ -472,3 +475,142 @@ def test_a_ledger_whose_gapped_stream_lost_its_rows_opens_and_fails_verify(tmp_p
         report = store.verify()
         assert not report.ok and "b.src" in report.problem
         store.close()
+
+
+# -- quarantine links, signatures and the key registry ----------------------------------------
+
+LINK_MISMATCH = "chain hash mismatch (the entry was edited, or one before it deleted)"
+
+
+def edit_quarantine(store, sql: str, entry_edit):
+    """Edit the stored quarantine entries behind the store's back (``sql`` on the DuckDB
+    file, ``entry_edit`` on the memory store's list)."""
+    if isinstance(store, MemoryStore):
+        store._quarantine[:] = [entry_edit(q) for q in store._quarantine]
+    else:
+        store._con.execute(sql)
+    return store
+
+
+def test_verify_names_an_edited_entry_before_a_row_with_the_rows_checked(backend, tmp_path):
+    store = open_store(backend, tmp_path, ManualClock(10))
+    store.append([joint_event("a.src", 0, 1), joint_event("a.src", 1, 2)])
+    store.append([Malformed(raw=b"\x01", reason="not json")])
+    store.append([joint_event("a.src", 2, 3)])
+    assert [q.after_global_seq for q in store.quarantine()] == [1]
+    assert store.verify() == VerifyReport(True, 3)
+    edit_quarantine(store, "UPDATE quarantine SET detail = detail || 'x'",
+                    lambda q: dataclasses.replace(q, detail=q.detail + "x"))
+    assert store.verify() == VerifyReport(False, 2, None, f"quarantine entry 0: {LINK_MISMATCH}")
+    store.close()
+
+
+@pytest.mark.parametrize("edit", ["detail", "placed_later"])
+def test_verify_names_an_entry_after_the_last_row_with_the_rows_checked(backend, tmp_path, edit):
+    store = open_store(backend, tmp_path, ManualClock(10))
+    store.append([joint_event("a.src", 0, 1), joint_event("a.src", 1, 2)])
+    store.append([Malformed(raw=b"\x01", reason="not json")])
+    assert store.verify() == VerifyReport(True, 2)
+    if edit == "detail":
+        edit_quarantine(store, "UPDATE quarantine SET detail = detail || 'x'",
+                        lambda q: dataclasses.replace(q, detail=q.detail + "x"))
+        expected = f"quarantine entry 0: {LINK_MISMATCH}"
+    else:  # placed after a row the ledger does not hold (its link is not even checked)
+        edit_quarantine(store, "UPDATE quarantine SET after_global_seq = 5",
+                        lambda q: dataclasses.replace(q, after_global_seq=5))
+        expected = "quarantine entry 0 is placed after global_seq 5, the ledger holds 2 rows"
+    assert store.verify() == VerifyReport(False, 2, None, expected)
+    store.close()
+
+
+def test_verify_rechecks_the_anchor_against_the_admin_key_the_site_pins(tmp_path):
+    # a ledger written without a pinned admin key took the first self-declared one; opened
+    # by a site that pins another admin key, verify refuses the anchor (as the writer would)
+    keys = make_keys(tmp_path / "keys", "rogue", "lab", "admin")
+    store = DuckDBStore(tmp_path / "l.duckdb", ManualClock(1_000))
+    rogue, lab = keys["rogue"], keys["lab"]
+    result = store.append([key_declared(rogue, rogue, "admin", "rogue", 0, 10),
+                           key_declared(rogue, lab, "lab", "lab1", 1, 20),
+                           signed(assay(0, 1_000), lab)])
+    assert [o.status for o in result.outcomes] == ["appended"] * 3
+    assert store.verify() == VerifyReport(True, 3)
+    store.close()
+    pinned = DuckDBStore(tmp_path / "l.duckdb", ManualClock(2_000), read_only=True,
+                         signing=SigningPolicy(frozenset(), keys["admin"].key_id))
+    report = pinned.verify()
+    assert (report.ok, report.rows_checked, report.first_bad_seq) == (False, 0, 0)
+    assert report.problem.startswith("signature: unknown_key: self-declared admin key"), report
+    pinned.close()
+
+
+def test_signatures_are_checked_on_every_signed_event_and_key_declaration(backend, tmp_path):
+    # no signing policy: a signed event of any type is still checked, and a key declaration
+    # must be signed whatever the policy
+    keys = make_keys(tmp_path / "keys", "admin", "lab", "stranger")
+    store = open_store(backend, tmp_path, ManualClock(1_000))
+    admin, lab = keys["admin"], keys["lab"]
+    unsigned_declaration = dataclasses.replace(key_declared(admin, lab, "lab", "lab1", 1, 20),
+                                               signer=None, signature=None)
+    result = store.append([key_declared(admin, admin, "admin", "site admin", 0, 10),
+                           unsigned_declaration,
+                           signed(joint_event("a.src", 0, 5), keys["stranger"]),
+                           joint_event("a.src", 1, 6)])
+    assert [(o.status, o.code) for o in result.outcomes] == [
+        ("appended", None), ("rejected", "unsigned"), ("rejected", "unknown_key"),
+        ("appended", None)]
+    assert [(r.type, r.source, r.seq) for r in store.read()] == [
+        ("source_key_declared", "site-admin", 0), ("joint_reading", "a.src", 1)]
+    # the lab key was never declared: its signature is refused
+    assert store.append([signed(assay(0, 1_000), lab)]).outcomes[0].code == "unknown_key"
+    assert store.verify().ok
+    store.close()
+
+
+def test_a_failed_commit_forgets_the_keys_its_batch_declared(tmp_path):
+    # the planner copies the key registry before it learns a key: a batch whose INSERT
+    # fails must leave the writer's registry without the key it declared
+    from ledger.errors import DatabaseError
+
+    keys = make_keys(tmp_path / "keys", "admin", "lab")
+    admin, lab = keys["admin"], keys["lab"]
+    store = DuckDBStore(tmp_path / "l.duckdb", ManualClock(1_000))
+    assert store.append([key_declared(admin, admin, "admin", "site admin", 0, 10)]).appended == 1
+    store._con.execute("ALTER TABLE event_log RENAME TO event_log_away")
+    with pytest.raises(DatabaseError):
+        store.append([key_declared(admin, lab, "lab", "lab1", 1, 20)])
+    store._con.execute("ALTER TABLE event_log_away RENAME TO event_log")
+    result = store.append([signed(assay(0, 1_000), lab)])
+    assert result.outcomes[0].code == "unknown_key"
+    # declared again (the same seq: the failed batch stored nothing), the key signs
+    result = store.append([key_declared(admin, lab, "lab", "lab1", 1, 20),
+                           signed(assay(1, 1_000), lab)])
+    assert [o.status for o in result.outcomes] == ["appended", "appended"]
+    assert store.verify() == VerifyReport(True, 3)
+    store.close()
+
+
+@pytest.mark.parametrize("layout", ["entry_after_head", "entry_before_head", "entry_only"])
+def test_a_reopened_ledger_chains_its_next_row_from_the_last_link(tmp_path, layout):
+    # the writer state rebuilt on opening: the next row's previous link is the last
+    # quarantine entry's when it was stored after the head row, else the head row's
+    path = tmp_path / "l.duckdb"
+    store = DuckDBStore(path, ManualClock(10))
+    bad = Malformed(raw=b"\x01", reason="not json")
+    batches = {"entry_after_head": [[joint_event("a.src", 0, 1)], [bad]],
+               "entry_before_head": [[bad], [joint_event("a.src", 0, 1)]],
+               "entry_only": [[bad]]}[layout]
+    for batch in batches:
+        store.append(batch)
+    [entry] = store.quarantine()
+    rows = list(store.read())
+    last = entry.chain_sha256 if layout != "entry_before_head" else rows[-1].chain_sha256
+    store.close()
+    store = DuckDBStore(path, ManualClock(20))
+    event = joint_event("a.src", 1, 2)
+    assert store.append([event]).outcomes[0].status == "appended"
+    row = list(store.read())[-1]
+    assert row.chain_sha256 == chain_hash(last, len(rows), event.type, event.source, event.epoch,
+                                          event.seq, event.valid_time_ns, 20,
+                                          hashlib.sha256(event.payload).digest())
+    assert store.verify() == VerifyReport(True, len(rows) + 1)
+    store.close()
