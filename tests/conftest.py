@@ -5,6 +5,7 @@ import os
 # keep hypothesis' example database out of the work tree
 os.environ.setdefault("HYPOTHESIS_STORAGE_DIRECTORY", "/tmp/stockpile-hypothesis")
 
+import random  # noqa: E402
 import subprocess  # noqa: E402
 import sys  # noqa: E402
 
@@ -71,6 +72,14 @@ def pytest_runtest_makereport(item, call):
 
 def pytest_terminal_summary(terminalreporter):
     terminalreporter.write_line(seeding.rerun_hint())
+
+
+@pytest.fixture(autouse=True)
+def _python_random_from_the_run_seed(request):
+    """Python's global ``random`` starts each test from the run's seed and the test's id,
+    so a test that draws from it (the ledger contract's randomised batches) replays under
+    ``--seed``."""
+    random.seed(f"{seeding.session_seed()}:{request.node.nodeid}")
 
 
 @pytest.fixture(scope="session")
