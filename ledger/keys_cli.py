@@ -20,17 +20,14 @@ import time
 from pathlib import Path
 
 from common.options import PROG
-from schemas.events import Event, make_event, set_timestamp_ns
+from schemas.events import Event
 from schemas.jsonl import encode_line
-from schemas.stockpile.v1 import events_pb2 as pb
 from schemas.times import parse_time_ns
-from security.event_keys import ROLE_TYPES, key_id_of, load_public_key, load_signing_key, new_signing_key
+from security.event_keys import ROLE_TYPES, load_public_key, load_signing_key, new_signing_key
 
 from ledger import open_ledger
-from ledger.signing import sign_event
+from ledger.signing import ADMIN_EPOCH, ADMIN_SOURCE, key_declaration, key_revocation
 
-ADMIN_SOURCE = "site-admin"
-ADMIN_EPOCH = 1
 DAY_NS = 86_400 * 10**9
 
 
@@ -51,10 +48,7 @@ def _next_seq(args: argparse.Namespace) -> int:
     return sum(1 for _ in path.open()) if path.exists() else 0
 
 
-def _emit(args: argparse.Namespace, message) -> int:
-    admin = load_signing_key(args.admin)
-    event = sign_event(make_event(message, source=ADMIN_SOURCE, epoch=ADMIN_EPOCH,
-                                  seq=_next_seq(args)), admin)
+def _emit(args: argparse.Namespace, event: Event) -> int:
     if args.ledger:
         with open_ledger(args.ledger) as store:
             outcome = store.append([event]).outcomes[0]
@@ -66,7 +60,7 @@ def _emit(args: argparse.Namespace, message) -> int:
         with open(args.out, "a", encoding="utf-8") as out:
             out.write(_line(event) + "\n")
         where = f"{args.out} (import it with {PROG} ledger import)"
-    print(f"{event.type} seq {event.seq} signed by {admin.key_id}: {where}")
+    print(f"{event.type} seq {event.seq} signed by {event.signer}: {where}")
     return 0
 
 
@@ -81,18 +75,14 @@ def cmd_declare(args: argparse.Namespace) -> int:
     valid_from = parse_time_ns(args.valid_from) if args.valid_from else now
     valid_until = (parse_time_ns(args.valid_until) if args.valid_until
                    else valid_from + args.valid_days * DAY_NS)
-    m = pb.SourceKeyDeclared(key_id=key_id_of(public), public_key=public, role=args.role,
-                             name=args.name)
-    set_timestamp_ns(m.time, now)
-    set_timestamp_ns(m.valid_from, valid_from)
-    set_timestamp_ns(m.valid_until, valid_until)
-    return _emit(args, m)
+    return _emit(args, key_declaration(load_signing_key(args.admin), public, args.role,
+                                       args.name, _next_seq(args), now, valid_from, valid_until))
 
 
 def cmd_revoke(args: argparse.Namespace) -> int:
-    m = pb.SourceKeyRevoked(key_id=args.key_id, reason=args.reason)
-    set_timestamp_ns(m.time, parse_time_ns(args.revoked_from) if args.revoked_from else time.time_ns())
-    return _emit(args, m)
+    revoked_from = parse_time_ns(args.revoked_from) if args.revoked_from else time.time_ns()
+    return _emit(args, key_revocation(load_signing_key(args.admin), args.key_id,
+                                      _next_seq(args), revoked_from, args.reason))
 
 
 def _target(p: argparse.ArgumentParser) -> None:

@@ -19,12 +19,17 @@ from __future__ import annotations
 import hashlib
 from dataclasses import dataclass, field, replace
 
-from schemas.events import Event, decode_payload, signed_message
+from schemas import pb
+from schemas.events import Event, decode_payload, make_event, set_timestamp_ns, signed_message
 from schemas.events import timestamp_ns as timestamp_to_ns
 from security.event_keys import (MONEY_TYPES, ROLE_TYPES, SigningKey, key_id_of,
                                  load_public_key, sign, signature_holds)
 
 KEY_TYPES = frozenset({"source_key_declared", "source_key_revoked"})
+
+#: the source and epoch of the site admin's key declarations and revocations
+ADMIN_SOURCE = "site-admin"
+ADMIN_EPOCH = 1
 
 
 @dataclass(frozen=True)
@@ -126,6 +131,27 @@ def sign_event(event: Event, key: SigningKey) -> Event:
     message = signed_message(event.type, event.source, event.epoch, event.seq,
                              event.valid_time_ns, hashlib.sha256(event.payload).digest())
     return replace(event, signer=key.key_id, signature=sign(key, message))
+
+
+def key_declaration(admin: SigningKey, public_key: bytes, role: str, name: str, seq: int,
+                    time_ns: int, valid_from_ns: int, valid_until_ns: int) -> Event:
+    """The admin's signed ``source_key_declared`` event for a raw public key, number
+    ``seq`` of the admin's source (times in UTC ns)."""
+    m = pb.SourceKeyDeclared(key_id=key_id_of(public_key), public_key=bytes(public_key),
+                             role=role, name=name)
+    set_timestamp_ns(m.time, time_ns)
+    set_timestamp_ns(m.valid_from, valid_from_ns)
+    set_timestamp_ns(m.valid_until, valid_until_ns)
+    return sign_event(make_event(m, source=ADMIN_SOURCE, epoch=ADMIN_EPOCH, seq=seq), admin)
+
+
+def key_revocation(admin: SigningKey, key_id: str, seq: int, from_ns: int,
+                   reason: str = "") -> Event:
+    """The admin's signed ``source_key_revoked`` event: ``key_id`` untrusted from
+    ``from_ns`` (UTC ns)."""
+    m = pb.SourceKeyRevoked(key_id=key_id, reason=reason)
+    set_timestamp_ns(m.time, from_ns)
+    return sign_event(make_event(m, source=ADMIN_SOURCE, epoch=ADMIN_EPOCH, seq=seq), admin)
 
 
 def add_signing_options(parser) -> None:

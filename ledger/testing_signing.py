@@ -14,18 +14,13 @@ from schemas.events import Event, make_event, set_timestamp_ns
 
 from ledger.chain import chain_hash, payload_hash
 from ledger.clock import ManualClock
-from ledger.signing import SigningPolicy, sign_event, signature_block
+from ledger.signing import (SigningPolicy, key_declaration, key_revocation, sign_event,
+                            signature_block)
 from ledger.store import LedgerStore
 from ledger.verifying import CHAIN_MISMATCH
 from security.event_keys import SigningKey, load_signing_key, new_signing_key, sign
 
-ADMIN_SOURCE = "site-admin"
 YEAR_NS = 365 * 86_400 * 10**9
-
-
-def signed(event: Event, key: SigningKey) -> Event:
-    """``event`` signed with ``key`` (signer and signature set)."""
-    return sign_event(event, key)
 
 
 def make_keys(directory: Path, *names: str) -> dict[str, SigningKey]:
@@ -41,19 +36,13 @@ def key_declared(admin: SigningKey, subject: SigningKey, role: str, name: str, s
                  time_ns: int, valid_from_ns: int = 0,
                  valid_until_ns: int = 100 * YEAR_NS) -> Event:
     """The admin's signed declaration of ``subject``'s public key."""
-    m = pb.SourceKeyDeclared(key_id=subject.key_id, public_key=subject.public_raw, role=role,
-                             name=name)
-    set_timestamp_ns(m.time, time_ns)
-    set_timestamp_ns(m.valid_from, valid_from_ns)
-    set_timestamp_ns(m.valid_until, valid_until_ns)
-    return signed(make_event(m, source=ADMIN_SOURCE, epoch=1, seq=seq), admin)
+    return key_declaration(admin, subject.public_raw, role, name, seq, time_ns, valid_from_ns,
+                           valid_until_ns)
 
 
 def key_revoked(admin: SigningKey, subject: SigningKey, seq: int, from_ns: int) -> Event:
     """The admin's signed revocation of ``subject`` from ``from_ns``."""
-    m = pb.SourceKeyRevoked(key_id=subject.key_id, reason="key left the lab")
-    set_timestamp_ns(m.time, from_ns)
-    return signed(make_event(m, source=ADMIN_SOURCE, epoch=1, seq=seq), admin)
+    return key_revocation(admin, subject.key_id, seq, from_ns, "key left the lab")
 
 
 def assay(seq: int, valid_ns: int, fe: float = 62.5, source: str = "lab1") -> Event:
@@ -89,17 +78,17 @@ class SigningContract(abc.ABC):
             self, tmp_path):
         store, keys = self._signed_ledger(tmp_path)
         lab, scanner, stranger = keys["lab"], keys["scanner"], keys["stranger"]
-        forged = dataclasses.replace(signed(assay(5, 1_000, fe=70.0), lab),
+        forged = dataclasses.replace(sign_event(assay(5, 1_000, fe=70.0), lab),
                                      signature=sign(stranger, b"something else"))
         moved = dataclasses.replace(assay(6, 1_000, fe=70.0),
-                                    signer=lab.key_id, signature=signed(assay(0, 1_000), lab).signature)
-        batch = [signed(assay(0, 1_000), lab),            # appended
+                                    signer=lab.key_id, signature=sign_event(assay(0, 1_000), lab).signature)
+        batch = [sign_event(assay(0, 1_000), lab),            # appended
                  assay(1, 1_000),                          # unsigned
                  forged,                                   # bad_signature
                  moved,                                    # another event's signature
-                 signed(assay(2, 1_000), stranger),        # unknown_key
-                 signed(assay(3, 2 * YEAR_NS), scanner),   # key_not_valid (first: period)
-                 signed(assay(4, 1_000), scanner)]         # key_role
+                 sign_event(assay(2, 1_000), stranger),        # unknown_key
+                 sign_event(assay(3, 2 * YEAR_NS), scanner),   # key_not_valid (first: period)
+                 sign_event(assay(4, 1_000), scanner)]         # key_role
         result = store.append(batch)
         codes = [o.code if o.status != "appended" else "appended" for o in result.outcomes]
         assert codes == ["appended", "unsigned", "bad_signature", "bad_signature",
@@ -114,11 +103,11 @@ class SigningContract(abc.ABC):
     def test_a_revoked_key_signs_nothing_from_its_revocation_on(self, tmp_path):
         store, keys = self._signed_ledger(tmp_path)
         lab = keys["lab"]
-        assert store.append([signed(assay(0, 5_000), lab)]).appended == 1
+        assert store.append([sign_event(assay(0, 5_000), lab)]).appended == 1
         store.append([key_revoked(keys["admin"], lab, 3, 6_000)])
         if getattr(self, "persistent", False):  # the registry is rebuilt from the rows
             store = self.reopen(store, ManualClock(2_000))
-        result = store.append([signed(assay(1, 5_500), lab), signed(assay(2, 6_000), lab)])
+        result = store.append([sign_event(assay(1, 5_500), lab), sign_event(assay(2, 6_000), lab)])
         assert [o.status for o in result.outcomes] == ["appended", "rejected"]
         assert result.outcomes[1].code == "revoked_key"
         # a lab key cannot revoke, nor declare keys
@@ -134,14 +123,14 @@ class SigningContract(abc.ABC):
         rogue = keys["rogue"]
         result = store.append([key_declared(rogue, rogue, "admin", "rogue", 0, 10),
                                key_declared(rogue, keys["lab"], "lab", "lab1", 1, 20),
-                               signed(assay(0, 1_000), keys["lab"])])
+                               sign_event(assay(0, 1_000), keys["lab"])])
         assert [o.code for o in result.outcomes] == ["unknown_key"] * 3
         assert list(store.read()) == []
         store.close()
 
     def test_verify_rechecks_every_stored_signature(self, tmp_path):
         store, keys = self._signed_ledger(tmp_path)
-        store.append([signed(assay(0, 1_000), keys["lab"])])
+        store.append([sign_event(assay(0, 1_000), keys["lab"])])
         assert store.verify().ok
         rows = list(store.read())
         # the signature dropped: the chain covers it
@@ -153,7 +142,7 @@ class SigningContract(abc.ABC):
     def test_verify_names_a_signature_that_does_not_hold_even_when_rechained(self, tmp_path):
         with tempfile.TemporaryDirectory() as directory:
             store, keys = self._signed_ledger(Path(directory))
-            store.append([signed(assay(0, 1_000, fe=61.0), keys["lab"])])
+            store.append([sign_event(assay(0, 1_000, fe=61.0), keys["lab"])])
             rows = list(store.read())
             forged = assay(0, 1_000, fe=70.0)
             row = rows[3]._replace(payload=forged.payload, payload_sha256=payload_hash(forged.payload))

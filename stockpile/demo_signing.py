@@ -10,10 +10,7 @@ from pathlib import Path
 
 from ledger import open_ledger
 from ledger.clock import ManualClock
-from ledger.keys_cli import ADMIN_EPOCH, ADMIN_SOURCE
-from ledger.signing import sign_event
-from schemas.events import make_event, set_timestamp_ns
-from schemas.stockpile.v1 import events_pb2 as pb
+from ledger.signing import ADMIN_EPOCH, ADMIN_SOURCE, key_declaration
 from schemas.times import NS_PER_S
 from security.event_keys import load_signing_key, new_signing_key
 
@@ -51,14 +48,8 @@ def prepare_signing(out_dir: Path, ledger_path: Path, sources: dict[str, str],
         new_signing_key(keys / "sources", source)
         subjects.append((source, role, load_signing_key(keys / "sources" / f"{source}.sign.key")))
     now = start_ns - NS_PER_S
-    events = []
-    for seq, (name, role, key) in enumerate(subjects):
-        m = pb.SourceKeyDeclared(key_id=key.key_id, public_key=key.public_raw, role=role, name=name)
-        set_timestamp_ns(m.time, now)
-        set_timestamp_ns(m.valid_from, 0)
-        set_timestamp_ns(m.valid_until, _VALID_UNTIL_NS)
-        events.append(sign_event(make_event(m, source=ADMIN_SOURCE, epoch=ADMIN_EPOCH, seq=seq),
-                                 admin))
+    events = [key_declaration(admin, key.public_raw, role, name, seq, now, 0, _VALID_UNTIL_NS)
+              for seq, (name, role, key) in enumerate(subjects)]
     with open_ledger(ledger_path, ManualClock(now)) as store:
         result = store.append(events)
     refused = [o.reason for o in result.outcomes if o.status != "appended"]

@@ -18,9 +18,9 @@ from ledger.clock import EventClock, ManualClock
 from ledger.duckdb_store import DuckDBStore
 from ledger.memory import MemoryStore
 from ledger.records import FLAG_UNKNOWN_LOT, AppendOutcome, Head, QuarantineEntry, VerifyReport
-from ledger.signing import SigningPolicy
+from ledger.signing import SigningPolicy, sign_event
 from ledger.testing import joint_event
-from ledger.testing_signing import assay, key_declared, make_keys, signed
+from ledger.testing_signing import assay, key_declared, make_keys
 from schemas import pb
 from schemas.events import Event, Malformed, make_event, set_timestamp_ns
 
@@ -531,7 +531,7 @@ def test_verify_rechecks_the_anchor_against_the_admin_key_the_site_pins(tmp_path
     rogue, lab = keys["rogue"], keys["lab"]
     result = store.append([key_declared(rogue, rogue, "admin", "rogue", 0, 10),
                            key_declared(rogue, lab, "lab", "lab1", 1, 20),
-                           signed(assay(0, 1_000), lab)])
+                           sign_event(assay(0, 1_000), lab)])
     assert [o.status for o in result.outcomes] == ["appended"] * 3
     assert store.verify() == VerifyReport(True, 3)
     store.close()
@@ -553,7 +553,7 @@ def test_signatures_are_checked_on_every_signed_event_and_key_declaration(backen
                                                signer=None, signature=None)
     result = store.append([key_declared(admin, admin, "admin", "site admin", 0, 10),
                            unsigned_declaration,
-                           signed(joint_event("a.src", 0, 5), keys["stranger"]),
+                           sign_event(joint_event("a.src", 0, 5), keys["stranger"]),
                            joint_event("a.src", 1, 6)])
     assert [(o.status, o.code) for o in result.outcomes] == [
         ("appended", None), ("rejected", "unsigned"), ("rejected", "unknown_key"),
@@ -561,7 +561,7 @@ def test_signatures_are_checked_on_every_signed_event_and_key_declaration(backen
     assert [(r.type, r.source, r.seq) for r in store.read()] == [
         ("source_key_declared", "site-admin", 0), ("joint_reading", "a.src", 1)]
     # the lab key was never declared: its signature is refused
-    assert store.append([signed(assay(0, 1_000), lab)]).outcomes[0].code == "unknown_key"
+    assert store.append([sign_event(assay(0, 1_000), lab)]).outcomes[0].code == "unknown_key"
     assert store.verify().ok
     store.close()
 
@@ -579,11 +579,11 @@ def test_a_failed_commit_forgets_the_keys_its_batch_declared(tmp_path):
     with pytest.raises(DatabaseError):
         store.append([key_declared(admin, lab, "lab", "lab1", 1, 20)])
     store._con.execute("ALTER TABLE event_log_away RENAME TO event_log")
-    result = store.append([signed(assay(0, 1_000), lab)])
+    result = store.append([sign_event(assay(0, 1_000), lab)])
     assert result.outcomes[0].code == "unknown_key"
     # declared again (the same seq: the failed batch stored nothing), the key signs
     result = store.append([key_declared(admin, lab, "lab", "lab1", 1, 20),
-                           signed(assay(1, 1_000), lab)])
+                           sign_event(assay(1, 1_000), lab)])
     assert [o.status for o in result.outcomes] == ["appended", "appended"]
     assert store.verify() == VerifyReport(True, 3)
     store.close()

@@ -20,7 +20,7 @@ from ledger.memory import MemoryStore
 from ledger.records import Gap, QuarantineEntry, RecordedEvent
 from ledger.signing import (KeyRecord, KeyRegistry, SigningPolicy, registry_from_rows,
                             sign_event, signature_block)
-from ledger.testing_signing import YEAR_NS, assay, key_declared, key_revoked, make_keys, signed
+from ledger.testing_signing import YEAR_NS, assay, key_declared, key_revoked, make_keys
 from ledger.verifying import GapHistory, QuarantineLinks, SignatureCheck, flags_problem, quarantine_link
 from schemas import pb
 from schemas.events import decode_payload, make_event, set_timestamp_ns, signed_message
@@ -307,7 +307,7 @@ def test_a_redeclared_revoked_key_still_signs_nothing_from_its_revocation(backen
                   key_declared(admin, lab, "lab", "lab1", 1, 20),
                   key_revoked(admin, lab, 2, 6_000),
                   key_declared(admin, lab, "lab", "lab1", 3, 30)])
-    result = store.append([signed(assay(0, 5_999), lab), signed(assay(1, 6_000), lab)])
+    result = store.append([sign_event(assay(0, 5_999), lab), sign_event(assay(1, 6_000), lab)])
     assert [o.status for o in result.outcomes] == ["appended", "rejected"]
     [q] = store.quarantine()
     assert (q.code, q.detail) == ("revoked_key", f"key {lab.key_id} (lab1) is revoked from 6000 ns")

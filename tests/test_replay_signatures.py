@@ -31,8 +31,8 @@ from mcap.writer import Writer
 
 from ledger import open_ledger
 from ledger.clock import ManualClock
-from ledger.signing import SigningPolicy
-from ledger.testing_signing import assay, key_declared, make_keys, signed
+from ledger.signing import SigningPolicy, sign_event
+from ledger.testing_signing import assay, key_declared, make_keys
 from replay.recover import recover
 from replay.mcap_format import SIGNATURE_SUFFIX, decode_signature, encode_signature
 from replay.replay import iter_events
@@ -67,7 +67,7 @@ def signed_ledger(tmp_path_factory):
         assert result.appended == 2, result
         for n in range(N_ASSAYS):
             clock.set_ns(T0_NS + (n + 1) * 60 * S)
-            assert store.append([signed(assay(n, T0_NS + n * S, fe=60.0 + n), lab)]).appended == 1
+            assert store.append([sign_event(assay(n, T0_NS + n * S, fe=60.0 + n), lab)]).appended == 1
         assert store.quarantine() == [] and store.verify().ok
     return {"ledger": path, "admin_pub": base / "keys" / "admin.sign.pub", "keys": keys,
             "base": base}
