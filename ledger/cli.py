@@ -16,7 +16,7 @@ from common.progress import Progress, enabled_from_args, progress as progress_ba
 from common.options import (DEFAULT_BATCH_SIZE, add_batch_size, add_bitemporal, add_clock,
                             add_out, add_types)
 from schemas.events import EVENT_TYPES, Event, Malformed
-from schemas.jsonl import decode_line, encode_line
+from schemas.jsonl import decode_line, event_line
 
 from ledger import open_ledger
 from ledger.clock import clock_by_name
@@ -91,8 +91,7 @@ def export_lines(store: LedgerStore, out: IO[str], *, types: list[str] | None = 
                            far if as_of_known_ns is None else as_of_known_ns, types=types)
     n = 0
     for row in rows:
-        out.write(encode_line(row.type, row.source, row.epoch, row.seq, row.valid_time_ns,
-                              row.payload, row.recorded_time_ns, row.signer, row.signature))
+        out.write(event_line(row))
         out.write("\n")
         n += 1
         if progress is not None and n % 1_000 == 0:

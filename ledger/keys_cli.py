@@ -21,7 +21,7 @@ from pathlib import Path
 
 from common.options import PROG
 from schemas.events import Event
-from schemas.jsonl import encode_line
+from schemas.jsonl import event_line
 from schemas.times import parse_time_ns
 from security.event_keys import ROLE_TYPES, load_public_key, load_signing_key, new_signing_key
 
@@ -58,15 +58,10 @@ def _emit(args: argparse.Namespace, event: Event) -> int:
         where = f"{args.ledger} as global_seq {outcome.global_seq}"
     else:
         with open(args.out, "a", encoding="utf-8") as out:
-            out.write(_line(event) + "\n")
+            out.write(event_line(event) + "\n")
         where = f"{args.out} (import it with {PROG} ledger import)"
     print(f"{event.type} seq {event.seq} signed by {event.signer}: {where}")
     return 0
-
-
-def _line(event: Event) -> str:
-    return encode_line(event.type, event.source, event.epoch, event.seq, event.valid_time_ns,
-                       event.payload, None, event.signer, event.signature)
 
 
 def cmd_declare(args: argparse.Namespace) -> int:

@@ -69,6 +69,13 @@ def encode_line(
     return f'{text[:-1]},"body":{body}}}'
 
 
+def event_line(event) -> str:
+    """:func:`encode_line` of an :class:`Event`, or of anything with its fields (a ledger
+    row): recorded time and signature included when it has them."""
+    return encode_line(event.type, event.source, event.epoch, event.seq, event.valid_time_ns,
+                       event.payload, event.recorded_time_ns, event.signer, event.signature)
+
+
 def decode_line(line: str | bytes, *, where: str = "") -> Event | Malformed:
     """Parse one JSON line into an :class:`Event`; anything unreadable becomes :class:`Malformed`.
 

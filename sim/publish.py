@@ -22,7 +22,7 @@ from google.protobuf.message import Message
 from ledger.signing import sign_event
 from schemas.events import Event, encode_attachment, key_expr, make_event
 from security.event_keys import SigningKey
-from schemas.jsonl import encode_line
+from schemas.jsonl import event_line
 from services.service import declare_ledger_publisher
 
 
@@ -60,9 +60,7 @@ class JsonlSink:
         self.count = 0
 
     def emit(self, event: Event) -> None:
-        self._file.write(encode_line(event.type, event.source, event.epoch, event.seq,
-                                     event.valid_time_ns, event.payload, None, event.signer,
-                                     event.signature))
+        self._file.write(event_line(event))
         self._file.write("\n")
         self.count += 1
 

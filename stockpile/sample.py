@@ -23,7 +23,7 @@ from google.protobuf.message import Message
 
 from schemas import pb
 from schemas.events import make_event, set_timestamp_ns
-from schemas.jsonl import encode_line
+from schemas.jsonl import encode_line, event_line
 from schemas.times import NS_PER_H, NS_PER_S
 
 #: 2026-11-01T00:00:00Z
@@ -190,11 +190,6 @@ def _sensor_streams(arrivals: _Arrivals, rng: random.Random, t0: int, end: int,
         emit(t, _stamp(scan, "timestamp", t), streams["scanner"])
 
 
-def _line(event) -> str:
-    return encode_line(event.type, event.source, event.epoch, event.seq, event.valid_time_ns,
-                       event.payload)
-
-
 def _plant_bad_scan(session: SampleSession, message: Message, stream: _Stream) -> None:
     """A scanner glitch after the scan: an infinite range (quarantined)."""
     bad = LaserScan()
@@ -202,7 +197,7 @@ def _plant_bad_scan(session: SampleSession, message: Message, stream: _Stream) -
     bad.ranges[200] = math.inf
     bad_event = make_event(bad, source=stream.source, epoch=stream.epoch, seq=stream.seq)
     stream.seq += 1
-    session.lines.append(_line(bad_event))
+    session.lines.append(event_line(bad_event))
     session.planted["bad_scans"] += 1
 
 
@@ -233,7 +228,7 @@ def _encode_session(arrivals: _Arrivals, streams: dict[str, _Stream], session: S
         if stream is joints and event.seq == 1000:
             session.planted["dropped"] += 1  # lost on the network: leaves a gap in the ledger
             continue
-        line = _line(event)
+        line = event_line(event)
         session.lines.append(line)
         if stream is streams["scanner"] and event.seq == 100:
             _plant_bad_scan(session, message, stream)
