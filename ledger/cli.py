@@ -181,7 +181,6 @@ def cmd_verify(args: argparse.Namespace) -> int:
     signing = policy_from_args(args)
     with open_ledger(args.ledger, read_only=True, signing=signing) as store:
         report = store.verify()
-        signed = sum(1 for row in store.read() if row.signer is not None)
         head = store.head()
         found = [(label, check_checkpoint(store, cp, ca_pem=ca_pem)) for label, cp in checkpoints]
     ok = report.ok
@@ -190,8 +189,8 @@ def cmd_verify(args: argparse.Namespace) -> int:
               f"chain {head.chain_sha256.hex()}")
         anchor = ("the admin key given" if signing and signing.admin_key_id
                   else "the ledger's own admin declaration (pin it with --admin-key)")
-        if signed:
-            print(f"ok: {signed:,} signatures hold, keys anchored by {anchor}")
+        if report.signatures:
+            print(f"ok: {report.signatures:,} signatures hold, keys anchored by {anchor}")
     else:
         where = ("" if report.first_bad_seq is None
                  else f"first bad row global_seq {report.first_bad_seq}: ")

@@ -165,6 +165,7 @@ class VerifyReport:
     rows_checked: int
     first_bad_seq: int | None = None
     problem: str | None = None
+    signatures: int = 0  # signed rows whose signature held (counted on a clean report)
 
 
 @dataclass(frozen=True, slots=True)

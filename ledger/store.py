@@ -505,7 +505,7 @@ class LedgerStore(abc.ABC):
             problem = problem or links.problem_after(count) or gaps.problem(self.gaps())
             if problem:
                 return VerifyReport(False, count, None, problem)
-            return VerifyReport(True, count)
+            return VerifyReport(True, count, signatures=signatures.held)
 
     def stats(self) -> LedgerStats:
         """Counts per type and source, gaps, quarantine and time ranges."""

@@ -24,7 +24,7 @@ from pathlib import Path
 from schemas import pb
 from schemas.events import Event, Malformed, make_event, set_timestamp_ns
 
-from ledger.chain import GENESIS, chain_hash, payload_hash
+from ledger.chain import payload_hash
 from ledger.clock import EventClock, ManualClock
 from ledger.records import FLAG_UNKNOWN_LOT, Gap, QuarantineEntry, RecordedEvent, VerifyReport
 from ledger.signing import SigningPolicy

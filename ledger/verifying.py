@@ -149,6 +149,7 @@ class SignatureCheck:
         # started signing are unsigned by right; the chain covers a removed signature
         self.policy = None if policy is None else SigningPolicy(frozenset(), policy.admin_key_id)
         self.keys = KeyRegistry()
+        self.held = 0  # signed rows whose signature held
 
     def row(self, row: RecordedEvent) -> str | None:
         if row.signer is None and row.type not in KEY_TYPES:
@@ -164,4 +165,5 @@ class SignatureCheck:
             return f"signature: {refused[0]}: {refused[1]}"
         if row.type in KEY_TYPES:
             self.keys.learn(row.type, message)
+        self.held += row.signer is not None
         return None

@@ -32,11 +32,9 @@ import numpy as np
 from schemas.events import decode_payload
 
 from ledger import open_ledger
-from ledger.signing import KEY_TYPES
 from projector.query import project
 from services.ledger_client import LedgerClient
 from sim.kinematics import Machine, wheel_centre
-from security.event_keys import MONEY_TYPES
 from sim.scenario import scenario_by_name
 from stockpile.demo_signing import money_sources, prepare_signing
 from stockpile.orchestrate import Supervisor, fresh_ledger_path
@@ -409,8 +407,6 @@ def _check_ledger(ledger_path: Path, published: dict[str, tuple[int, int]],
         checks = {"stats": store.stats(), "exact": check_exactly_once(store, published),
                   "verify": store.verify(), "gaps": store.gaps(open_only=True),
                   "quarantine": store.quarantine(), "book": pile_book(store),
-                  "signed": sum(1 for r in store.read(types=sorted(MONEY_TYPES | KEY_TYPES))
-                                if r.signer is not None),
                   "rmse": localizer_rmse(store, sim_dir / "truth.npz"),
                   "timing": scan_timing(store, sim_dir / "truth.npz"),
                   "truth": json.loads((sim_dir / "truth.json").read_text())}
@@ -419,8 +415,7 @@ def _check_ledger(ledger_path: Path, published: dict[str, tuple[int, int]],
     return checks
 
 
-def _say_ledger(stats, exact: list[dict[str, Any]], verify, gaps, quarantine,
-                signed: int) -> None:
+def _say_ledger(stats, exact: list[dict[str, Any]], verify, gaps, quarantine) -> None:
     """Print the events per type and the exactly-once check per source."""
     _say("\n== events per type in the ledger")
     for type_name, n in sorted(stats.per_type.items(), key=lambda kv: -kv[1]):
@@ -432,7 +427,7 @@ def _say_ledger(stats, exact: list[dict[str, Any]], verify, gaps, quarantine,
              f"{row['ledgered']:>7,}  duplicates {row['duplicates']}  {mark}")
     _say(f"   gaps open: {len(gaps)}; quarantined: {len(quarantine)}; chain "
          f"{'verified' if verify.ok else 'BROKEN'} ({verify.rows_checked:,} rows, "
-         f"{signed:,} signatures checked)")
+         f"{verify.signatures:,} signatures checked)")
     for entry in quarantine[:5]:
         _say(f"   quarantined {entry.type} from {entry.source}: {entry.reason[:100]}")
 
@@ -522,7 +517,7 @@ def run_yard_demo(out_dir: Path, *, seed: int = 1, speed: float = 40.0, idle_spe
     stats, exact, verify, gaps, quarantine = (c["stats"], c["exact"], c["verify"], c["gaps"],
                                               c["quarantine"])
     book, rmse, timing, model = c["book"], c["rmse"], c["timing"], c["model"]
-    _say_ledger(stats, exact, verify, gaps, quarantine, c["signed"])
+    _say_ledger(stats, exact, verify, gaps, quarantine)
     _say_pile_book(book, c["truth"])
     _say_localizer(rmse, timing, speed, pacing)
     _say("\n== the layered model as of the end (stockpile project) against the simulator's truth")
@@ -530,7 +525,7 @@ def run_yard_demo(out_dir: Path, *, seed: int = 1, speed: float = 40.0, idle_spe
     ok = (verify.ok and not gaps and all(r["exact"] and not r["open_gaps"] for r in exact)
           and all(code == 0 for code in rc.values()))
     summary = {"ok": ok, "exit_codes": rc, "published": published, "exactly_once": exact,
-               "signed_events": c["signed"],
+               "signed_events": verify.signatures,
                "per_type": stats.per_type, "open_gaps": len(gaps), "quarantined": len(quarantine),
                "verify_ok": verify.ok, "pile_book": book, "projector": model, "localizer": rmse,
                "scan_timing": timing, "speed": speed, "sim_pacing": pacing,

@@ -533,7 +533,7 @@ def test_verify_rechecks_the_anchor_against_the_admin_key_the_site_pins(tmp_path
                            key_declared(rogue, lab, "lab", "lab1", 1, 20),
                            sign_event(assay(0, 1_000), lab)])
     assert [o.status for o in result.outcomes] == ["appended"] * 3
-    assert store.verify() == VerifyReport(True, 3)
+    assert store.verify() == VerifyReport(True, 3, signatures=3)
     store.close()
     pinned = DuckDBStore(tmp_path / "l.duckdb", ManualClock(2_000), read_only=True,
                          signing=SigningPolicy(frozenset(), keys["admin"].key_id))
@@ -585,7 +585,7 @@ def test_a_failed_commit_forgets_the_keys_its_batch_declared(tmp_path):
     result = store.append([key_declared(admin, lab, "lab", "lab1", 1, 20),
                            sign_event(assay(1, 1_000), lab)])
     assert [o.status for o in result.outcomes] == ["appended", "appended"]
-    assert store.verify() == VerifyReport(True, 3)
+    assert store.verify() == VerifyReport(True, 3, signatures=3)
     store.close()
 
 
