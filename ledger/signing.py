@@ -21,7 +21,7 @@ from dataclasses import dataclass, field, replace
 
 from schemas import pb
 from schemas.events import Event, decode_payload, make_event, set_timestamp_ns, signed_message
-from schemas.events import timestamp_ns as timestamp_to_ns
+from schemas.events import timestamp_ns
 from security.event_keys import (MONEY_TYPES, ROLE_TYPES, SigningKey, key_id_of,
                                  load_public_key, sign, signature_holds)
 
@@ -120,7 +120,7 @@ class KeyRegistry:
             revoked = None if old is None else old.revoked_from_ns  # a revocation stays
             self.keys[message.key_id] = replace(_record(message), revoked_from_ns=revoked)
         elif type_name == "source_key_revoked" and message.key_id in self.keys:
-            revoked = timestamp_to_ns(message.time)
+            revoked = timestamp_ns(message.time)
             old = self.keys[message.key_id]
             if old.revoked_from_ns is None or revoked < old.revoked_from_ns:
                 self.keys[message.key_id] = replace(old, revoked_from_ns=revoked)
@@ -182,7 +182,7 @@ def policy_from_args(args) -> SigningPolicy | None:
 
 def _record(message) -> KeyRecord:
     return KeyRecord(message.key_id, bytes(message.public_key), message.role, message.name,
-                     timestamp_to_ns(message.valid_from), timestamp_to_ns(message.valid_until))
+                     timestamp_ns(message.valid_from), timestamp_ns(message.valid_until))
 
 
 def registry_from_rows(rows) -> KeyRegistry:

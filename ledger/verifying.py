@@ -57,10 +57,11 @@ class QuarantineLinks:
 
     def problem_after(self, rows: int) -> str | None:
         """Entries placed after a row that is not stored (``rows``: rows checked)."""
-        for entry in self.entries[self.next:]:
-            return (f"quarantine entry {entry.quarantine_id} is placed after global_seq "
-                    f"{entry.after_global_seq}, the ledger holds {rows} rows")
-        return None
+        if self.next == len(self.entries):
+            return None
+        entry = self.entries[self.next]
+        return (f"quarantine entry {entry.quarantine_id} is placed after global_seq "
+                f"{entry.after_global_seq}, the ledger holds {rows} rows")
 
 
 class GapHistory:
