@@ -14,7 +14,7 @@ DEV_STAMP   := $(VENV)/.installed-dev
 # the process demo: the edge services, the ledger and projector services, the simulator
 DEMO_EXTRAS := edge,ledger,projector,sim
 
-.PHONY: demo test accuracy bench schemas clean mutate
+.PHONY: demo test accuracy bench schemas clean mutate faults
 
 $(PY):
 	$(PYTHON) -m venv $(VENV)
@@ -39,6 +39,11 @@ test: $(DEV_STAMP)
 # bench/accuracy.py and the demo seed of bench/projector_truth.py against their targets.
 accuracy: $(DEV_STAMP)
 	$(PY) -m pytest -q -m accuracy
+
+# Every fault-injection case (tests/faults), the long ones and the 30-minute soak included;
+# make test runs only the quick ones.
+faults: $(DEV_STAMP)
+	$(PY) -m pytest -q -p no:cacheprovider tests/faults --long-faults
 
 bench: $(DEV_STAMP)
 	$(PY) bench/ledger.py

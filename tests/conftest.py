@@ -24,6 +24,9 @@ def pytest_addoption(parser):
     parser.addoption("--seed", type=int, default=None, metavar="N",
                      help=f"the seed of every random test (default: ${seeding.ENV}, else a "
                      "fresh one per run, printed)")
+    parser.addoption("--long-faults", action="store_true", default=False,
+                     help="also run the long fault-injection cases (tests/faults, marked "
+                     "long_fault; `make faults`)")
 
 
 def pytest_configure(config):
@@ -50,10 +53,14 @@ def _is_seeded(item) -> bool:
 
 def pytest_collection_modifyitems(config, items):
     """Hypothesis tests draw their examples from the run's seed (and skip the example
-    database, as ``hypothesis.seed`` does), so ``--seed N`` replays them."""
+    database, as ``hypothesis.seed`` does), so ``--seed N`` replays them.  The long
+    fault-injection cases run only with ``--long-faults`` (``make faults``)."""
     from hypothesis import seed as hypothesis_seed
 
+    long_faults = config.getoption("--long-faults")
     for item in items:
+        if item.get_closest_marker("long_fault") is not None and not long_faults:
+            item.add_marker(pytest.mark.skip(reason="a long fault case: make faults runs it"))
         obj = getattr(item, "obj", None)
         if getattr(obj, "is_hypothesis_test", False):
             hypothesis_seed(seeding.session_seed())(obj)
