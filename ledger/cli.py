@@ -9,17 +9,19 @@ import argparse
 import json
 import sys
 from pathlib import Path
-from typing import IO, Callable, Iterable, Iterator
+from typing import IO
 
 from common.progress import Progress, enabled_from_args, progress as progress_bar
 
 from common.options import (DEFAULT_BATCH_SIZE, add_batch_size, add_bitemporal, add_clock,
                             add_out, add_types)
-from schemas.events import EVENT_TYPES, Event, Malformed
-from schemas.jsonl import decode_line, event_line
+from schemas.events import EVENT_TYPES
+from schemas.jsonl import event_line
 
 from ledger import open_ledger
 from ledger.clock import clock_by_name
+from ledger.importing import (TO_REJECT_FILE, RejectFile, default_rejects_path,
+                              import_lines)
 from ledger.records import STATUSES, LedgerStats
 from ledger.signing import add_signing_options, policy_from_args
 from ledger.store import LedgerStore
@@ -30,47 +32,6 @@ from schemas.times import format_time_ns, parse_time_ns
 
 DEFAULT_BATCH = DEFAULT_BATCH_SIZE
 EXIT_OK, EXIT_VERIFY_FAILED, EXIT_USAGE = 0, 1, 2
-
-
-def _batches(items: Iterable[Event | Malformed], size: int) -> Iterator[list[Event | Malformed]]:
-    batch: list[Event | Malformed] = []
-    for item in items:
-        batch.append(item)
-        if len(batch) >= size:
-            yield batch
-            batch = []
-    if batch:
-        yield batch
-
-
-def import_lines(store: LedgerStore, lines: Iterable[str | bytes], *, name: str = "<input>",
-                 batch_size: int = DEFAULT_BATCH, progress: Progress | None = None,
-                 fraction: Callable[[], float] | None = None) -> dict[str, int]:
-    """Append canonical JSON lines to a store in batches; return counts per status.
-
-    Blank lines are skipped; every other line ends up appended, a duplicate, or in
-    quarantine with its reason.  ``progress`` counts lines after each batch;
-    ``fraction()`` (0..1, the part of the input read) lets it estimate the total.
-    """
-    counts = dict.fromkeys(STATUSES, 0)
-    counts["lines"] = 0
-
-    def events() -> Iterator[Event | Malformed]:
-        for number, line in enumerate(lines, 1):
-            stripped = line.strip()
-            if not stripped:
-                continue
-            counts["lines"] += 1
-            yield decode_line(stripped, where=f"{name}:{number}")
-
-    for batch in _batches(events(), batch_size):
-        result = store.append(batch)
-        for status, n in result.counts.items():
-            counts[status] += n
-        if progress is not None:
-            progress.set_postfix(f"{counts['appended']:,} appended")
-            progress.update_to(counts["lines"], fraction=fraction() if fraction else None)
-    return counts
 
 
 def export_lines(store: LedgerStore, out: IO[str], *, types: list[str] | None = None,
@@ -128,10 +89,11 @@ def format_stats(stats: LedgerStats, path: str) -> str:
 
 def cmd_import(args: argparse.Namespace) -> int:
     clock = clock_by_name(args.clock)
-    source = sys.stdin if args.file == "-" else None
+    source = sys.stdin.buffer if args.file == "-" else None
     if source is None and not Path(args.file).is_file():
         raise FileNotFoundError(f"no such file: {args.file}")
-    with open_ledger(args.ledger, clock, signing=policy_from_args(args)) as store:
+    rejects = RejectFile(args.rejects or default_rejects_path(args.ledger))
+    with open_ledger(args.ledger, clock, signing=policy_from_args(args)) as store, rejects:
         handle = source or open(args.file, "rb")
         size_bytes = 0 if source is not None else Path(args.file).stat().st_size
         try:
@@ -139,17 +101,24 @@ def cmd_import(args: argparse.Namespace) -> int:
                               enabled=enabled_from_args(args)) as bar:
                 counts = import_lines(store, handle, name=args.file, batch_size=args.batch_size,
                                       progress=bar, fraction=(lambda: handle.tell() / size_bytes)
-                                      if size_bytes else None)
+                                      if size_bytes else None, rejects=rejects)
         finally:
             if source is None:
                 handle.close()
         head = store.head().global_seq
+    rejects_file = str(rejects.path) if counts[TO_REJECT_FILE] else None
     if args.json:
-        print(json.dumps({**counts, "head_global_seq": head}))
+        print(json.dumps({**counts, "head_global_seq": head, "rejects_file": rejects_file}))
     else:
         print(f"imported {args.file}: {counts['lines']:,} lines -> "
               + ", ".join(f"{counts[s]:,} {s}" for s in STATUSES)
+              + (f", {counts[TO_REJECT_FILE]:,} to the reject file {rejects_file}"
+                 if rejects_file else "")
               + f" (ledger {args.ledger}, head global_seq {head})")
+    if rejects_file:
+        print(f"stockpile: error: {counts[TO_REJECT_FILE]:,} lines could not be stored even in "
+              f"the quarantine; they are in {rejects_file}", file=sys.stderr)
+        return EXIT_USAGE
     return EXIT_OK
 
 
@@ -250,13 +219,18 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
     p = sub.add_parser("import", help="append canonical JSON lines (creates the ledger if missing)",
                        description="Append canonical JSON lines to a ledger. Bad lines are "
-                       "quarantined with their reason; the rest is kept.")
+                       "quarantined with their reason and raw bytes; the rest is kept. A line "
+                       "the ledger cannot hold even in its quarantine goes to the reject file "
+                       "(exit 2).")
     p.add_argument("file", help="JSON lines file, or - for standard input")
     p.add_argument("--ledger", required=True, help="ledger file (created if missing)")
     add_batch_size(p)
     add_clock(p, help="recorded time from the wall clock or from the file's clock events "
               "(lines with recorded_time_ns keep theirs)")
     p.add_argument("--json", action="store_true", help="print the counts as JSON")
+    p.add_argument("--rejects", metavar="PATH",
+                   help="where lines the ledger cannot hold even in its quarantine are written "
+                   "(default: LEDGER.rejects.jsonl; created only when needed)")
     add_signing_options(p)
     p.set_defaults(func=cmd_import)
 

@@ -25,8 +25,8 @@ from collections import Counter
 from dataclasses import dataclass, field
 from typing import Iterable, Iterator, Sequence
 
-from schemas.events import Event, Malformed
-from schemas.jsonl import body_json
+from schemas.events import MAX_COUNTER, Event, Malformed
+from schemas.jsonl import body_json, storable_text
 from schemas.validate import REASON_CODES, InvalidEvent, check_event, is_time_ns
 
 from ledger.chain import GENESIS, chain_hash, payload_hash
@@ -193,13 +193,14 @@ class _BatchPlanner:
         entry = QuarantineEntry(
             quarantine_id=s.next_quarantine_id,
             recorded_time_ns=recorded,
-            type=str(item.type or ""),
-            source=str(item.source or ""),
+            # text a store cannot hold (lone surrogates) is kept as backslash escapes
+            type=storable_text(str(item.type or "")),
+            source=storable_text(str(item.source or "")),
             epoch=epoch,
             seq=seq,
             valid_time_ns=valid,
             code=code,
-            detail=detail,
+            detail=storable_text(detail),
             raw=raw,
             existing_global_seq=existing,
         )
@@ -343,11 +344,22 @@ class _BatchPlanner:
         return None
 
 
+def _storable_key(item: Event) -> bool:
+    """Whether ``item``'s (source, epoch, seq) has the types and ranges of a stored key."""
+    epoch, seq = item.epoch, item.seq
+    return (type(epoch) is int and type(seq) is int and type(item.source) is str
+            and 0 <= epoch <= MAX_COUNTER and 0 <= seq <= MAX_COUNTER)
+
+
 def keys_to_look_up(state: WriterState, batch: Iterable[Event | Malformed]) -> list[Key]:
-    """Keys of a batch that may already be stored (so their payload hash is needed)."""
+    """Keys of a batch that may already be stored (so their payload hash is needed).
+
+    Only keys a store can hold are looked up: an epoch or seq outside [0, 2^63) is never
+    stored (the planner quarantines it as ``bad_identity``).
+    """
     keys = []
     for item in batch:
-        if not isinstance(item, Event) or not isinstance(item.seq, int):
+        if not isinstance(item, Event) or not _storable_key(item):
             continue
         stream = state.streams.get((item.source, item.epoch))
         if stream is not None and stream.is_stored(item.seq):

@@ -24,12 +24,14 @@ import base64
 import binascii
 import json
 import math
+import re
 from typing import Any
 
 from google.protobuf import json_format
 from google.protobuf.message import Message
 
 from schemas.events import EVENT_TYPES, Event, Malformed, decode_payload
+from schemas.validate import shown
 
 _ENVELOPE_INT_FIELDS = ("epoch", "seq", "valid_time_ns")
 
@@ -76,30 +78,91 @@ def event_line(event) -> str:
                        event.payload, event.recorded_time_ns, event.signer, event.signature)
 
 
+def storable_text(text: str) -> str:
+    """``text`` with lone surrogates (which no UTF-8 store can hold) written as backslash
+    escapes (``\\ud800``); any other text is returned unchanged."""
+    try:
+        text.encode("utf-8")
+    except UnicodeEncodeError:
+        return text.encode("utf-8", "backslashreplace").decode("utf-8")
+    return text
+
+
+#: a ``\u`` escape of a UTF-16 surrogate: only a line holding one can decode to a lone one
+_SURROGATE_ESCAPE = re.compile(rb"\\u[dD][89abcdefABCDEF]")
+
+
+def _int64(value: object) -> int | None:
+    """``value`` if it is an integer in signed 64 bits (what the store holds), else None."""
+    if isinstance(value, int) and not isinstance(value, bool) and -(2**63) <= value < 2**63:
+        return value
+    return None
+
+
 def decode_line(line: str | bytes, *, where: str = "") -> Event | Malformed:
     """Parse one JSON line into an :class:`Event`; anything unreadable becomes :class:`Malformed`.
+
+    It never raises: bytes that are not UTF-8 (``not_utf8``), a lone surrogate escape
+    anywhere (``lone_surrogate``), an integer too long to parse (``too_large``), nesting too
+    deep to parse (``too_deep``), a body protobuf refuses (``undecodable``) each become a
+    :class:`Malformed` whose reason starts with its code (:data:`schemas.validate.REASON_CODES`).
+    Its identity fields are those that were readable; text is made storable
+    (:func:`storable_text`) and integers outside signed 64 bits are left out.
 
     The payload is serialised deterministically, so the same body always gives the
     same payload bytes (re-importing a file is a no-op, not a conflict).
     """
-    raw = line.encode() if isinstance(line, str) else bytes(line)
-    prefix = f"{where}: " if where else ""
+    if isinstance(line, str):
+        line = line.encode("utf-8", "surrogatepass")
+    raw = bytes(line)
+    prefix = f"{storable_text(where)}: " if where else ""
+    try:
+        return _decode(raw, prefix)
+    except RecursionError:
+        return Malformed(raw=raw, reason=f"too_deep: {prefix}nested too deeply to decode")
+    except Exception as exc:  # noqa: BLE001 - the promise is "never raises"; the reason says what
+        return Malformed(raw=raw, reason=f"malformed: {prefix}cannot decode "
+                         f"({type(exc).__name__}: {storable_text(str(exc))[:200]})")
+
+
+def _decode(raw: bytes, prefix: str) -> Event | Malformed:
     try:
         record = json.loads(raw)
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        return Malformed(raw=raw, reason=f"malformed: {prefix}not JSON ({exc.msg})")
+    except UnicodeDecodeError as exc:
+        return Malformed(raw=raw, reason=f"not_utf8: {prefix}byte 0x{raw[exc.start]:02x} at "
+                         f"offset {exc.start} is not UTF-8 ({exc.reason})")
+    except json.JSONDecodeError as exc:
+        return Malformed(raw=raw, reason=f"malformed: {prefix}not JSON ({exc.msg} at offset "
+                         f"{exc.pos})")
+    except RecursionError:
+        return Malformed(raw=raw, reason=f"too_deep: {prefix}JSON nested too deeply to parse")
+    except ValueError as exc:  # an integer longer than sys.get_int_max_str_digits()
+        return Malformed(raw=raw, reason=f"too_large: {prefix}{storable_text(str(exc))[:200]}")
     if not isinstance(record, dict):
         return Malformed(raw=raw, reason=f"malformed: {prefix}a line must be a JSON object")
     type_name = record.get("type")
     source = record.get("source")
-    ident = {
-        "type": type_name if isinstance(type_name, str) else "",
-        "source": source if isinstance(source, str) else "",
+    ident: dict[str, Any] = {
+        "type": storable_text(type_name) if isinstance(type_name, str) else "",
+        "source": storable_text(source) if isinstance(source, str) else "",
     }
     for name in _ENVELOPE_INT_FIELDS:
-        value = record.get(name)
-        if isinstance(value, int) and not isinstance(value, bool):
+        value = _int64(record.get(name))
+        if value is not None:
             ident[name] = value
+    if _SURROGATE_ESCAPE.search(raw):
+        try:
+            json.dumps(record, ensure_ascii=False).encode("utf-8")
+        except UnicodeEncodeError as exc:
+            return Malformed(raw=raw, reason=f"lone_surrogate: {prefix}"
+                             f"{exc.object[exc.start]!r} (half a surrogate pair) in the line",
+                             **ident)
+    too_big = [n for n in (*_ENVELOPE_INT_FIELDS, "recorded_time_ns")
+               if isinstance(record.get(n), int) and not isinstance(record.get(n), bool)
+               and _int64(record.get(n)) is None]
+    if too_big:
+        return Malformed(raw=raw, reason=f"bad_identity: {prefix}{', '.join(too_big)} outside "
+                         "signed 64 bits", **ident)
     missing = [n for n in ("type", "source", *_ENVELOPE_INT_FIELDS) if n not in ident]
     if missing or not ident["type"] or not ident["source"]:
         missing = missing or [n for n in ("type", "source") if not ident[n]]
@@ -118,23 +181,26 @@ def decode_line(line: str | bytes, *, where: str = "") -> Event | Malformed:
         except (ValueError, binascii.Error) as exc:
             return Malformed(raw=raw, reason=f"malformed: {prefix}bad signature ({exc})", **ident)
     if type_name not in EVENT_TYPES:
-        return Malformed(raw=raw, reason=f"unknown_type: {prefix}unknown event type {type_name!r}",
-                         **ident)
+        return Malformed(raw=raw, reason=f"unknown_type: {prefix}unknown event type "
+                         f"{shown(ident['type'])}", **ident)
     body = record.get("body", {})
     if not isinstance(body, dict):
         return Malformed(raw=raw, reason=f"malformed: {prefix}body must be a JSON object", **ident)
     try:
         message = json_format.ParseDict(body, EVENT_TYPES[type_name]())
-    except (json_format.ParseError, ValueError, TypeError) as exc:
-        return Malformed(raw=raw, reason=f"undecodable: {prefix}body is not a {type_name}: {exc}",
-                         **ident)
+        payload = message.SerializeToString(deterministic=True)
+    except RecursionError:
+        return Malformed(raw=raw, reason=f"too_deep: {prefix}body nested too deeply", **ident)
+    except Exception as exc:  # noqa: BLE001 - protobuf raises ParseError, ValueError, SystemError...
+        return Malformed(raw=raw, reason=f"undecodable: {prefix}body is not a {type_name}: "
+                         f"{storable_text(str(exc))[:300]}", **ident)
     return Event(
         type=type_name,
         source=source,
         epoch=ident["epoch"],
         seq=ident["seq"],
         valid_time_ns=ident["valid_time_ns"],
-        payload=message.SerializeToString(deterministic=True),
+        payload=payload,
         recorded_time_ns=recorded,
         signer=signer,
         signature=signature,

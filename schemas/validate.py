@@ -52,6 +52,12 @@ REASON_CODES: dict[str, str] = {
     "unknown_enum": "an enum value that is unspecified or not in the schema",
     "conflict": "same (source, epoch, seq) as a stored event, different payload",
     "recorded_time_backwards": "a preserved recorded time earlier than the ledger head",
+    # what an import line can be besides an event (schemas.jsonl.decode_line, ledger.importing)
+    "not_utf8": "input line is not UTF-8 text",
+    "lone_surrogate": "a \\u escape of half a UTF-16 surrogate pair, which no text can hold",
+    "too_large": "a number with more digits than a line may carry",
+    "too_deep": "JSON nested deeper than a line may be",
+    "unstorable": "the store refused the line as an event; kept as raw bytes only",
 }
 
 #: Analytes may sum to 100 % plus this rounding allowance (mass %, absolute).
@@ -123,28 +129,41 @@ class InvalidEvent(ValueError):
 _KNOWN_SOURCES: set[str] = set()  # sources already seen valid (bounded cache)
 
 
+def shown(value: object, limit: int = 60) -> str:
+    """``repr(value)`` cut to about ``limit`` characters; a huge integer by its size in bits
+    (``repr`` of one with more than 4,300 digits raises)."""
+    if isinstance(value, int) and not isinstance(value, bool) and value.bit_length() > 96:
+        return f"an integer of {value.bit_length():,} bits"
+    text = repr(value)
+    return text if len(text) <= limit else text[:limit - 3] + "..."
+
+
 def check_identity(event: Event) -> None:
-    """Raise :class:`InvalidEvent` unless type, source, epoch and seq are well formed."""
+    """Raise :class:`InvalidEvent` unless type, source, epoch and seq are well formed.
+
+    Epoch and seq must lie in [0, 2^63), valid and recorded time in signed 64 bits (what
+    the store holds); anything else, however large, is ``bad_identity``.
+    """
     if event.type not in EVENT_TYPES:
-        raise InvalidEvent("unknown_type", f"unknown event type {event.type!r}")
+        raise InvalidEvent("unknown_type", f"unknown event type {shown(event.type)}")
     source = event.source
     if source not in _KNOWN_SOURCES:
         if type(source) is not str or not is_valid_source(source):
-            raise InvalidEvent("bad_identity", f"bad source {source!r}")
+            raise InvalidEvent("bad_identity", f"bad source {shown(source)}")
         if len(_KNOWN_SOURCES) < 100_000:
             _KNOWN_SOURCES.add(source)
     epoch, seq = event.epoch, event.seq
     if type(epoch) is not int or not 0 <= epoch <= MAX_COUNTER:
-        raise InvalidEvent("bad_identity", f"epoch {epoch!r} is not in [0, 2^63)")
+        raise InvalidEvent("bad_identity", f"epoch {shown(epoch)} is not in [0, 2^63)")
     if type(seq) is not int or not 0 <= seq <= MAX_COUNTER:
-        raise InvalidEvent("bad_identity", f"seq {seq!r} is not in [0, 2^63)")
+        raise InvalidEvent("bad_identity", f"seq {shown(seq)} is not in [0, 2^63)")
     valid = event.valid_time_ns
     if type(valid) is not int or not MIN_TIME_NS <= valid <= MAX_TIME_NS:
         raise InvalidEvent("bad_identity",
-                           f"valid_time_ns {valid!r} is not a signed 64-bit integer")
+                           f"valid_time_ns {shown(valid)} is not a signed 64-bit integer")
     if event.recorded_time_ns is not None and not is_time_ns(event.recorded_time_ns):
-        raise InvalidEvent("bad_identity",
-                           f"recorded_time_ns {event.recorded_time_ns!r} is not a signed 64-bit integer")
+        raise InvalidEvent("bad_identity", f"recorded_time_ns {shown(event.recorded_time_ns)} "
+                           "is not a signed 64-bit integer")
     if not isinstance(event.payload, (bytes, bytearray, memoryview)):
         raise InvalidEvent("undecodable", "payload is not bytes")
 
