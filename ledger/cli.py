@@ -89,7 +89,7 @@ def format_stats(stats: LedgerStats, path: str) -> str:
 
 def cmd_import(args: argparse.Namespace) -> int:
     clock = clock_by_name(args.clock)
-    source = sys.stdin.buffer if args.file == "-" else None
+    source = getattr(sys.stdin, "buffer", sys.stdin) if args.file == "-" else None
     if source is None and not Path(args.file).is_file():
         raise FileNotFoundError(f"no such file: {args.file}")
     rejects = RejectFile(args.rejects or default_rejects_path(args.ledger))

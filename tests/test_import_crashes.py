@@ -228,3 +228,15 @@ def test_line_refused_even_as_raw_bytes_goes_to_the_reject_file(tmp_path):
     assert record["reason"].startswith(f"unstorable: {path}:2: ")
     assert base64.b64decode(record["raw_base64"]) == bad
     assert not default_rejects_path(ledger).exists()
+
+
+def test_latin1_line_on_standard_input(tmp_path):
+    bad = _latin1()
+    ledger = tmp_path / "ledger.duckdb"
+    run = subprocess.run(
+        [sys.executable, "-m", "stockpile.cli", "ledger", "import", "-", "--ledger", str(ledger),
+         "--json"], input=b"\n".join([good_line(0).encode(), bad, good_line(3).encode()]),
+        capture_output=True, timeout=300)
+    assert run.returncode == 0, run.stderr.decode(errors="replace")
+    assert json.loads(run.stdout)["appended"] == 2
+    check_ledger(ledger, [0, 3], [(bad, "not_utf8", "-:2")])
