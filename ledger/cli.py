@@ -116,8 +116,9 @@ def cmd_import(args: argparse.Namespace) -> int:
                  if rejects_file else "")
               + f" (ledger {args.ledger}, head global_seq {head})")
     if rejects_file:
-        print(f"stockpile: error: {counts[TO_REJECT_FILE]:,} lines could not be stored even in "
-              f"the quarantine; they are in {rejects_file}", file=sys.stderr)
+        n = counts[TO_REJECT_FILE]
+        print(f"stockpile: error: {n:,} line{'s' if n != 1 else ''} could not be stored even in "
+              f"the quarantine; see {rejects_file}", file=sys.stderr)
         return EXIT_USAGE
     return EXIT_OK
 

@@ -216,8 +216,7 @@ def test_line_refused_even_as_raw_bytes_goes_to_the_reject_file(tmp_path):
     assert run.returncode == 2
     stderr = run.stderr.decode().strip().splitlines()
     assert [line for line in stderr if "error" in line] == [
-        f"stockpile: error: 1 lines could not be stored even in the quarantine; they are in "
-        f"{rejects}"]
+        f"stockpile: error: 1 line could not be stored even in the quarantine; see {rejects}"]
     counts = json.loads(run.stdout)
     assert (counts["lines"], counts["appended"], counts["rejected"], counts["to_reject_file"]) \
         == (3, 2, 0, 1)
