@@ -4,7 +4,7 @@ the lines a ledger refuses even to quarantine.
 Each hostile line sits between good lines of the same batch; the real CLI imports the file
 into a real DuckDB file, and the test reads the ledger back: the good lines are appended,
 the hostile one is quarantined with its raw bytes, its file and line number and a reason
-code, and no exception escapes (exit 0, nothing on stderr but the progress line).
+code, and no exception escapes (exit 0, no traceback).
 Where the store itself was the culprit (a seq below -2^63, a lone surrogate in an
 identity field) both backends are driven directly as well.
 """
