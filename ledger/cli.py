@@ -199,7 +199,8 @@ def cmd_verify(args: argparse.Namespace) -> int:
                  else f"first bad row global_seq {report.first_bad_seq}: ")
         print(f"FAILED: {where}{report.problem} ({report.rows_checked:,} rows before it are "
               "intact)")
-    print(f"{'ok' if sidecar_ok else 'FAILED'}: head sidecar: {sidecar}")
+    if not sidecar_ok:
+        print(f"FAILED: head sidecar: {sidecar}")
     for label, result in found:
         signer = f" (signed by {result.signer})" if result.signer else " (unsigned)"
         if result.ok:

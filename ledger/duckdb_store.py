@@ -23,7 +23,8 @@ transaction.
 
 DuckDB allows one process to open a file for writing *or* many processes to open
 it read-only, never both at once.  While a writer (the ledger service) runs, other
-processes read through it (the ledger service's Zenoh queryables), or read a copy.
+processes read through it (the ledger service's Zenoh queryables), or read a backup
+(:mod:`ledger.backup`).
 """
 
 from __future__ import annotations

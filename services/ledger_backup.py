@@ -2,10 +2,11 @@
 
 ``stockpile ledger backup`` on a file a ledger service holds sends ``q/backup`` with the
 payload ``{"to": "/abs/backup/dir"}``.  The queryable puts a :class:`BackupRequest` into
-the writer's sample queue; the writer (:class:`services.ledger_service.Writer`) meets it
-between two batches and calls :meth:`BackupRequest.copy` there, which checkpoints the
-store and copies its file (:func:`ledger.backup.take_copy`): no batch is appended
-meanwhile, so the copy holds one committed head.  Verifying the copy and writing its
+the writer's sample queue; the writer (:class:`services.ledger_service.Writer`) takes
+its samples through :func:`next_sample`, which meets it between two batches and calls
+:meth:`BackupRequest.copy` there, which checkpoints the store and copies its file
+(:func:`ledger.backup.take_copy`): no batch is appended meanwhile, so the copy holds one
+committed head.  Verifying the copy and writing its
 manifest (:func:`ledger.backup.finish`) then run on a thread of their own, so the writer
 goes back to its batches at once; the reply is the manifest as JSON, or one
 ``reply_err`` with the reason.
@@ -14,6 +15,7 @@ goes back to its batches at once; the reply is the manifest as JSON, or one
 from __future__ import annotations
 
 import json
+import queue
 import threading
 from dataclasses import asdict
 
@@ -71,3 +73,15 @@ class BackupRequest:
         emit(SERVICE, "warning", "backup failed", error=message)
         with self.query:
             self.query.reply_err(message.encode())
+
+
+def next_sample(samples: queue.Queue, store: LedgerStore, timeout_s: float | None = None):
+    """The writer's next queue item (``timeout_s``: longest wait, seconds; queue.Empty
+    after it); a backup request met on the way is served first, between batches (nothing
+    of the batch being gathered is committed yet)."""
+    while True:
+        item = samples.get(timeout=timeout_s) if timeout_s is None or timeout_s > 0 \
+            else samples.get_nowait()
+        if not isinstance(item, BackupRequest):
+            return item
+        item.copy(store)

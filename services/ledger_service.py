@@ -84,7 +84,7 @@ from ledger.wire import (encode_records, gap_to_json, head_to_json, quarantine_t
                          stream_to_json)
 from schemas.events import Malformed, decode_attachment, event_from_sample
 from services.service import ServiceRuntime, Stopper, ZenohOptions, log
-from services.ledger_backup import BackupRequest
+from services.ledger_backup import BackupRequest, next_sample
 from services.ledger_checkpoints import Checkpointer
 from services.zenoh_config import reader_endpoints
 
@@ -221,19 +221,9 @@ class Writer:
         self.failed: BaseException | None = None
         self.batches = 0
 
-    def _get(self, timeout_s: float | None = None):
-        """The next item of the queue; a backup request met on the way is served first
-        (nothing of the batch being gathered is committed yet: between batches)."""
-        while True:
-            item = self.samples.get(timeout=timeout_s) if timeout_s is None or timeout_s > 0 \
-                else self.samples.get_nowait()
-            if not isinstance(item, BackupRequest):
-                return item
-            item.copy(self.store)
-
     def _take_batch(self) -> tuple[list, bool]:
         """Block for the first sample, then gather until size or time bound."""
-        first = self._get()
+        first = next_sample(self.samples, self.store)
         if first is _STOP:
             return [], True
         batch = [first]
@@ -242,7 +232,7 @@ class Writer:
         while len(batch) < self.config.batch_size:
             remaining = deadline - time.monotonic()
             try:
-                item = self._get(remaining)
+                item = next_sample(self.samples, self.store, remaining)
             except queue.Empty:
                 break
             if item is _STOP:
