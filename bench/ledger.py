@@ -254,7 +254,7 @@ def _reappend(name: str, w: Workload, st: list, batch: int, ours_path: str, reco
 
 def _remove_files(*paths: str) -> None:
     for path in paths:
-        for suffix in ("", ".wal", "-wal", "-shm"):
+        for suffix in ("", ".wal", ".head", "-wal", "-shm"):
             if os.path.exists(path + suffix):
                 os.remove(path + suffix)
 

@@ -136,7 +136,7 @@ def bench_record(session: Path, work: Path, repeats: int) -> dict:
 
 def bench_replay_ledger(session: Path, work: Path) -> dict:
     target = work / "replayed.duckdb"
-    for suffix in ("", ".wal"):
+    for suffix in ("", ".wal", ".head"):
         Path(str(target) + suffix).unlink(missing_ok=True)
     with open_ledger(target) as store:
         result = replay_to_ledger(session, store)

@@ -17,6 +17,8 @@ functions, so that a concept is spelled the same everywhere:
     progress on stderr (default: on when stderr is a terminal).
 ``--batch-size N``
     events per atomic ledger batch (default :data:`DEFAULT_BATCH_SIZE`).
+``--accept-loss``
+    open a ledger for writing although its head went backwards (``ledger.head_file``).
 durations
     a number with a unit (``90s``, ``15min``, ``1h``, ``2d``); a bare number is refused
     because it used to mean hours, seconds or nanoseconds depending on the command.
@@ -248,6 +250,15 @@ def add_batch_size(parser: argparse.ArgumentParser | Any) -> argparse.Action:
     return parser.add_argument("--batch-size", type=positive_int, default=DEFAULT_BATCH_SIZE,
                                metavar="N", help="events per atomic ledger batch "
                                f"(default {DEFAULT_BATCH_SIZE:,})")
+
+
+def add_accept_loss(parser: argparse.ArgumentParser | Any) -> argparse.Action:
+    """``--accept-loss``: open a ledger for writing although its head went backwards."""
+    return parser.add_argument(
+        "--accept-loss", action="store_true",
+        help="open the ledger although its head went backwards (it holds less than its "
+        "head sidecar recorded as committed): only after a human has looked; the loss is "
+        "logged and the sidecar rewritten (see docs/operations.md)")
 
 
 def non_negative_float(text: str) -> float:

@@ -16,6 +16,8 @@
 - :mod:`ledger.views`: SQL views for auditors
 - :mod:`ledger.wire`: the forms reads take over the network (record chunks, JSON)
 - :mod:`ledger.holder`: who holds a ledger file, and reading it through them
+- :mod:`ledger.head_file`: the head sidecar, which detects a lost tail
+- :mod:`ledger.backup`: consistent, verified backups and their restore
 - :mod:`ledger.cli`: ``stockpile ledger import|export|verify|stats``
 """
 
@@ -28,6 +30,7 @@ from ledger.clock import EventClock, ManualClock, SiteClock, WallClock, clock_by
 from ledger.errors import (
     DatabaseError,
     DataError,
+    HeadWentBackwards,
     IntegrityError,
     LedgerLocked,
     InterfaceError,
@@ -57,11 +60,16 @@ MEMORY = ":memory:"
 
 
 def open_ledger(path: str | os.PathLike[str], clock: SiteClock | None = None, *,
-                read_only: bool = False, signing: SigningPolicy | None = None) -> LedgerStore:
+                read_only: bool = False, signing: SigningPolicy | None = None,
+                accept_loss: bool = False) -> LedgerStore:
     """Open (or create) a ledger: a DuckDB file, or ``":memory:"`` for the in-memory store.
 
     Read-only, a file that a running ledger service holds is read through that service
     (:mod:`ledger.holder`) when the application registered a reader for it.
+
+    For writing, a file is checked against its head sidecar (:mod:`ledger.head_file`):
+    a ledger whose head went backwards raises :class:`HeadWentBackwards`, unless
+    ``accept_loss`` (a human has looked), which logs the loss and rewrites the sidecar.
     """
     if str(path) == MEMORY:
         if read_only:
@@ -72,7 +80,8 @@ def open_ledger(path: str | os.PathLike[str], clock: SiteClock | None = None, *,
     from ledger.duckdb_store import DuckDBStore
 
     try:
-        return DuckDBStore(path, clock, read_only=read_only, signing=signing)
+        return DuckDBStore(path, clock, read_only=read_only, signing=signing,
+                           accept_loss=accept_loss)
     except LedgerLocked as locked:
         if read_only:
             return open_held(Path(path), locked)
@@ -85,6 +94,7 @@ def open_ledger(path: str | os.PathLike[str], clock: SiteClock | None = None, *,
 
 __all__ = [
     "AppendOutcome", "AppendResult", "DataError", "DatabaseError", "EventClock", "Gap", "Head",
+    "HeadWentBackwards",
     "IntegrityError", "InterfaceError", "InternalError", "LedgerError", "LedgerStats",
     "LedgerLocked", "LedgerStore", "MEMORY", "ManualClock", "NotSupportedError", "OperationalError",
     "ProgrammingError", "QuarantineEntry", "RecordedEvent", "SiteClock", "StreamInfo",

@@ -1,4 +1,4 @@
-"""``stockpile ledger ...``: import, export, verify and stats.
+"""``stockpile ledger ...``: import, export, verify, stats, backup and restore.
 
 Exit codes: 0 ok, 1 verification failed, 2 bad usage or an error (one line on stderr).
 """
@@ -13,12 +13,13 @@ from typing import IO
 
 from common.progress import Progress, enabled_from_args, progress as progress_bar
 
-from common.options import (DEFAULT_BATCH_SIZE, add_batch_size, add_bitemporal, add_clock,
-                            add_out, add_types)
+from common.options import (DEFAULT_BATCH_SIZE, add_accept_loss, add_batch_size, add_bitemporal,
+                            add_clock, add_out, add_progress, add_types)
 from schemas.events import EVENT_TYPES
 from schemas.jsonl import event_line
 
-from ledger import open_ledger
+from ledger import backup, head_file, open_ledger
+from ledger.errors import LedgerLocked, NotSupportedError
 from ledger.clock import clock_by_name
 from ledger.importing import (TO_REJECT_FILE, RejectFile, default_rejects_path,
                               import_lines)
@@ -93,7 +94,8 @@ def cmd_import(args: argparse.Namespace) -> int:
     if source is None and not Path(args.file).is_file():
         raise FileNotFoundError(f"no such file: {args.file}")
     rejects = RejectFile(args.rejects or default_rejects_path(args.ledger))
-    with open_ledger(args.ledger, clock, signing=policy_from_args(args)) as store, rejects:
+    with open_ledger(args.ledger, clock, signing=policy_from_args(args),
+                     accept_loss=args.accept_loss) as store, rejects:
         handle = source or open(args.file, "rb")
         size_bytes = 0 if source is not None else Path(args.file).stat().st_size
         try:
@@ -153,7 +155,8 @@ def cmd_verify(args: argparse.Namespace) -> int:
         report = store.verify()
         head = store.head()
         found = [(label, check_checkpoint(store, cp, ca_pem=ca_pem)) for label, cp in checkpoints]
-    ok = report.ok
+        sidecar_ok, sidecar = head_file.compare(store, args.ledger)
+    ok = report.ok and sidecar_ok
     if report.ok:
         print(f"ok: {report.rows_checked:,} rows verified, head global_seq {head.global_seq}, "
               f"chain {head.chain_sha256.hex()}")
@@ -166,6 +169,8 @@ def cmd_verify(args: argparse.Namespace) -> int:
                  else f"first bad row global_seq {report.first_bad_seq}: ")
         print(f"FAILED: {where}{report.problem} ({report.rows_checked:,} rows before it are "
               "intact)")
+    if not sidecar_ok:
+        print(f"FAILED: head sidecar: {sidecar}")
     for label, result in found:
         signer = f" (signed by {result.signer})" if result.signer else " (unsigned)"
         if result.ok:
@@ -211,6 +216,43 @@ def cmd_stats(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def cmd_backup(args: argparse.Namespace) -> int:
+    if not Path(args.ledger).is_file():
+        raise FileNotFoundError(f"no ledger at {args.ledger}")
+    target = Path(args.to).resolve()
+    from ledger.duckdb_store import DuckDBStore   # deferred: duckdb is heavy
+
+    try:
+        store = open_ledger(args.ledger, accept_loss=args.accept_loss)
+    except LedgerLocked:
+        store = open_ledger(args.ledger, read_only=True)   # through the service holding it
+    with store:
+        if isinstance(store, DuckDBStore):
+            with progress_bar(unit="bytes", desc="backing up",
+                              enabled=enabled_from_args(args)) as bar:
+                manifest = backup.backup(store, target, progress=bar)
+        else:
+            request = getattr(store, "request_backup", None)
+            if request is None:
+                raise NotSupportedError(f"the service holding {args.ledger} takes no backups")
+            print(f"stockpile: asking the ledger service to back up {args.ledger} between "
+                  "two batches", file=sys.stderr)
+            request(str(target))
+            manifest = backup.read_manifest(target)
+    print(f"backed up {args.ledger} to {target}: {manifest.describe()}, "
+          f"{manifest.rows_verified:,} rows verified")
+    return EXIT_OK
+
+
+def cmd_restore(args: argparse.Namespace) -> int:
+    with progress_bar(unit="bytes", desc="checking the backup",
+                      enabled=enabled_from_args(args)) as bar:
+        manifest = backup.restore(args.backup, args.ledger, force=args.force, progress=bar)
+    print(f"restored {args.ledger} from {args.backup}: {manifest.describe()}, "
+          f"{manifest.rows_verified:,} rows verified (taken from {manifest.source})")
+    return EXIT_OK
+
+
 def register(subparsers: argparse._SubParsersAction) -> None:
     """Add ``ledger`` and its subcommands to the ``stockpile`` parser."""
     ledger = subparsers.add_parser(
@@ -233,6 +275,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="where lines the ledger cannot hold even in its quarantine are written "
                    "(default: LEDGER.rejects.jsonl; created only when needed)")
     add_signing_options(p)
+    add_accept_loss(p)
     p.set_defaults(func=cmd_import)
 
     p = sub.add_parser("export", help="print events as canonical JSON lines",
@@ -246,7 +289,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p = sub.add_parser("verify", help="recompute the hash chain and name the first bad row",
                        description="Recompute payload hashes and the hash chain, and with "
                        "--checkpoint prove the ledger still holds a checkpointed prefix (not "
-                       "truncated, not rewritten). Exit 1 if a check fails.")
+                       "truncated, not rewritten); compare the file with its head sidecar "
+                       "(a lost tail). Exit 1 if a check fails.")
     p.add_argument("--ledger", required=True, help="ledger file")
     p.add_argument("--checkpoint", metavar="FILE|DIR|MCAP",
                    help="a checkpoint file the ledger service wrote, a directory of them "
@@ -265,3 +309,26 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--ledger", required=True, help="ledger file")
     p.add_argument("--json", action="store_true", help="print as JSON")
     p.set_defaults(func=cmd_stats)
+
+    p = sub.add_parser("backup", help="a consistent, verified copy (through the service "
+                       "holding the ledger, if one does)",
+                       description="Copy the ledger as of one committed head into DIR (the "
+                       "database, its head sidecar and a manifest), verify the copy's chain "
+                       "and head, and print the head and the file's sha256. While a ledger "
+                       "service holds the ledger, the service takes the copy between batches.")
+    p.add_argument("--ledger", required=True, help="ledger file")
+    p.add_argument("--to", required=True, metavar="DIR", help="backup directory (new or empty)")
+    add_accept_loss(p)
+    add_progress(p)
+    p.set_defaults(func=cmd_backup)
+
+    p = sub.add_parser("restore", help="check a backup and make it the ledger",
+                       description="Check a backup (manifest, sha256, the chain from genesis, "
+                       "the head) and install it as the ledger file with a matching head "
+                       "sidecar. Refuses to replace an existing ledger without --force, and "
+                       "while a process holds it.")
+    p.add_argument("backup", metavar="DIR", help="a directory stockpile ledger backup wrote")
+    p.add_argument("--ledger", required=True, help="ledger file to create (or replace)")
+    p.add_argument("--force", action="store_true", help="replace an existing ledger")
+    add_progress(p)
+    p.set_defaults(func=cmd_restore)

@@ -23,7 +23,8 @@ transaction.
 
 DuckDB allows one process to open a file for writing *or* many processes to open
 it read-only, never both at once.  While a writer (the ledger service) runs, other
-processes read through it (the ledger service's Zenoh queryables), or read a copy.
+processes read through it (the ledger service's Zenoh queryables), or read a backup
+(:mod:`ledger.backup`).
 """
 
 from __future__ import annotations
@@ -44,8 +45,9 @@ from ledger import views
 from ledger.chain import GENESIS
 from ledger.clock import SiteClock
 from ledger.errors import InterfaceError, OperationalError, ProgrammingError, backend_errors
+from ledger.head_file import HeadRecorder, reconcile
 from ledger.signing import SigningPolicy, registry_from_rows
-from ledger.records import Gap, LedgerStats, QuarantineEntry, RecordedEvent, VerifyReport
+from ledger.records import Gap, Head, LedgerStats, QuarantineEntry, RecordedEvent, VerifyReport
 from ledger.store import BODY_TYPES, BatchPlan, Key, LedgerStore, StreamState, WriterState
 
 SCHEMA_VERSION = "2"
@@ -208,10 +210,12 @@ class DuckDBStore(LedgerStore):
     backend = "duckdb"
 
     def __init__(self, path: str | os.PathLike[str], clock: SiteClock | None = None, *,
-                 read_only: bool = False, signing: SigningPolicy | None = None) -> None:
+                 read_only: bool = False, signing: SigningPolicy | None = None,
+                 accept_loss: bool = False) -> None:
         super().__init__(clock, read_only=read_only, signing=signing)
         self.path = Path(path)
         self._registered = False
+        self._head_recorder: HeadRecorder | None = None
         resolved = str(self.path.resolve())
         if read_only and not self.path.exists():
             raise OperationalError(f"no ledger at {self.path}")
@@ -232,6 +236,9 @@ class DuckDBStore(LedgerStore):
                         self._create_schema()
                     self._check_schema()
                     self._state, self._analytes = self._load_state()
+                if not read_only:
+                    self._head_recorder = HeadRecorder(
+                        self.path, reconcile(self, self.path, accept_loss=accept_loss))
             except BaseException:
                 self._con.close()
                 raise
@@ -328,6 +335,9 @@ class DuckDBStore(LedgerStore):
                 self._con.execute(_ROLLBACK)
                 raise
         self._analytes |= new_analytes
+        if self._head_recorder is not None and plan.state is not None:
+            s = plan.state
+            self._head_recorder.record(Head(s.head_seq, s.last_recorded_ns, s.head_chain))
 
     def _insert_rows(self, rows: list[RecordedEvent], bodies: list[str | None]) -> None:
         """INSERT rows into event_log through Arrow (inside the open transaction)."""
@@ -379,6 +389,15 @@ class DuckDBStore(LedgerStore):
             if row.type == "assay" and body:
                 found.update(json.loads(body).get("analytes", {}))
         return found - self._analytes
+
+    def checkpoint(self) -> Head:
+        """Write everything committed into the database file (DuckDB's CHECKPOINT, which
+        empties the WAL); return the head the file then holds."""
+        with self._lock:
+            self._check_writable()
+            with backend_errors():
+                self._con.execute("FORCE CHECKPOINT")
+            return self.head()
 
     # -- verifying -------------------------------------------------------------------------
 

@@ -139,3 +139,9 @@ def backend_errors() -> Iterator[None]:
         raise
     except Exception as exc:
         raise map_backend_error(exc) from exc
+
+
+class HeadWentBackwards(IntegrityError):
+    """The ledger holds less than its head sidecar recorded as committed (a lost WAL tail,
+    a stale copy), or another history: it is not opened for writing without
+    ``accept_loss`` (:mod:`ledger.head_file`)."""

@@ -108,7 +108,8 @@ def open_held(path: Path, locked: LedgerLocked) -> LedgerStore:
         who = f"process {locked.holder_pid}" if locked.holder_pid is not None else "another process"
         raise LedgerLocked(f"{path} is open for writing by {who}, which serves no reads "
                            "(a DuckDB file has one writer or many readers, never both); "
-                           "wait for it to finish, or read a copy", locked.holder_pid)
+                           "wait for it to finish, or read a backup (stockpile ledger backup)",
+                           locked.holder_pid)
     if _remote_reader is None:
         raise LedgerLocked(f"{path} is held by {holder.describe()}; read it through the "
                            "service (stockpile does) or stop the service", holder.pid)

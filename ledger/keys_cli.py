@@ -19,7 +19,7 @@ import argparse
 import time
 from pathlib import Path
 
-from common.options import PROG
+from common.options import PROG, add_accept_loss
 from schemas.events import Event
 from schemas.jsonl import event_line
 from schemas.times import parse_time_ns
@@ -41,7 +41,7 @@ def cmd_new(args: argparse.Namespace) -> int:
 
 def _next_seq(args: argparse.Namespace) -> int:
     if args.ledger:
-        with open_ledger(args.ledger) as store:
+        with open_ledger(args.ledger, accept_loss=args.accept_loss) as store:
             streams = [s for s in store.streams() if (s.source, s.epoch) == (ADMIN_SOURCE, ADMIN_EPOCH)]
             return streams[0].max_seq + 1 if streams else 0
     path = Path(args.out)
@@ -50,7 +50,7 @@ def _next_seq(args: argparse.Namespace) -> int:
 
 def _emit(args: argparse.Namespace, event: Event) -> int:
     if args.ledger:
-        with open_ledger(args.ledger) as store:
+        with open_ledger(args.ledger, accept_loss=args.accept_loss) as store:
             outcome = store.append([event]).outcomes[0]
         if outcome.status != "appended":
             print(f"{PROG}: error: the ledger refused it: {outcome.reason}")
@@ -87,6 +87,7 @@ def _target(p: argparse.ArgumentParser) -> None:
     where.add_argument("--ledger", help="append the event to this ledger")
     where.add_argument("--out", metavar="PATH",
                        help="append the event to this JSON lines file instead")
+    add_accept_loss(p)
 
 
 def register(subparsers) -> None:

@@ -16,7 +16,7 @@ from pathlib import Path
 import zenoh
 
 from common.progress import enabled_from_args, progress
-from common.options import (add_batch_size, add_clock, add_deprecated_positional_out, add_out,
+from common.options import (add_accept_loss, add_batch_size, add_clock, add_deprecated_positional_out, add_out,
                             add_progress, add_types, out_path)
 from ledger import open_ledger
 from ledger.clock import clock_by_name
@@ -103,7 +103,8 @@ def _replay_ledger(args: argparse.Namespace, topics) -> int:
     if args.rate is not None or args.max or args.loop:
         raise ValueError("--rate, --max and --loop are for --publish")
     signing = policy_from_args(args)
-    with open_ledger(args.ledger, clock_by_name(args.clock), signing=signing) as store, \
+    with open_ledger(args.ledger, clock_by_name(args.clock), signing=signing,
+                     accept_loss=args.accept_loss) as store, \
             progress(desc="replay", enabled=enabled_from_args(args)) as bar:
         result = replay_to_ledger(args.input, store,
                                   preserve_recorded_time=args.preserve_recorded_time,
@@ -255,6 +256,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
               "or the file's clock events")
     add_batch_size(led)
     add_signing_options(led)
+    add_accept_loss(led)
     add_progress(p)
     p.set_defaults(func=cmd_replay)
 

@@ -31,6 +31,7 @@ from services.service import ZenohOptions, open_session
 
 DEFAULT_TIMEOUT_S = 30.0
 DEFAULT_PAGE_RECORDS = 10_000
+BACKUP_TIMEOUT_S = 3600.0  # longest wait for a backup's copy and verification, seconds
 
 
 class LedgerUnavailable(OperationalError):
@@ -175,6 +176,13 @@ class LedgerClient:
 
     # -- following ------------------------------------------------------------------------
 
+    def backup(self, target_dir: str, *, timeout_s: float = BACKUP_TIMEOUT_S) -> dict[str, Any]:
+        """Have the service back its ledger up into ``target_dir`` (an absolute path on
+        the service's machine) between two batches; the backup's manifest
+        (:class:`ledger.backup.Manifest` as JSON) once the copy is verified."""
+        slow = LedgerClient(self.session, self.site, timeout_s=timeout_s, stop=self.stop)
+        return slow._json("backup", {"to": target_dir})
+
     def follow_head(self, callback: Callable[[dict[str, Any]], None]):
         """Call ``callback(head)`` after every committed batch; returns the subscriber."""
 
@@ -310,6 +318,10 @@ class RemoteLedger(LedgerStore):
 
     def _commit(self, plan):  # pragma: no cover - a read-only store never appends
         raise InterfaceError("a remote ledger is read-only")
+
+    def request_backup(self, target_dir: str) -> dict[str, Any]:
+        """A backup taken by the service (:meth:`LedgerClient.backup`)."""
+        return self.client.backup(target_dir)
 
     def _close(self) -> None:
         if self._close_session:

@@ -39,6 +39,8 @@ Data flow::
   ``q/gaps``       ``open_only``                                JSON list
   ``q/quarantine`` (none)                                       JSON list
   ``q/streams``    (none)                                       JSON list
+  ``q/backup``     ``to`` (a directory)                         JSON manifest (by the
+                                                                writer, between batches)
   ===============  ==========================================  ====================
 
   ``limit`` caps the records of one answer (a client pages with ``start`` or
@@ -71,7 +73,7 @@ from typing import Any
 import zenoh
 import zenoh.ext as zext
 
-from common.options import add_batch_size, add_clock, add_duration
+from common.options import add_accept_loss, add_batch_size, add_clock, add_duration
 from ledger import clock_by_name, open_ledger
 from ledger.signing import SigningPolicy, add_signing_options, policy_from_args
 from ledger.wire import stats_to_json
@@ -82,6 +84,7 @@ from ledger.wire import (encode_records, gap_to_json, head_to_json, quarantine_t
                          stream_to_json)
 from schemas.events import Malformed, decode_attachment, event_from_sample
 from services.service import ServiceRuntime, Stopper, ZenohOptions, log
+from services.ledger_backup import BackupRequest, next_sample
 from services.ledger_checkpoints import Checkpointer
 from services.zenoh_config import reader_endpoints
 
@@ -137,6 +140,8 @@ class Config:
         Seconds between checkpoints while the head moves; one more at every clean stop.
     signing : SigningPolicy or None
         Types that must be signed and the admin key trusted (:mod:`ledger.signing`).
+    accept_loss : bool
+        Open a ledger whose head went backwards (:mod:`ledger.head_file`).
     """
 
     site: str
@@ -152,6 +157,7 @@ class Config:
     checkpoint_dir: str | None = None
     checkpoint_every_s: float = DEFAULT_CHECKPOINT_EVERY_S
     signing: SigningPolicy | None = None
+    accept_loss: bool = False
 
     def __post_init__(self) -> None:
         if self.batch_size < 1:
@@ -182,6 +188,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                  help="time between checkpoints while the ledger grows, with a unit, wall "
                  "time (default 1h); one more at every clean stop")
     add_signing_options(parser)
+    add_accept_loss(parser)
 
 
 def config_from_args(args: argparse.Namespace) -> Config:
@@ -190,7 +197,7 @@ def config_from_args(args: argparse.Namespace) -> Config:
                   batch_size=args.batch_size, batch_interval_s=args.batch_interval,
                   queue_size=args.queue_size, history=not args.no_history,
                   checkpoint_dir=args.checkpoints, checkpoint_every_s=args.checkpoint_every,
-                  signing=policy_from_args(args))
+                  signing=policy_from_args(args), accept_loss=args.accept_loss)
 
 
 # -- writing ------------------------------------------------------------------------------
@@ -216,7 +223,7 @@ class Writer:
 
     def _take_batch(self) -> tuple[list, bool]:
         """Block for the first sample, then gather until size or time bound."""
-        first = self.samples.get()
+        first = next_sample(self.samples, self.store)
         if first is _STOP:
             return [], True
         batch = [first]
@@ -225,8 +232,7 @@ class Writer:
         while len(batch) < self.config.batch_size:
             remaining = deadline - time.monotonic()
             try:
-                item = self.samples.get(timeout=remaining) if remaining > 0 \
-                    else self.samples.get_nowait()
+                item = next_sample(self.samples, self.store, remaining)
             except queue.Empty:
                 break
             if item is _STOP:
@@ -482,7 +488,7 @@ def main(config: Config, *, stopper: Stopper | None = None) -> int:
         if config.ledger_path != ":memory:":
             Path(config.ledger_path).parent.mkdir(parents=True, exist_ok=True)
         store = open_ledger(config.ledger_path, clock_by_name(config.clock),
-                            signing=config.signing)
+                            signing=config.signing, accept_loss=config.accept_loss)
     except (LedgerError, OSError, ValueError) as exc:
         log(SERVICE, "cannot open the ledger", level="error", ledger=config.ledger_path,
             error=str(exc).splitlines()[0])
@@ -523,7 +529,8 @@ def _serve(config: Config, store: LedgerStore, samples: queue.Queue,
         session.declare_queryable(query_key(config.site, what),
                                   lambda q, what=what: reader.queries.put((what, q)))
         for what in QUERIES
-    ]
+    ] + [session.declare_queryable(query_key(config.site, "backup"), lambda q: samples.put(
+        BackupRequest(q, query_key(config.site, "backup"))))]
 
     def on_sample(sample) -> None:
         attachment = sample.attachment

@@ -224,8 +224,8 @@ class Supervisor:
 
 
 def fresh_ledger_path(path: Path) -> Path:
-    """``path`` with any ledger file (and its ``.wal``) already there removed."""
-    for suffix in ("", ".wal"):
+    """``path`` with any ledger file (and its ``.wal`` and head sidecar) already there removed."""
+    for suffix in ("", ".wal", ".head"):
         candidate = Path(str(path) + suffix)
         if candidate.exists():
             candidate.unlink()
