@@ -17,6 +17,9 @@ functions, so that a concept is spelled the same everywhere:
     progress on stderr (default: on when stderr is a terminal).
 ``--batch-size N``
     events per atomic ledger batch (default :data:`DEFAULT_BATCH_SIZE`).
+``--analytes A,...`` / ``--unknown-analyte quarantine|flag``
+    the ledger writer's declared analyte list and what it does with an analyte on no
+    list (parsed by ``schemas.analytes.policy_from_args``).
 durations
     a number with a unit (``90s``, ``15min``, ``1h``, ``2d``); a bare number is refused
     because it used to mean hours, seconds or nanoseconds depending on the command.
@@ -248,6 +251,19 @@ def add_batch_size(parser: argparse.ArgumentParser | Any) -> argparse.Action:
     return parser.add_argument("--batch-size", type=positive_int, default=DEFAULT_BATCH_SIZE,
                                metavar="N", help="events per atomic ledger batch "
                                f"(default {DEFAULT_BATCH_SIZE:,})")
+
+
+def add_analytes(parser: argparse.ArgumentParser | Any) -> None:
+    """``--analytes A,...`` and ``--unknown-analyte quarantine|flag`` (both default None:
+    what the ledger recorded, else the built-in list with unknown analytes flagged)."""
+    parser.add_argument("--analytes", metavar="A,...",
+                        help="the site's declared analytes, comma-separated (default: the "
+                        "list the ledger recorded, else Fe,SiO2,Al2O3,P,S,Mn,TiO2,CaO,MgO,"
+                        "K2O,Na2O,LOI); other spellings (FE, fe) count as the declared one")
+    parser.add_argument("--unknown-analyte", choices=("quarantine", "flag"), default=None,
+                        help="an assay or lot naming an undeclared analyte is quarantined, or "
+                        "kept with the name listed in assays.unrecognised_analytes (default: "
+                        "what the ledger recorded, else flag)")
 
 
 def non_negative_float(text: str) -> float:

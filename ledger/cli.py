@@ -14,7 +14,8 @@ from typing import IO, Callable, Iterable, Iterator
 from common.progress import Progress, enabled_from_args, progress as progress_bar
 
 from common.options import (DEFAULT_BATCH_SIZE, add_batch_size, add_bitemporal, add_clock,
-                            add_out, add_types)
+                            add_analytes, add_out, add_types)
+from schemas.analytes import policy_from_args as analyte_options
 from schemas.events import EVENT_TYPES, Event, Malformed
 from schemas.jsonl import decode_line, event_line
 
@@ -25,6 +26,7 @@ from ledger.signing import add_signing_options, policy_from_args
 from ledger.store import LedgerStore
 from ledger.checkpoint import (Checkpoint, check_checkpoint, is_mcap, latest_checkpoint,
                                read_checkpoint, read_mcap_checkpoints)
+from ledger.views import check_declared
 from ledger.wire import stats_to_json
 from schemas.times import format_time_ns, parse_time_ns
 
@@ -131,7 +133,11 @@ def cmd_import(args: argparse.Namespace) -> int:
     source = sys.stdin if args.file == "-" else None
     if source is None and not Path(args.file).is_file():
         raise FileNotFoundError(f"no such file: {args.file}")
-    with open_ledger(args.ledger, clock, signing=policy_from_args(args)) as store:
+    analytes = analyte_options(args)
+    if analytes is not None and analytes.declared:
+        check_declared(analytes.declared)   # before the file is created
+    with open_ledger(args.ledger, clock, signing=policy_from_args(args),
+                     analytes=analytes) as store:
         handle = source or open(args.file, "rb")
         size_bytes = 0 if source is not None else Path(args.file).stat().st_size
         try:
@@ -258,6 +264,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
               "(lines with recorded_time_ns keep theirs)")
     p.add_argument("--json", action="store_true", help="print the counts as JSON")
     add_signing_options(p)
+    add_analytes(p)
     p.set_defaults(func=cmd_import)
 
     p = sub.add_parser("export", help="print events as canonical JSON lines",
