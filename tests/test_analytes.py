@@ -257,3 +257,36 @@ def test_yard_config_analytes_reach_the_ledger_service(tmp_path):
             load_config(bad)
         done = stockpile("run", "--config", str(bad), "--check")
         assert done.returncode == 2 and len(done.stderr.strip().splitlines()) == 1
+
+
+def test_ledger_service_options_become_its_config():
+    import argparse
+
+    from services import ledger_service
+    from stockpile import service_cli
+
+    root = argparse.ArgumentParser(prog="stockpile")
+    service_cli.register(root.add_subparsers(dest="command", required=True))
+
+    def parse(*options: str) -> argparse.Namespace:
+        return root.parse_args(["service", "ledger", "--site", "s", "--ledger", "x", *options])
+
+    args = parse("--analytes", "fe,SIO2", "--unknown-analyte", "quarantine")
+    config = ledger_service.config_from_args(args)
+    assert config.analytes == AnalyteOptions(("Fe", "SiO2"), "quarantine")
+    assert ledger_service.config_from_args(parse()).analytes is None
+    with pytest.raises(ValueError, match="collides"):
+        ledger_service.config_from_args(parse("--analytes", "Fe,Superseded"))
+
+
+def test_the_in_memory_ledger_applies_the_same_policy():
+    from ledger import open_ledger
+
+    events = [make_event(_assay(i, a), source="lab1", epoch=1, seq=i) for i, a in
+              enumerate([{"Fe": 62.0}, {"FE": 61.0}, {"Fe": 60.0, "Zn": 0.1}])]
+    for unknown, statuses in (("flag", ["appended"] * 3),
+                              ("quarantine", ["appended", "appended", "rejected"])):
+        with open_ledger(":memory:", analytes=AnalytePolicy(("Fe",), unknown)) as store:
+            outcomes = store.append(events).outcomes
+        assert [o.status for o in outcomes] == statuses
+        assert outcomes[2].code == (None if unknown == "flag" else "unknown_analyte")
