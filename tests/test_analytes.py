@@ -290,3 +290,16 @@ def test_the_in_memory_ledger_applies_the_same_policy():
             outcomes = store.append(events).outcomes
         assert [o.status for o in outcomes] == statuses
         assert outcomes[2].code == (None if unknown == "flag" else "unknown_analyte")
+
+
+def test_planner_bounds_name_the_canonical_analyte():
+    """``--bound FE>=61`` bounded an analyte no prediction has, so no cut was ever outside."""
+    from planner.cli import parse_bounds
+    from planner.grades import CutPrediction, check_bounds
+
+    bounds = parse_bounds(["FE>=61", " sio2 <=5"])
+    assert bounds == {"Fe": (61.0, None), "SiO2": (None, 5.0)}
+    low_fe = CutPrediction(volume_m3=100.0, tonnes=250.0, grade={"Fe": 58.0, "SiO2": 4.0},
+                           assayed_fraction=1.0, deposits=[])
+    report = check_bounds([low_fe], bounds)
+    assert [(o["analyte"], o["bound"]) for o in report.outside] == [("Fe", "min")]
