@@ -294,10 +294,10 @@ class DuckDBStore(LedgerStore):
         state.next_gap_id = con.execute(_SELECT_NEXT_GAP_ID).fetchone()[0]
         state.next_quarantine_id = con.execute(_SELECT_NEXT_QUARANTINE_ID).fetchone()[0]
         analytes = views.stored_analytes(con)
-        self.analytes = self._analyte_policy()
+        self.analytes = self._analyte_policy(analytes)
         return state, analytes
 
-    def _analyte_policy(self) -> AnalytePolicy:
+    def _analyte_policy(self, stored: set[str]) -> AnalytePolicy:
         """The declared analytes: the given options resolved against the list the ledger
         recorded (:meth:`AnalyteOptions.resolve`), recorded and the views made from it by
         a writer.  Raises ValueError for a name that collides with a
@@ -312,7 +312,7 @@ class DuckDBStore(LedgerStore):
             try:
                 if policy != recorded:
                     views.record_policy(con, policy)
-                views.create_views(con, policy.declared, views.stored_analytes(con))
+                views.create_views(con, policy.declared, stored)
                 con.execute(_COMMIT)
             except BaseException:
                 con.execute(_ROLLBACK)

@@ -83,8 +83,14 @@ def recorded_policy(con: duckdb.DuckDBPyConnection) -> AnalytePolicy | None:
                             [_META_ANALYTES, _META_UNKNOWN]).fetchall())
     if _META_ANALYTES not in rows:
         return None
-    return AnalytePolicy(tuple(json.loads(rows[_META_ANALYTES])),
-                         rows.get(_META_UNKNOWN, "flag"))
+    try:
+        names = json.loads(rows[_META_ANALYTES])
+        if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
+            raise ValueError("not a JSON list of names")
+        return AnalytePolicy(tuple(names), rows.get(_META_UNKNOWN, "flag"))
+    except ValueError as exc:
+        raise ValueError(f"the ledger's recorded analyte list (ledger_meta) is damaged: "
+                         f"{exc}") from None
 
 
 def record_policy(con: duckdb.DuckDBPyConnection, policy: AnalytePolicy) -> None:
