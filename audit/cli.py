@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any, Sequence
 
 from common.options import add_bitemporal, add_duration, add_progress, format_duration_s
+from schemas.analytes import canonical_name
 from schemas.jsonl import json_safe
 from schemas.times import NS_PER_S, format_time_ns, parse_time_ns
 
@@ -198,7 +199,7 @@ def cmd_cuts(args: argparse.Namespace) -> int:
         report = audit_cuts(store, args.pile, _known(args),
                             progress=lambda fraction, events: bar.update_to(events,
                                                                             fraction=fraction))
-    analyte = args.analyte
+    analyte = canonical_name(args.analyte, report.analytes)
     if report.analytes and analyte not in report.analytes:
         raise ValueError(f"analyte {analyte!r} is not in this ledger (it has "
                          f"{', '.join(report.analytes)})")
@@ -221,7 +222,7 @@ def cmd_history(args: argparse.Namespace) -> int:
         report = audit_history(store, args.pile, every, _known(args), start_ns=start, end_ns=end,
                                progress=lambda fraction, events: bar.update_to(
                                    events, fraction=fraction))
-    analyte = args.analyte
+    analyte = canonical_name(args.analyte, report.analytes)
     if report.analytes and analyte not in report.analytes:
         raise ValueError(f"analyte {analyte!r} is not in this ledger (it has "
                          f"{', '.join(report.analytes)})")

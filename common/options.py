@@ -19,6 +19,9 @@ functions, so that a concept is spelled the same everywhere:
     events per atomic ledger batch (default :data:`DEFAULT_BATCH_SIZE`).
 ``--accept-loss``
     open a ledger for writing although its head went backwards (``ledger.head_file``).
+``--analytes A,...`` / ``--unknown-analyte quarantine|flag``
+    the ledger writer's declared analyte list and what it does with an analyte on no
+    list (parsed by ``schemas.analytes.policy_from_args``).
 durations
     a number with a unit (``90s``, ``15min``, ``1h``, ``2d``); a bare number is refused
     because it used to mean hours, seconds or nanoseconds depending on the command.
@@ -259,6 +262,19 @@ def add_accept_loss(parser: argparse.ArgumentParser | Any) -> argparse.Action:
         help="open the ledger although its head went backwards (it holds less than its "
         "head sidecar recorded as committed): only after a human has looked; the loss is "
         "logged and the sidecar rewritten (see docs/operations.md)")
+
+
+def add_analytes(parser: argparse.ArgumentParser | Any) -> None:
+    """``--analytes A,...`` and ``--unknown-analyte quarantine|flag`` (both default None:
+    what the ledger recorded, else the built-in list with unknown analytes flagged)."""
+    parser.add_argument("--analytes", metavar="A,...",
+                        help="the site's declared analytes, comma-separated (default: the "
+                        "list the ledger recorded, else Fe,SiO2,Al2O3,P,S,Mn,TiO2,CaO,MgO,"
+                        "K2O,Na2O,LOI); other spellings (FE, fe) count as the declared one")
+    parser.add_argument("--unknown-analyte", choices=("quarantine", "flag"), default=None,
+                        help="an assay or lot naming an undeclared analyte is quarantined, or "
+                        "kept with the name listed in assays.unrecognised_analytes (default: "
+                        "what the ledger recorded, else flag)")
 
 
 def non_negative_float(text: str) -> float:

@@ -26,6 +26,8 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+from schemas.analytes import AnalyteOptions, AnalytePolicy
+
 from ledger.clock import EventClock, ManualClock, SiteClock, WallClock, clock_by_name
 from ledger.errors import (
     DatabaseError,
@@ -61,8 +63,13 @@ MEMORY = ":memory:"
 
 def open_ledger(path: str | os.PathLike[str], clock: SiteClock | None = None, *,
                 read_only: bool = False, signing: SigningPolicy | None = None,
-                accept_loss: bool = False) -> LedgerStore:
+                accept_loss: bool = False,
+                analytes: AnalytePolicy | AnalyteOptions | None = None) -> LedgerStore:
     """Open (or create) a ledger: a DuckDB file, or ``":memory:"`` for the in-memory store.
+
+    ``analytes`` is the site's declared analyte list and unknown-analyte policy; a DuckDB
+    ledger records it and adds it to the list it recorded before (None: the recorded
+    list, or the built-in one for a new ledger).
 
     Read-only, a file that a running ledger service holds is read through that service
     (:mod:`ledger.holder`) when the application registered a reader for it.
@@ -74,14 +81,14 @@ def open_ledger(path: str | os.PathLike[str], clock: SiteClock | None = None, *,
     if str(path) == MEMORY:
         if read_only:
             raise InterfaceError("an in-memory ledger cannot be opened read-only")
-        return MemoryStore(clock, signing=signing)
+        return MemoryStore(clock, signing=signing, analytes=analytes)
     # deferred: duckdb and pyarrow are heavy, and most processes that import the ledger
     # package (the edge services) never open a DuckDB file (see docs/design-notes.md)
     from ledger.duckdb_store import DuckDBStore
 
     try:
         return DuckDBStore(path, clock, read_only=read_only, signing=signing,
-                           accept_loss=accept_loss)
+                           accept_loss=accept_loss, analytes=analytes)
     except LedgerLocked as locked:
         if read_only:
             return open_held(Path(path), locked)

@@ -13,8 +13,9 @@ from typing import IO
 
 from common.progress import Progress, enabled_from_args, progress as progress_bar
 
-from common.options import (DEFAULT_BATCH_SIZE, add_accept_loss, add_batch_size, add_bitemporal,
-                            add_clock, add_out, add_progress, add_types)
+from common.options import (DEFAULT_BATCH_SIZE, add_accept_loss, add_analytes, add_batch_size,
+                            add_bitemporal, add_clock, add_out, add_progress, add_types)
+from schemas.analytes import policy_from_args as analyte_options
 from schemas.events import EVENT_TYPES
 from schemas.jsonl import event_line
 
@@ -28,6 +29,7 @@ from ledger.signing import add_signing_options, policy_from_args
 from ledger.store import LedgerStore
 from ledger.checkpoint import (Checkpoint, check_checkpoint, is_mcap, latest_checkpoint,
                                read_checkpoint, read_mcap_checkpoints)
+from ledger.views import check_declared
 from ledger.wire import stats_to_json
 from schemas.times import format_time_ns, parse_time_ns
 
@@ -93,9 +95,12 @@ def cmd_import(args: argparse.Namespace) -> int:
     source = getattr(sys.stdin, "buffer", sys.stdin) if args.file == "-" else None
     if source is None and not Path(args.file).is_file():
         raise FileNotFoundError(f"no such file: {args.file}")
+    analytes = analyte_options(args)
+    if analytes is not None and analytes.declared:
+        check_declared(analytes.declared)   # before the file is created
     rejects = RejectFile(args.rejects or default_rejects_path(args.ledger))
     with open_ledger(args.ledger, clock, signing=policy_from_args(args),
-                     accept_loss=args.accept_loss) as store, rejects:
+                     accept_loss=args.accept_loss, analytes=analytes) as store, rejects:
         handle = source or open(args.file, "rb")
         size_bytes = 0 if source is not None else Path(args.file).stat().st_size
         try:
@@ -276,6 +281,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    "(default: LEDGER.rejects.jsonl; created only when needed)")
     add_signing_options(p)
     add_accept_loss(p)
+    add_analytes(p)
     p.set_defaults(func=cmd_import)
 
     p = sub.add_parser("export", help="print events as canonical JSON lines",

@@ -11,7 +11,8 @@ Tables (raw, append-only; the auditors' views are in :mod:`ledger.views`):
 ``quarantine``
     everything refused, with its reason and raw bytes.
 ``ledger_meta``
-    schema version.
+    schema version; the declared analyte list and unknown-analyte policy
+    (:func:`ledger.views.recorded_policy`).
 
 Payloads and hashes are random-looking bytes: their columns are stored uncompressed,
 because DuckDB's compression analysis of them made each checkpoint seconds long
@@ -38,6 +39,7 @@ from typing import Iterator, Sequence
 import duckdb
 import pyarrow as pa
 
+from schemas.analytes import AnalyteOptions, AnalytePolicy
 from schemas.events import decode_payload
 from schemas.jsonl import body_json
 
@@ -211,8 +213,10 @@ class DuckDBStore(LedgerStore):
 
     def __init__(self, path: str | os.PathLike[str], clock: SiteClock | None = None, *,
                  read_only: bool = False, signing: SigningPolicy | None = None,
-                 accept_loss: bool = False) -> None:
+                 accept_loss: bool = False,
+                 analytes: AnalytePolicy | AnalyteOptions | None = None) -> None:
         super().__init__(clock, read_only=read_only, signing=signing)
+        self._given_analytes = analytes
         self.path = Path(path)
         self._registered = False
         self._head_recorder: HeadRecorder | None = None
@@ -297,9 +301,30 @@ class DuckDBStore(LedgerStore):
         state.next_gap_id = con.execute(_SELECT_NEXT_GAP_ID).fetchone()[0]
         state.next_quarantine_id = con.execute(_SELECT_NEXT_QUARANTINE_ID).fetchone()[0]
         analytes = views.stored_analytes(con)
-        if not self.read_only:
-            views.create_views(con, analytes)
+        self.analytes = self._analyte_policy(analytes)
         return state, analytes
+
+    def _analyte_policy(self, stored: set[str]) -> AnalytePolicy:
+        """The declared analytes: the given options resolved against the list the ledger
+        recorded (:meth:`AnalyteOptions.resolve`), recorded and the views made from it by
+        a writer.  Raises ValueError for a name that collides with a
+        fixed column of the views."""
+        con = self._con
+        recorded = views.recorded_policy(con)
+        given = self._given_analytes
+        policy = given.resolve(recorded) if given is not None else recorded or AnalytePolicy()
+        views.check_declared(policy.declared)
+        if not self.read_only:
+            con.execute(_BEGIN)
+            try:
+                if policy != recorded:
+                    views.record_policy(con, policy)
+                views.create_views(con, policy.declared, stored)
+                con.execute(_COMMIT)
+            except BaseException:
+                con.execute(_ROLLBACK)
+                raise
+        return policy
 
     # -- writing ---------------------------------------------------------------------------
 
@@ -381,7 +406,7 @@ class DuckDBStore(LedgerStore):
                 [[g.gap_id, g.source, g.epoch, g.first_seq, g.last_seq,
                   g.opened_recorded_ns, g.closed_recorded_ns] for g in plan.opened_gaps])
         if new_analytes:
-            views.create_views(con, self._analytes | new_analytes)
+            views.create_views(con, self.analytes.declared, self._analytes | new_analytes)
 
     def _new_analytes(self, plan: BatchPlan) -> set[str]:
         found: set[str] = set()

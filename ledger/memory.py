@@ -10,6 +10,8 @@ from __future__ import annotations
 import bisect
 from typing import Iterator, Sequence
 
+from schemas.analytes import AnalyteOptions, AnalytePolicy
+
 from ledger.clock import SiteClock
 from ledger.records import Gap, QuarantineEntry, RecordedEvent
 from ledger.signing import SigningPolicy
@@ -22,8 +24,9 @@ class MemoryStore(LedgerStore):
     backend = "memory"
 
     def __init__(self, clock: SiteClock | None = None, *,
-                 signing: SigningPolicy | None = None) -> None:
-        super().__init__(clock, signing=signing)
+                 signing: SigningPolicy | None = None,
+                 analytes: AnalytePolicy | AnalyteOptions | None = None) -> None:
+        super().__init__(clock, signing=signing, analytes=analytes)
         self._rows: list[RecordedEvent] = []
         self._index: dict[Key, int] = {}
         self._gaps: dict[int, Gap] = {}

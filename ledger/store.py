@@ -27,7 +27,9 @@ from typing import Iterable, Iterator, Sequence
 
 from schemas.events import MAX_COUNTER, Event, Malformed
 from schemas.jsonl import body_json, storable_text
-from schemas.validate import REASON_CODES, InvalidEvent, check_event, is_time_ns
+from schemas.analytes import AnalyteOptions, AnalytePolicy
+from schemas.validate import (ANALYTE_TYPES, REASON_CODES, InvalidEvent, check_analyte_names,
+                              check_event, is_time_ns)
 
 from ledger.chain import GENESIS, chain_hash, payload_hash
 from ledger.clock import SiteClock, WallClock
@@ -136,10 +138,12 @@ class _BatchPlanner:
     """Decides one batch against a copy-on-write view of the writer state."""
 
     def __init__(self, state: WriterState, clock: SiteClock,
-                 signing: SigningPolicy | None = None) -> None:
+                 signing: SigningPolicy | None = None,
+                 analytes: AnalytePolicy | None = None) -> None:
         self.base = state
         self.clock = clock
         self.signing = signing
+        self.analytes = analytes or AnalytePolicy()
         self.state = WriterState(
             head_seq=state.head_seq,
             head_chain=state.head_chain,
@@ -289,6 +293,12 @@ class _BatchPlanner:
                                  f"{key} is stored as global_seq {prior[0]} with another payload",
                                  existing=prior[0])
             return
+        if type_name in ANALYTE_TYPES:
+            try:
+                check_analyte_names(type_name, message, self.analytes)
+            except InvalidEvent as exc:
+                self._quarantine(item, exc.code, exc.detail)
+                return
         if item.signer is not None or type_name in KEY_TYPES or (
                 self.signing is not None and type_name in self.signing.signed_types):
             refused = s.keys.problem(type_name, source, epoch, seq, item.valid_time_ns, digest,
@@ -377,16 +387,21 @@ class LedgerStore(abc.ABC):
     signing : SigningPolicy, optional
         The types that must be signed and the admin key trusted (default: signatures
         are checked when present, none is required).
+    analytes : AnalytePolicy or AnalyteOptions, optional
+        The site's declared analytes and unknown-analyte policy (default: the built-in
+        list, unknown ones flagged; a DuckDB ledger resolves it against its recorded one).
     """
 
     #: short backend name for messages ("duckdb", "memory")
     backend: str = "abstract"
 
     def __init__(self, clock: SiteClock | None = None, *, read_only: bool = False,
-                 signing: SigningPolicy | None = None) -> None:
+                 signing: SigningPolicy | None = None,
+                 analytes: AnalytePolicy | AnalyteOptions | None = None) -> None:
         self.clock: SiteClock = clock or WallClock()
         self.read_only = read_only
         self.signing = signing
+        self.analytes: AnalytePolicy = analytes.resolve(None) if analytes else AnalytePolicy()
         self._lock = threading.RLock()
         self._closed = False
         self._state = WriterState()
@@ -413,7 +428,8 @@ class LedgerStore(abc.ABC):
         with self._lock:
             self._check_writable()
             stored = self._lookup(keys_to_look_up(self._state, batch)) if batch else {}
-            plan = _BatchPlanner(self._state, self.clock, self.signing).run(batch, stored)
+            plan = _BatchPlanner(self._state, self.clock, self.signing,
+                                 self.analytes).run(batch, stored)
             if plan.rows or plan.quarantine or plan.opened_gaps or plan.closed_gaps:
                 self._commit(plan)
             assert plan.state is not None

@@ -8,22 +8,42 @@ Times appear twice: ``*_ns`` (UTC nanoseconds, exact) and as ``TIMESTAMP_NS``
 view                one row per
 ==================  =====================================================================
 ``events``          stored event (identity, times, payload size and hash, flags, body)
-``assays``          assay, one DOUBLE column per analyte ever seen (``"Fe"``, ``"SiO2"``
-                    ...), lateness in hours, whether it was superseded
+``assays``          assay, one DOUBLE column per declared analyte (``"Fe"``, ``"SiO2"``
+                    ...), the undeclared names it gives (``unrecognised_analytes``, JSON),
+                    lateness in hours, whether it was superseded
 ``reclaim_cuts``    reclaim cut (travel, luff, slew range, belt-scale tonnes)
 ``stack_passes``    stacking pass (start joined with its end, when it has one)
 ``lots``            declared lot (planned tonnes, planned grade as JSON)
 ==================  =====================================================================
 
-The views are recreated by the writer when a new analyte first appears, so
-``assays`` always has a column for every analyte in the ledger.
+The analyte columns of ``assays`` are the ledger's declared analyte list
+(:mod:`schemas.analytes`, recorded in ``ledger_meta``), never names from data: each is
+the value under the declared spelling or any other stored spelling of it (``FE`` counts
+as ``Fe``).  A name on no list is only listed in ``unrecognised_analytes``.  A declared
+name that would collide with a fixed column is refused.  The writer recreates the views
+when a new spelling first appears, and when the declared list grows.
 """
 
 from __future__ import annotations
 
-from typing import Iterable
+import json
+from typing import TYPE_CHECKING, Iterable
 
-import duckdb
+from schemas.analytes import AnalytePolicy, key as analyte_key
+
+if TYPE_CHECKING:  # only for annotations: importing the views' rules stays light
+    import duckdb
+
+#: The ``assays`` view's columns that are not analytes (no declared analyte may be named so).
+ASSAY_FIXED_COLUMNS: tuple[str, ...] = (
+    "global_seq", "source", "assay_id", "lot_id", "lab_id", "status", "supersedes",
+    "window_start", "window_end", "reported_time", "recorded_time", "valid_time_ns",
+    "recorded_time_ns", "lateness_h", "moisture_pct", "bulk_density_t_m3", "superseded",
+    "unknown_lot_when_recorded", "unrecognised_analytes",
+)
+
+_META_ANALYTES = "analytes"
+_META_UNKNOWN = "unknown_analyte"
 
 
 def _ts(expr: str) -> str:
@@ -47,12 +67,65 @@ def stored_analytes(con: duckdb.DuckDBPyConnection) -> set[str]:
     return {r[0] for r in rows if r[0]}
 
 
-def view_statements(analytes: Iterable[str]) -> list[str]:
-    """``CREATE OR REPLACE VIEW`` statements for every auditor view."""
-    analyte_columns = "".join(
-        f",\n        TRY_CAST(body->'analytes'->>{_literal(a)} AS DOUBLE) AS {_quote(a)}"
-        for a in sorted(analytes)
-    )
+def check_declared(declared: Iterable[str]) -> None:
+    """Raise ValueError (one line) when a declared analyte would collide with a fixed
+    column of the ``assays`` view (SQL names ignore case)."""
+    fixed = {c.casefold() for c in ASSAY_FIXED_COLUMNS}
+    for name in declared:
+        if name.casefold() in fixed or analyte_key(name) in fixed:
+            raise ValueError(f"declared analyte {name!r} collides with the assays view's "
+                             f"column {name.strip().lower()!r}; rename it")
+
+
+def recorded_policy(con: duckdb.DuckDBPyConnection) -> AnalytePolicy | None:
+    """The analyte list and unknown-analyte policy the ledger recorded (None: none yet)."""
+    rows = dict(con.execute("SELECT key, value FROM ledger_meta WHERE key IN (?, ?)",
+                            [_META_ANALYTES, _META_UNKNOWN]).fetchall())
+    if _META_ANALYTES not in rows:
+        return None
+    try:
+        names = json.loads(rows[_META_ANALYTES])
+        if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
+            raise ValueError("not a JSON list of names")
+        return AnalytePolicy(tuple(names), rows.get(_META_UNKNOWN, "flag"))
+    except ValueError as exc:
+        raise ValueError(f"the ledger's recorded analyte list (ledger_meta) is damaged: "
+                         f"{exc}") from None
+
+
+def record_policy(con: duckdb.DuckDBPyConnection, policy: AnalytePolicy) -> None:
+    """Store ``policy`` in ``ledger_meta`` (inside the caller's transaction)."""
+    con.execute("DELETE FROM ledger_meta WHERE key IN (?, ?)", [_META_ANALYTES, _META_UNKNOWN])
+    con.execute("INSERT INTO ledger_meta VALUES (?, ?), (?, ?)",
+                [_META_ANALYTES, json.dumps(list(policy.declared)), _META_UNKNOWN, policy.unknown])
+
+
+def _analyte_columns(declared: Iterable[str], stored: Iterable[str]) -> str:
+    """The ``assays`` columns of the declared analytes and ``unrecognised_analytes``."""
+    by_key: dict[str, list[str]] = {}
+    for name in sorted(stored):
+        by_key.setdefault(analyte_key(name), []).append(name)
+    columns = []
+    known: list[str] = []
+    for name in declared:
+        spellings = [name] + [s for s in by_key.get(analyte_key(name), []) if s != name]
+        known += spellings
+        values = ", ".join(f"body->'analytes'->>{_literal(s)}" for s in spellings)
+        value = f"coalesce({values})" if len(spellings) > 1 else values
+        columns.append(f",\n        TRY_CAST({value} AS DOUBLE) AS {_quote(name)}")
+    known_list = "[" + ", ".join(_literal(s) for s in known) + "]::VARCHAR[]"
+    columns.append(
+        ",\n        coalesce(to_json(list_filter(json_keys(body->'analytes'), "
+        f"lambda k: NOT list_contains({known_list}, k))), '[]')::JSON AS unrecognised_analytes")
+    return "".join(columns)
+
+
+def view_statements(declared: Iterable[str], stored: Iterable[str] = ()) -> list[str]:
+    """``CREATE OR REPLACE VIEW`` statements for every auditor view: ``assays`` with a
+    column per ``declared`` analyte, read from any of the ``stored`` spellings of it."""
+    declared = tuple(declared)
+    check_declared(declared)
+    analyte_columns = _analyte_columns(declared, stored)
     return [
         """CREATE OR REPLACE VIEW events AS
     SELECT global_seq, type, source, epoch, seq,
@@ -116,7 +189,8 @@ def view_statements(analytes: Iterable[str]) -> list[str]:
     ]
 
 
-def create_views(con: duckdb.DuckDBPyConnection, analytes: Iterable[str]) -> None:
+def create_views(con: duckdb.DuckDBPyConnection, declared: Iterable[str],
+                 stored: Iterable[str] = ()) -> None:
     """(Re)create every view; call inside the writer's transaction."""
-    for statement in view_statements(analytes):
+    for statement in view_statements(declared, stored):
         con.execute(statement)

@@ -14,6 +14,7 @@ import re
 import sys
 
 from common.options import add_bitemporal
+from schemas.analytes import canonical_name
 from schemas.events import decode_payload
 from schemas.jsonl import json_safe
 from schemas.times import format_time_ns, parse_time_ns
@@ -30,14 +31,15 @@ _BOUND = re.compile(r"^\s*([A-Za-z][A-Za-z0-9_]*)\s*(>=|<=)\s*([-+0-9.eE]+)\s*$"
 
 
 def parse_bounds(texts: list[str]) -> dict[str, tuple[float | None, float | None]]:
-    """``["Fe>=61", "SiO2<=5"]`` -> ``{"Fe": (61.0, None), "SiO2": (None, 5.0)}``."""
+    """``["Fe>=61", "SiO2<=5"]`` -> ``{"Fe": (61.0, None), "SiO2": (None, 5.0)}``; analyte
+    names canonical (``FE>=61`` bounds Fe)."""
     out: dict[str, list[float | None]] = {}
     for text in texts:
         m = _BOUND.match(text)
         if m is None:
             raise ValueError(f"bad --bound {text!r}: write ANALYTE>=VALUE or ANALYTE<=VALUE "
                              "(e.g. Fe>=61.0)")
-        name, op, value = m.group(1), m.group(2), float(m.group(3))
+        name, op, value = canonical_name(m.group(1)), m.group(2), float(m.group(3))
         if not math.isfinite(value):
             raise ValueError(f"bad --bound {text!r}: the value must be finite")
         lo_hi = out.setdefault(name, [None, None])

@@ -33,6 +33,7 @@ from typing import Iterable, Mapping, Sequence
 
 import numpy as np
 
+from schemas.analytes import canonical_grades
 from schemas.times import NS_PER_S
 
 __all__ = ["AssayRecord", "GradeClasses", "effective_assays", "grade_at", "grade_classes",
@@ -44,9 +45,10 @@ def grade_from_map(grades: Mapping[str, float]) -> dict[str, float]:
 
     A protobuf map iterates in an order that differs from one process to the next; every
     grade the projector builds from a message goes through here, so that sums over
-    analytes, and the reports, come out the same in every process.
+    analytes, and the reports, come out the same in every process.  Names are canonical
+    (:func:`schemas.analytes.canonical_grades`): ``FE`` counts as ``Fe``.
     """
-    return {name: float(grades[name]) for name in sorted(grades)}
+    return canonical_grades(grades)
 
 #: Assay statuses, in increasing precedence.
 STATUSES: tuple[str, ...] = ("PROVISIONAL", "FINAL")
@@ -111,7 +113,8 @@ class AssayRecord:
         if not (math.isfinite(density) and density >= 0):
             raise ValueError(f"assay {self.assay_id!r}: bulk density must be >= 0 (0 = "
                              f"unknown), got {self.bulk_density_t_m3!r}")
-        object.__setattr__(self, "analytes", {str(k): float(v) for k, v in self.analytes.items()})
+        object.__setattr__(self, "analytes", canonical_grades(
+            {str(k): float(v) for k, v in self.analytes.items()}))
 
     @classmethod
     def from_message(cls, msg, recorded_ns: int) -> "AssayRecord":

@@ -25,6 +25,7 @@ from schemas.events import (
     is_valid_source,
     payload_valid_time_ns,
 )
+from schemas.analytes import AnalytePolicy, spellings as analyte_spellings
 from schemas.times import NS_PER_S
 
 #: Every reason the ledger can give for refusing an event.
@@ -49,6 +50,7 @@ REASON_CODES: dict[str, str] = {
     "negative_tonnes": "a tonnage below zero",
     "analyte_out_of_range": "an analyte outside 0-100 mass %",
     "analyte_sum": "analytes summing to more than 100 mass %",
+    "unknown_analyte": "an analyte not on the site's declared list, or one analyte named twice",
     "unknown_enum": "an enum value that is unspecified or not in the schema",
     "conflict": "same (source, epoch, seq) as a stored event, different payload",
     "recorded_time_backwards": "a preserved recorded time earlier than the ledger head",
@@ -319,6 +321,31 @@ def check_analytes(grades, field: str) -> None:
         "analyte_sum",
         f"{field} sums to {total:.3f} % (> 100 %)",
     )
+
+
+#: Event types that name analytes (:func:`check_analyte_names`).
+ANALYTE_TYPES: frozenset[str] = frozenset({"assay", "lot_declared"})
+
+
+def check_analyte_names(type_name: str, message, policy: AnalytePolicy) -> tuple[str, ...]:
+    """The analyte names of an assay or lot plan checked against the site's ``policy``
+    (:mod:`schemas.analytes`): the unknown names to flag, sorted (empty for other types).
+
+    Raises :class:`InvalidEvent` (``unknown_analyte``) for a name that cannot be an
+    analyte, for two spellings of one analyte, and under the ``quarantine`` policy for an
+    unknown name."""
+    if type_name == "assay":
+        grades, field = message.analytes, "analytes"
+    elif type_name == "lot_declared":
+        grades, field = message.planned_grade, "planned_grade"
+    else:
+        return ()
+    unknown, problems = analyte_spellings(grades, policy)
+    _require(not problems, "unknown_analyte", f"{field}: {problems[0] if problems else ''}")
+    _require(not unknown or policy.unknown != "quarantine", "unknown_analyte",
+             f"{field} names {', '.join(map(repr, unknown))}, not on the declared list "
+             f"({','.join(policy.declared)})")
+    return tuple(unknown)
 
 
 def _varint(data: bytes, pos: int) -> tuple[int, int]:

@@ -73,15 +73,18 @@ from typing import Any
 import zenoh
 import zenoh.ext as zext
 
-from common.options import add_accept_loss, add_batch_size, add_clock, add_duration
+from common.options import (add_accept_loss, add_analytes, add_batch_size, add_clock,
+                            add_duration)
 from ledger import clock_by_name, open_ledger
 from ledger.signing import SigningPolicy, add_signing_options, policy_from_args
+from ledger.views import check_declared
 from ledger.wire import stats_to_json
 from ledger.errors import LedgerError
 from ledger.holder import LedgerHolder, remove_holder, this_host, write_holder
 from ledger.store import LedgerStore
 from ledger.wire import (encode_records, gap_to_json, head_to_json, quarantine_to_json,
                          stream_to_json)
+from schemas.analytes import AnalyteOptions, policy_from_args as analyte_options
 from schemas.events import Malformed, decode_attachment, event_from_sample
 from services.service import ServiceRuntime, Stopper, ZenohOptions, log
 from services.ledger_backup import BackupRequest, next_sample
@@ -142,6 +145,9 @@ class Config:
         Types that must be signed and the admin key trusted (:mod:`ledger.signing`).
     accept_loss : bool
         Open a ledger whose head went backwards (:mod:`ledger.head_file`).
+    analytes : AnalyteOptions or None
+        The site's declared analytes and unknown-analyte policy (:mod:`schemas.analytes`);
+        None: what the ledger recorded.
     """
 
     site: str
@@ -158,6 +164,7 @@ class Config:
     checkpoint_every_s: float = DEFAULT_CHECKPOINT_EVERY_S
     signing: SigningPolicy | None = None
     accept_loss: bool = False
+    analytes: AnalyteOptions | None = None
 
     def __post_init__(self) -> None:
         if self.batch_size < 1:
@@ -189,15 +196,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                  "time (default 1h); one more at every clean stop")
     add_signing_options(parser)
     add_accept_loss(parser)
+    add_analytes(parser)
 
 
 def config_from_args(args: argparse.Namespace) -> Config:
+    analytes = analyte_options(args)
+    if analytes is not None and analytes.declared:
+        check_declared(analytes.declared)
     return Config(site=args.site, zenoh=ZenohOptions.from_args(args), ledger_path=args.ledger,
                   status_period_s=args.status_period, clock=args.clock,
                   batch_size=args.batch_size, batch_interval_s=args.batch_interval,
                   queue_size=args.queue_size, history=not args.no_history,
                   checkpoint_dir=args.checkpoints, checkpoint_every_s=args.checkpoint_every,
-                  signing=policy_from_args(args), accept_loss=args.accept_loss)
+                  signing=policy_from_args(args), accept_loss=args.accept_loss,
+                  analytes=analytes)
 
 
 # -- writing ------------------------------------------------------------------------------
@@ -488,7 +500,8 @@ def main(config: Config, *, stopper: Stopper | None = None) -> int:
         if config.ledger_path != ":memory:":
             Path(config.ledger_path).parent.mkdir(parents=True, exist_ok=True)
         store = open_ledger(config.ledger_path, clock_by_name(config.clock),
-                            signing=config.signing, accept_loss=config.accept_loss)
+                            signing=config.signing, accept_loss=config.accept_loss,
+                            analytes=config.analytes)
     except (LedgerError, OSError, ValueError) as exc:
         log(SERVICE, "cannot open the ledger", level="error", ledger=config.ledger_path,
             error=str(exc).splitlines()[0])

@@ -14,6 +14,10 @@ The config (TOML; a documented example ships as ``docs/yard.example.toml``)::
     [router]                     # optional: run a Zenoh router here, on these endpoints
     listen = ["tls/127.0.0.1:7447"]
 
+    [analytes]                   # optional: the site's declared analytes (schemas.analytes)
+    declared = ["Fe", "SiO2", "Al2O3", "P", "LOI"]
+    unknown = "quarantine"       # or "flag" (the default)
+
     [services.ledger]            # table name = service name, or set service = "..."
     ledger = "/var/lib/stockpile/ledger.duckdb"
 
@@ -30,6 +34,7 @@ command-line option
 repeats the option).  Services start in the order ledger, localizer, the rest;
 a service that exits unexpectedly is restarted after ``restart_delay_s`` (default 2 s,
 doubling up to 60 s); SIGINT/SIGTERM stops them in reverse order, the ledger last.
+``[analytes]`` becomes every ledger service's ``--analytes`` and ``--unknown-analyte``.
 """
 
 from __future__ import annotations
@@ -47,6 +52,8 @@ from pathlib import Path
 from typing import Any
 
 from common.options import plain_text
+from ledger.views import check_declared
+from schemas.analytes import UNKNOWN_POLICIES, declared_list
 from services.acl import access_control
 from services.router import load_members
 from services.service import Stopper, ZenohOptions, log, open_session
@@ -136,11 +143,43 @@ def load_config(path: str | Path) -> YardConfig:
             raise ConfigError(f"{path}: services.{name}: unknown service {service!r} "
                               f"(known: {', '.join(SERVICE_MODULES)})")
         entries.append(ServiceEntry(name, service, options, tls_name))
+    _add_analytes(entries, data.get("analytes"), path)
     entries.sort(key=lambda e: START_ORDER.index(e.service) if e.service in START_ORDER
                  else len(START_ORDER))
     return YardConfig(site, zenoh_argv, router_listen, entries,
                       float(data.get("restart_delay_s", 2.0)), tls_dir,
                       str(router.get("tls_name", "router")))
+
+
+def _add_analytes(entries: list[ServiceEntry], table: Any, path: str | Path) -> None:
+    """``[analytes]`` (``declared``, ``unknown``) checked and given to every ledger service
+    as ``--analytes``/``--unknown-analyte``; raises :class:`ConfigError`."""
+    if table is None:
+        return
+    if not isinstance(table, dict) or set(table) - {"declared", "unknown"}:
+        raise ConfigError(f"{path}: [analytes] takes declared = [\"Fe\", ...] and "
+                          f"unknown = \"{'|'.join(UNKNOWN_POLICIES)}\"")
+    options: dict[str, Any] = {}
+    if "declared" in table:
+        try:
+            declared = declared_list(_as_list(table["declared"], "analytes.declared"))
+            check_declared(declared)
+        except ValueError as exc:
+            raise ConfigError(f"{path}: analytes.declared: {exc}") from None
+        options["analytes"] = ",".join(declared)
+    if "unknown" in table:
+        if table["unknown"] not in UNKNOWN_POLICIES:
+            raise ConfigError(f"{path}: analytes.unknown must be one of "
+                              f"{', '.join(UNKNOWN_POLICIES)}, not {table['unknown']!r}")
+        options["unknown_analyte"] = table["unknown"]
+    for entry in entries:
+        if entry.service != "ledger":
+            continue
+        both = set(options) & set(entry.options)
+        if both:
+            raise ConfigError(f"{path}: services.{entry.name} sets {', '.join(sorted(both))}; "
+                              "the site's analytes belong in [analytes]")
+        entry.options.update(options)
 
 
 def _as_list(value: Any, where: str) -> list[str]:

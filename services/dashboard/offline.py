@@ -22,6 +22,7 @@ from common.progress import Progress, enabled_from_args, progress as progress_ba
 from ledger import open_ledger
 from planner.cli import make_plan, plan_args
 from projector.query import CANONICAL_ANALYTES
+from schemas.analytes import canonical_grades
 from schemas.events import decode_payload
 from services.dashboard.config import DEFAULT_EVERY_S, READ_CHUNK, Config, add_common_arguments
 from services.dashboard.core import Dashboard, feed, rebuild_from
@@ -90,7 +91,7 @@ def _analytes(store) -> tuple[str, ...]:
     """The analytes the ledger's lots declare, canonical ones first."""
     names: set[str] = set()
     for e in store.read(types=["lot_declared"]):
-        names.update(decode_payload(e.type, e.payload).planned_grade)
+        names.update(canonical_grades(decode_payload(e.type, e.payload).planned_grade))
     return tuple([a for a in CANONICAL_ANALYTES if a in names]
                  + sorted(names - set(CANONICAL_ANALYTES))) or CANONICAL_ANALYTES
 

@@ -19,6 +19,7 @@ import numpy as np
 
 from projector.kinematics import Reclaimer
 from projector.grades import coerce_time_ns
+from schemas.analytes import canonical_grades
 from schemas.events import decode_payload
 from schemas.times import NS_PER_H
 from services.dashboard.pose import quat_matrix, wheel_from_scanner
@@ -127,7 +128,7 @@ class PileTracker:
                  f"{msg.tonnes:,.1f} t", "INFO")]
 
     def _on_lot(self, msg) -> list[tuple[str, str]]:
-        self._widen_range(dict(msg.planned_grade))
+        self._widen_range(canonical_grades(msg.planned_grade))
         self.assay_version += 1
         self.reasons.add("lot")
         return [(f"lot {msg.lot_id} declared: {msg.planned_tonnes:,.0f} t planned, "
@@ -145,7 +146,7 @@ class PileTracker:
     def _on_assay(self, record, msg) -> list[tuple[str, str]]:
         self.assay_version += 1
         self.reasons.add("assay")
-        self._widen_range(dict(msg.analytes))
+        self._widen_range(canonical_grades(msg.analytes))
         late_h = (record.recorded_time_ns - coerce_time_ns(msg.window_end)) / NS_PER_H
         status = {1: "PROVISIONAL", 2: "FINAL"}.get(int(msg.status), str(msg.status))
         unknown = "unknown_lot" in (getattr(record, "flags", ()) or ())
