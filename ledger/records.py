@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from collections import Counter
 from dataclasses import dataclass, field
-from typing import Literal, NamedTuple
+from typing import Iterable, Literal, NamedTuple
 
 from schemas.events import Event
 
@@ -184,3 +184,34 @@ class LedgerStats:
     quarantined: int = 0
     quarantine_by_code: dict[str, int] = field(default_factory=dict)
     flagged: dict[str, int] = field(default_factory=dict)
+
+    @classmethod
+    def of(cls, rows: Iterable[RecordedEvent], head: Head, gaps: list[Gap],
+           quarantine: list[QuarantineEntry]) -> LedgerStats:
+        """The stats of a ledger's rows (one pass), its head, gaps and quarantine."""
+        per_type: Counter[str] = Counter()
+        per_source: Counter[str] = Counter()
+        flagged: Counter[str] = Counter()
+        valid = recorded = None
+        for row in rows:
+            per_type[row.type] += 1
+            per_source[row.source] += 1
+            for flag in row.flags:
+                flagged[flag] += 1
+            v, r = row.valid_time_ns, row.recorded_time_ns
+            valid = (v, v) if valid is None else (min(valid[0], v), max(valid[1], v))
+            recorded = (r, r) if recorded is None else (min(recorded[0], r), max(recorded[1], r))
+        return cls(
+            events=sum(per_type.values()),
+            head=head,
+            per_type=dict(sorted(per_type.items())),
+            per_source=dict(sorted(per_source.items())),
+            valid_time_range_ns=valid,
+            recorded_time_range_ns=recorded,
+            open_gaps=sum(1 for g in gaps if g.is_open),
+            missing_events=sum(g.size for g in gaps if g.is_open),
+            closed_gaps=sum(1 for g in gaps if not g.is_open),
+            quarantined=len(quarantine),
+            quarantine_by_code=dict(sorted(Counter(q.code for q in quarantine).items())),
+            flagged=dict(sorted(flagged.items())),
+        )

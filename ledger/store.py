@@ -21,7 +21,6 @@ import bisect
 import dataclasses
 from hashlib import sha256
 import threading
-from collections import Counter
 from dataclasses import dataclass, field
 from typing import Iterable, Iterator, Sequence
 
@@ -539,34 +538,8 @@ class LedgerStore(abc.ABC):
         """Counts per type and source, gaps, quarantine and time ranges."""
         with self._lock:
             self._check_open()
-            per_type: Counter[str] = Counter()
-            per_source: Counter[str] = Counter()
-            flagged: Counter[str] = Counter()
-            valid = recorded = None
-            for row in self._rows_for_stats():
-                per_type[row.type] += 1
-                per_source[row.source] += 1
-                for flag in row.flags:
-                    flagged[flag] += 1
-                v, r = row.valid_time_ns, row.recorded_time_ns
-                valid = (v, v) if valid is None else (min(valid[0], v), max(valid[1], v))
-                recorded = (r, r) if recorded is None else (min(recorded[0], r), max(recorded[1], r))
-            gaps = self.gaps()
-            quarantine = self.quarantine()
-            return LedgerStats(
-                events=sum(per_type.values()),
-                head=self.head(),
-                per_type=dict(sorted(per_type.items())),
-                per_source=dict(sorted(per_source.items())),
-                valid_time_range_ns=valid,
-                recorded_time_range_ns=recorded,
-                open_gaps=sum(1 for g in gaps if g.is_open),
-                missing_events=sum(g.size for g in gaps if g.is_open),
-                closed_gaps=sum(1 for g in gaps if not g.is_open),
-                quarantined=len(quarantine),
-                quarantine_by_code=dict(sorted(Counter(q.code for q in quarantine).items())),
-                flagged=dict(sorted(flagged.items())),
-            )
+            return LedgerStats.of(self._rows_for_stats(), self.head(), self.gaps(),
+                                  self.quarantine())
 
     # -- lifecycle ------------------------------------------------------------------------
 
