@@ -17,6 +17,9 @@ functions, so that a concept is spelled the same everywhere:
     progress on stderr (default: on when stderr is a terminal).
 ``--batch-size N``
     events per atomic ledger batch (default :data:`DEFAULT_BATCH_SIZE`).
+``--max-rows N``
+    the most rows a command expands a range into (default :data:`DEFAULT_MAX_ROWS`); a
+    larger range is refused before anything is allocated (:func:`check_range_rows`).
 durations
     a number with a unit (``90s``, ``15min``, ``1h``, ``2d``); a bare number is refused
     because it used to mean hours, seconds or nanoseconds depending on the command.
@@ -31,6 +34,7 @@ parse time values with ``schemas.times.parse_time_ns``.
 from __future__ import annotations
 
 import argparse
+import math
 import re
 import sys
 from typing import Any, Callable, Sequence
@@ -39,6 +43,9 @@ PROG = "stockpile"
 
 #: events per atomic ledger batch, for every command and service that appends
 DEFAULT_BATCH_SIZE = 2_000
+
+#: the most rows (times, steps) a command expands a range into unless ``--max-rows`` raises it
+DEFAULT_MAX_ROWS = 100_000
 
 #: the clock choices: the machine's UTC clock, or the site's ``clock`` events
 CLOCKS = ("wall", "events")
@@ -75,6 +82,8 @@ def parse_duration_s(text: str) -> float:
     if not parts or "".join(n + u for n, u in parts) != value:
         raise ValueError(f"is not a duration ({DURATION_EXAMPLE}, 15min, 2d), got {str(text)!r}")
     total = sum(float(n) * DURATION_UNITS_S[u] for n, u in parts)
+    if not math.isfinite(total):
+        raise ValueError(f"is too long, got {str(text)!r}")
     if total <= 0:
         raise ValueError(f"must be positive, got {str(text)!r}")
     return total
@@ -248,6 +257,23 @@ def add_batch_size(parser: argparse.ArgumentParser | Any) -> argparse.Action:
     return parser.add_argument("--batch-size", type=positive_int, default=DEFAULT_BATCH_SIZE,
                                metavar="N", help="events per atomic ledger batch "
                                f"(default {DEFAULT_BATCH_SIZE:,})")
+
+
+def add_max_rows(parser: argparse.ArgumentParser | Any, *, what: str = "rows") -> argparse.Action:
+    """``--max-rows N``: the most ``what`` a range may expand into (default DEFAULT_MAX_ROWS)."""
+    return parser.add_argument("--max-rows", type=positive_int, default=DEFAULT_MAX_ROWS,
+                               metavar="N", help=f"refuse a range of more than N {what} "
+                               f"(default {DEFAULT_MAX_ROWS:,})")
+
+
+def check_range_rows(count: int, limit: int = DEFAULT_MAX_ROWS, *, what: str = "rows",
+                     hint: str = "") -> None:
+    """Raise ValueError naming ``count`` and ``limit`` when a range expands into more than
+    ``limit`` ``what``; call it with the count computed arithmetically, before allocating.
+    ``hint`` ends the message (e.g. ``"choose a longer --every or raise --max-rows"``)."""
+    if count > limit:
+        raise ValueError(f"the range is {count:,} {what}, more than the limit of {limit:,}"
+                         + (f": {hint}" if hint else ""))
 
 
 def non_negative_float(text: str) -> float:
