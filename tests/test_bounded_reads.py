@@ -194,7 +194,9 @@ def test_max_rows_lowers_and_raises_the_limit(ledger, capsys):
     assert_one_line_error(code, err, "--max-rows")
 
 
-def test_the_times_of_a_long_range_are_not_held_at_once():
+def test_history_marks_are_the_ends_and_the_aligned_steps_between():
     every = NS_PER_S
-    marks = history_marks(0, 10 * every, every)
-    assert marks == [i * every for i in range(11)]
+    assert history_marks(0, 3 * every, every) == [0, every, 2 * every, 3 * every]
+    assert history_marks(500, 2 * every + 1, every) == [500, every, 2 * every, 2 * every + 1]
+    assert history_marks(7, 7, every) == [7] and history_count(7, 7, every) == 1
+    assert history_marks(9, 7, every) == [9] and history_count(9, 7, every) == 1
