@@ -13,9 +13,9 @@ Streams:
 
 - ``0x02 flood`` / ``'$' flood``: one start byte repeated.
 - ``random``: uniform random bytes.
-- ``near-valid``: LMS200: a start byte, the scanner's address, the largest length and a
-  0xB0 header claiming that many values, repeated every 4 bytes inside one another, no
-  CRC ever right; NMEA: GGA sentences with a wrong checksum.
+- ``near-valid``: LMS200: a start byte, the scanner's address and the largest length
+  (2,050), repeated every 4 bytes: a candidate as long as a telegram may be starts at
+  every 4th byte and only its CRC rejects it; NMEA: GGA sentences with a wrong checksum.
 - ``clean``: LMS200: 361-value 0xB0 telegrams back to back; NMEA: GGA sentences.
 """
 
@@ -41,8 +41,8 @@ LINE_RATE_BYTES_PER_S = 500_000 // 10
 def _lms_streams(size_bytes: int, rng: random.Random) -> dict[str, bytes]:
     values = np.array([rng.randrange(0, lms200.MAX_RANGE_VALUE) for _ in range(361)])
     telegram = lms200.encode_measurement(values)
-    # near-valid: 02 80 | length = MAX_LENGTH | B0 | header claiming MAX_VALUES ...: every
-    # 4th byte starts a candidate as long as a telegram may be
+    # near-valid: 02 80 | length = MAX_LENGTH, repeated: every 4th byte starts a candidate
+    # as long as a telegram may be
     length = lms200.MAX_LENGTH.to_bytes(2, "little")
     near = bytes([lms200.STX, lms200.ADDRESS_SCANNER]) + length
     return {
