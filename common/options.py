@@ -17,12 +17,13 @@ functions, so that a concept is spelled the same everywhere:
     progress on stderr (default: on when stderr is a terminal).
 ``--batch-size N``
     events per atomic ledger batch (default :data:`DEFAULT_BATCH_SIZE`).
-``--max-rows N``
-    the most rows a command expands a range into (default :data:`DEFAULT_MAX_ROWS`); a
-    larger range is refused before anything is allocated (:func:`check_range_rows`).
 durations
     a number with a unit (``90s``, ``15min``, ``1h``, ``2d``); a bare number is refused
     because it used to mean hours, seconds or nanoseconds depending on the command.
+
+Ranges: ``--max-rows N`` is the most rows a command expands a range into (default
+:data:`DEFAULT_MAX_ROWS`); a larger range is refused before anything is allocated
+(:func:`check_range_rows`).
 
 Old spellings are registered with :func:`add_deprecated` (hidden from ``--help``): they
 still work for this release and print one warning line on stderr.
@@ -258,23 +259,6 @@ def add_batch_size(parser: argparse.ArgumentParser | Any) -> argparse.Action:
                                f"(default {DEFAULT_BATCH_SIZE:,})")
 
 
-def add_max_rows(parser: argparse.ArgumentParser | Any, *, what: str = "rows") -> argparse.Action:
-    """``--max-rows N``: the most ``what`` a range may expand into (default DEFAULT_MAX_ROWS)."""
-    return parser.add_argument("--max-rows", type=positive_int, default=DEFAULT_MAX_ROWS,
-                               metavar="N", help=f"refuse a range of more than N {what} "
-                               f"(default {DEFAULT_MAX_ROWS:,})")
-
-
-def check_range_rows(count: int, limit: int = DEFAULT_MAX_ROWS, *, what: str = "rows",
-                     hint: str = "") -> None:
-    """Raise ValueError naming ``count`` and ``limit`` when a range expands into more than
-    ``limit`` ``what``; call it with the count computed arithmetically, before allocating.
-    ``hint`` ends the message (e.g. ``"choose a longer --every or raise --max-rows"``)."""
-    if count > limit:
-        raise ValueError(f"the range is {count:,} {what}, more than the limit of {limit:,}"
-                         + (f": {hint}" if hint else ""))
-
-
 def non_negative_float(text: str) -> float:
     """argparse type: a float >= 0 (speeds where 0 means as fast as possible)."""
     try:
@@ -335,3 +319,20 @@ def out_path(args: argparse.Namespace, dest: str = "out_positional") -> str | No
     warn_deprecated(f"the output file as a positional argument ({positional})",
                     f"--out {positional}")
     return positional
+
+
+def add_max_rows(parser: argparse.ArgumentParser | Any, *, what: str = "rows") -> argparse.Action:
+    """``--max-rows N``: the most ``what`` a range may expand into (default DEFAULT_MAX_ROWS)."""
+    return parser.add_argument("--max-rows", type=positive_int, default=DEFAULT_MAX_ROWS,
+                               metavar="N", help=f"refuse a range of more than N {what} "
+                               f"(default {DEFAULT_MAX_ROWS:,})")
+
+
+def check_range_rows(count: int, limit: int = DEFAULT_MAX_ROWS, *, what: str = "rows",
+                     hint: str = "") -> None:
+    """Raise ValueError naming ``count`` and ``limit`` when a range expands into more than
+    ``limit`` ``what``; call it with the count computed arithmetically, before allocating.
+    ``hint`` ends the message (e.g. ``"choose a longer --every or raise --max-rows"``)."""
+    if count > limit:
+        raise ValueError(f"the range is {count:,} {what}, more than the limit of {limit:,}"
+                         + (f": {hint}" if hint else ""))

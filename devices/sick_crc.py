@@ -10,8 +10,8 @@ on the byte d_i and its distance k = n - 1 - i from the end:
     G[k][d] = d * x^k  xor  (d << 8) * x^(k-1)   (the second term for k >= 1)   mod P
 
 :func:`crc16` looks the terms up in the table ``G`` (rows 0 .. the longest telegram
-body, grown on demand) and xors them; short inputs take the byte-serial loop.  No CRC library implements this variant (it shifts
-one bit a byte, not eight).
+body, grown on demand) and xors them; short inputs take the byte-serial loop.  No CRC
+library implements this variant (it shifts one bit a byte, not eight).
 """
 
 from __future__ import annotations
