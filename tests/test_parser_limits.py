@@ -148,7 +148,9 @@ def test_a_real_telegram_with_a_corrupt_count_is_one_corruption_event():
     bad[5] ^= 0x01       # the value count no longer matches the length
     stream = scans[0][-1] + bytes(bad) + scans[2][-1] + scans[3][-1]
     reader = L.TelegramReader()
-    assert reader.feed(stream) == [scans[0][-1], scans[2][-1], scans[3][-1]]
+    # a 0x02 inside the damaged telegram may claim more bytes than follow: flush on idle
+    got = reader.feed(stream) + reader.flush()
+    assert got == [scans[0][-1], scans[2][-1], scans[3][-1]]
     assert reader.crc_errors == 1
     assert reader.garbage_bytes == len(bad)
 
