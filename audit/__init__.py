@@ -5,6 +5,8 @@
   the pile's tonnes and grade over valid time (:func:`audit_history`), and the labs'
   lateness, superseded and provisional assays, unknown lots and lots without assays
   (:func:`audit_assays`)
+- :mod:`audit.marks`: the valid times of a history and their count (to refuse a range
+  that is too long before listing it)
 - :mod:`audit.cli`: ``stockpile audit cuts|history|assays``: options, progress on
   stderr during long folds, text tables or one JSON object
 

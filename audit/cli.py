@@ -14,7 +14,8 @@ import sys
 from pathlib import Path
 from typing import Any, Sequence
 
-from common.options import add_bitemporal, add_duration, add_progress, format_duration_s
+from common.options import (add_bitemporal, add_duration, add_max_rows, add_progress,
+                            format_duration_s)
 from schemas.analytes import canonical_name
 from schemas.jsonl import json_safe
 from schemas.times import NS_PER_S, format_time_ns, parse_time_ns
@@ -221,7 +222,7 @@ def cmd_history(args: argparse.Namespace) -> int:
     with _open(args.ledger) as store, _fold_progress("audit history", args) as bar:
         report = audit_history(store, args.pile, every, _known(args), start_ns=start, end_ns=end,
                                progress=lambda fraction, events: bar.update_to(
-                                   events, fraction=fraction))
+                                   events, fraction=fraction), max_rows=args.max_rows)
     analyte = canonical_name(args.analyte, report.analytes)
     if report.analytes and analyte not in report.analytes:
         raise ValueError(f"analyte {analyte!r} is not in this ledger (it has "
@@ -375,6 +376,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="first valid time (default: the pile's declaration)")
     h.add_argument("--to", dest="end", metavar="T",
                    help="last valid time (default: the last in the ledger)")
+    add_max_rows(h, what="rows (valid times)")
     h.set_defaults(func=cmd_history)
 
     a = sub.add_parser("assays", help="lateness per lab, superseded and provisional assays, "

@@ -39,6 +39,8 @@ import statistics
 from dataclasses import dataclass, field
 from typing import Any, Callable, Iterator, Sequence
 
+from common.options import DEFAULT_MAX_ROWS, check_range_rows
+from audit.marks import history_count, history_marks
 from schemas.events import decode_payload
 from schemas.times import NS_PER_H
 
@@ -408,26 +410,10 @@ def audit_cuts(store, pile_id: str, known_time_ns: int | None = None, *,
 # -- history ------------------------------------------------------------------------------
 
 
-def history_marks(first_ns: int, last_ns: int, every_ns: int) -> list[int]:
-    """Valid times from ``first_ns`` to ``last_ns``: whole multiples of ``every_ns`` (UTC
-    epoch aligned, so hourly marks fall on the hour) strictly inside, plus both ends."""
-    if every_ns <= 0:
-        raise ValueError("the interval must be positive")
-    if last_ns < first_ns:
-        return [first_ns]
-    marks = [first_ns]
-    t = (first_ns // every_ns + 1) * every_ns
-    while t < last_ns:
-        marks.append(t)
-        t += every_ns
-    if last_ns != first_ns:
-        marks.append(last_ns)
-    return marks
-
-
 def audit_history(store, pile_id: str, every_ns: int, known_time_ns: int | None = None, *,
                   start_ns: int | None = None, end_ns: int | None = None,
-                  progress: Progress | None = None) -> HistoryReport:
+                  progress: Progress | None = None,
+                  max_rows: int = DEFAULT_MAX_ROWS) -> HistoryReport:
     """The pile's tonnes and grade every ``every_ns`` of valid time, as known at K and then.
 
     Parameters
@@ -442,11 +428,14 @@ def audit_history(store, pile_id: str, every_ns: int, known_time_ns: int | None 
         Valid-time range; default from the pile's declaration to the last valid time in the
         ledger (capped at K).
     progress : callable, optional
+    max_rows : int
+        The most rows; a longer range is refused before any is listed.
 
     Raises
     ------
     ValueError
-        Unknown pile, empty ledger, a non-positive interval or an empty range.
+        Unknown pile, empty ledger, a non-positive interval, an empty range or more rows
+        than ``max_rows``.
     """
     if every_ns <= 0:
         raise ValueError("--every must be positive")
@@ -457,9 +446,9 @@ def audit_history(store, pile_id: str, every_ns: int, known_time_ns: int | None 
     last = span[1] if end_ns is None else int(end_ns)
     if last < first:
         raise ValueError("the valid-time range is empty (the end is before the start)")
+    check_range_rows(history_count(first, last, every_ns), max_rows,
+                     hint="choose a longer --every, a shorter --from/--to or raise --max-rows")
     times = history_marks(first, last, every_ns)
-    if len(times) > 100_000:
-        raise ValueError(f"{len(times):,} rows: choose a longer --every")
     grades = _Grades(store, known)
     marks = [(t, t) for t in times]
     points: dict[int, HistoryPoint] = {}

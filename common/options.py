@@ -26,6 +26,10 @@ durations
     a number with a unit (``90s``, ``15min``, ``1h``, ``2d``); a bare number is refused
     because it used to mean hours, seconds or nanoseconds depending on the command.
 
+Ranges: ``--max-rows N`` is the most rows a command expands a range into (default
+:data:`DEFAULT_MAX_ROWS`); a larger range is refused before anything is allocated
+(:func:`check_range_rows`).
+
 Old spellings are registered with :func:`add_deprecated` (hidden from ``--help``): they
 still work for this release and print one warning line on stderr.
 
@@ -44,6 +48,9 @@ PROG = "stockpile"
 
 #: events per atomic ledger batch, for every command and service that appends
 DEFAULT_BATCH_SIZE = 2_000
+
+#: the most rows (times, steps) a command expands a range into unless ``--max-rows`` raises it
+DEFAULT_MAX_ROWS = 100_000
 
 #: the clock choices: the machine's UTC clock, or the site's ``clock`` events
 CLOCKS = ("wall", "events")
@@ -80,6 +87,8 @@ def parse_duration_s(text: str) -> float:
     if not parts or "".join(n + u for n, u in parts) != value:
         raise ValueError(f"is not a duration ({DURATION_EXAMPLE}, 15min, 2d), got {str(text)!r}")
     total = sum(float(n) * DURATION_UNITS_S[u] for n, u in parts)
+    if not total < float("inf"):   # also NaN
+        raise ValueError(f"is too long, got {str(text)!r}")
     if total <= 0:
         raise ValueError(f"must be positive, got {str(text)!r}")
     return total
@@ -337,3 +346,20 @@ def out_path(args: argparse.Namespace, dest: str = "out_positional") -> str | No
     warn_deprecated(f"the output file as a positional argument ({positional})",
                     f"--out {positional}")
     return positional
+
+
+def add_max_rows(parser: argparse.ArgumentParser | Any, *, what: str = "rows") -> argparse.Action:
+    """``--max-rows N``: the most ``what`` a range may expand into (default DEFAULT_MAX_ROWS)."""
+    return parser.add_argument("--max-rows", type=positive_int, default=DEFAULT_MAX_ROWS,
+                               metavar="N", help=f"refuse a range of more than N {what} "
+                               f"(default {DEFAULT_MAX_ROWS:,})")
+
+
+def check_range_rows(count: int, limit: int = DEFAULT_MAX_ROWS, *, what: str = "rows",
+                     hint: str = "") -> None:
+    """Raise ValueError naming ``count`` and ``limit`` when a range expands into more than
+    ``limit`` ``what``; call it with the count computed arithmetically, before allocating.
+    ``hint`` ends the message (e.g. ``"choose a longer --every or raise --max-rows"``)."""
+    if count > limit:
+        raise ValueError(f"the range is {count:,} {what}, more than the limit of {limit:,}"
+                         + (f": {hint}" if hint else ""))

@@ -8,7 +8,7 @@ Framing (all integers little-endian)::
 ``0x80 + device address`` and end with a status byte; telegrams *to* the scanner (address
 ``0x00`` + device address) carry no status byte, e.g. the start-continuous request
 ``02 00 02 00 20 24 34 08``. The CRC-16 covers every byte from the 0x02 through the last
-payload byte (:func:`crc16`).
+payload byte (:func:`crc16`, table-driven in :mod:`devices.sick_crc`).
 
 Command 0xB0 (measured values) from the scanner::
 
@@ -39,6 +39,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+
+from devices.sick_crc import crc16
 
 __all__ = [
     "STX", "ADDRESS_SCANNER", "ADDRESS_HOST", "CMD_MEASUREMENT", "CMD_MODE", "CMD_STATUS",
@@ -110,44 +112,6 @@ _FIELDS = {
 
 class TelegramError(ValueError):
     """A telegram is malformed: bad start byte, length, CRC, command or contents."""
-
-
-def crc16(data: bytes | bytearray | memoryview) -> int:
-    """SICK's CRC-16 of an LMS200 telegram (docs/domain.md §5).
-
-    Parameters
-    ----------
-    data : bytes-like
-        Every byte from the 0x02 through the last payload byte (status, if any).
-
-    Returns
-    -------
-    int
-        The CRC, 0..0xFFFF; it is sent little-endian after the payload.
-
-    Notes
-    -----
-    The algorithm keeps the previous and current byte::
-
-        crc = 0; prev = 0; cur = 0
-        for b in data:
-            prev, cur = cur, b
-            crc = ((crc & 0x7fff) << 1) ^ 0x8005 if crc & 0x8000 else (crc << 1) & 0xffff
-            crc ^= cur | (prev << 8)
-
-    E.g. ``crc16(bytes.fromhex("0200010031")) == 0x1215`` (the status request
-    ``02 00 01 00 31 15 12``).
-    """
-    crc = 0
-    cur = 0
-    for b in bytes(data):
-        prev, cur = cur, b
-        if crc & 0x8000:
-            crc = ((crc & 0x7FFF) << 1) ^ 0x8005
-        else:
-            crc = (crc << 1) & 0xFFFF
-        crc ^= cur | (prev << 8)
-    return crc
 
 
 def encode_frame(address: int, payload: bytes) -> bytes:
@@ -481,6 +445,15 @@ def field_for_count(n: int) -> tuple[float, float]:
     return _FIELDS[int(n)]
 
 
+def _bad_measurement_header(buf: bytearray, pos: int, n: int, length: int) -> bool:
+    """Whether the candidate at ``buf[pos]`` (``n`` bytes buffered) is a measured-values
+    telegram from the scanner whose length cannot match its header's value count (False
+    while the header has not arrived)."""
+    if n - pos < 7 or not buf[pos + 1] & ADDRESS_SCANNER or buf[pos + 4] != CMD_MEASUREMENT:
+        return False
+    return length != 4 + 2 * ((buf[pos + 5] | (buf[pos + 6] << 8)) & 0x3FF)
+
+
 class TelegramReader:
     """Incremental LMS200 stream parser: bytes in, CRC-valid telegrams out.
 
@@ -488,20 +461,25 @@ class TelegramReader:
     right, of any address and command (filter with :func:`decode_frame` /
     :func:`decode_measurement`; both directions share the framing).
 
-    Resynchronisation: bytes before a 0x02 are skipped. A candidate whose length field lies
-    outside ``1..max_length`` is not a telegram: its 0x02 is skipped. When a complete
-    candidate fails its CRC, the search restarts at the byte *after its 0x02* (not after its
-    claimed length), so a corrupt length field cannot swallow the good telegrams behind it.
-    A corrupt or spurious length only delays output until that many bytes have arrived (or
-    until :meth:`flush`, which a caller should invoke when the line goes idle: a telegram in
-    flight arrives back to back, so an idle line means the pending candidate is dead).
+    Resynchronisation: bytes before a 0x02 are skipped (``bytearray.find``). A candidate whose
+    length field lies outside ``1..max_length`` is not a telegram: its 0x02 is skipped; so is
+    a measured-values candidate (scanner address, command 0xB0) whose length disagrees with
+    the value count in its header, as soon as the header has arrived and before any CRC.
+    When a complete candidate fails its CRC, the search restarts at the byte *after its
+    0x02* (not after its claimed length), so a corrupt length field cannot swallow the good
+    telegrams behind it. A corrupt or spurious length only delays output until that many
+    bytes have arrived (or until :meth:`flush`, which a caller should invoke when the line
+    goes idle: a telegram in flight arrives back to back, so an idle line means the pending
+    candidate is dead). Work per byte is bounded: each 0x02 costs at most one table-driven
+    CRC over at most ``max_length + 4`` bytes (bench/parsers.py measures it).
 
     Attributes
     ----------
     telegrams : int
         Telegrams returned so far.
     crc_errors : int
-        Corruption events: complete candidates whose CRC failed, not counting candidates that
+        Corruption events: complete candidates whose CRC failed (or measured-values candidates
+        whose length disagrees with their header), not counting candidates that
         start inside the span of an earlier failed candidate (0x02 bytes inside a corrupted
         telegram are echoes of the same event). A 0x02 in line noise followed by a plausible
         length also counts. A candidate passes a wrong CRC with probability 2**-16.
@@ -560,9 +538,13 @@ class TelegramReader:
                 pos += 1
                 continue
             end = pos + 4 + length + 2
-            if end > n:
+            if _bad_measurement_header(buf, pos, n, length):
+                good = False
+            elif end > n:
                 break
-            if crc16(buf[pos:end - 2]) == buf[end - 2] | (buf[end - 1] << 8):
+            else:
+                good = crc16(buf[pos:end - 2]) == buf[end - 2] | (buf[end - 1] << 8)
+            if good:
                 out.append(bytes(buf[pos:end]))
                 self.telegrams += 1
                 pos = end

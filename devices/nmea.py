@@ -24,17 +24,31 @@ from dataclasses import dataclass
 from schemas.times import NS_PER_DAY
 
 __all__ = ["NmeaError", "Gga", "NmeaReader", "nmea_checksum", "format_gga", "parse_gga",
-           "MAX_LINE_LENGTH"]
+           "MAX_LINE_LENGTH", "HDOP_RANGE", "ALTITUDE_RANGE_M", "GEOID_SEP_RANGE_M",
+           "MAX_SATELLITES"]
 
 #: Longest line :class:`NmeaReader` accepts by default, characters including ``$`` and CR LF.
 MAX_LINE_LENGTH = 128
 
+#: HDOP :func:`parse_gga` accepts: 0 up to receivers' "no geometry" value 99.99
+HDOP_RANGE = (0.0, 99.99)
+#: altitude above mean sea level :func:`parse_gga` accepts, metres (deepest open pit to well
+#: above any mountain yard)
+ALTITUDE_RANGE_M = (-1_000.0, 10_000.0)
+#: geoid separation :func:`parse_gga` accepts, metres (the geoid lies within about -107 ..
+#: +86 m of the WGS84 ellipsoid)
+GEOID_SEP_RANGE_M = (-200.0, 200.0)
+#: satellites in use :func:`parse_gga` accepts (the field has two digits)
+MAX_SATELLITES = 99
+
 _NS_PER_CS = 10**7  # nanoseconds per centisecond
 _MINUTE_DECIMALS = 7
 _TALKER_RE = re.compile(r"^[A-Z]{2}$")
-_TIME_RE = re.compile(r"^(\d{2})(\d{2})(\d{2}(?:\.\d+)?)$")
-_LAT_RE = re.compile(r"^(\d{2})(\d{2}(?:\.\d+)?)$")
-_LON_RE = re.compile(r"^(\d{3})(\d{2}(?:\.\d+)?)$")
+_TIME_RE = re.compile(r"^([0-9]{2})([0-9]{2})([0-9]{2}(?:\.[0-9]+)?)$")
+_LAT_RE = re.compile(r"^([0-9]{2})([0-9]{2}(?:\.[0-9]+)?)$")
+_LON_RE = re.compile(r"^([0-9]{3})([0-9]{2}(?:\.[0-9]+)?)$")
+_DECIMAL_RE = re.compile(r"^-?(?:[0-9]+(?:\.[0-9]*)?|\.[0-9]+)$")
+_INT_RE = re.compile(r"^[0-9]{1,9}$")
 _CHECKSUM_RE = re.compile(r"^[0-9A-Fa-f]{2}$")
 
 
@@ -217,18 +231,19 @@ def _split_checked(sentence: str) -> list[str]:
     return body.split(",")
 
 
-def _parse_float(name: str, text: str, allow_empty: bool) -> float:
-    """A decimal field; NaN if empty and allowed."""
+def _parse_float(name: str, text: str, allow_empty: bool,
+                 limits: tuple[float, float] | None = None) -> float:
+    """A decimal field (plain digits, an optional '-' and '.'; no exponent, underscore or
+    space) within ``limits`` (inclusive); NaN if empty and allowed."""
     if text == "":
         if allow_empty:
             return math.nan
         raise NmeaError(f"missing {name}")
-    try:
-        x = float(text)
-    except ValueError as exc:
-        raise NmeaError(f"bad {name}: {text!r}") from exc
-    if not math.isfinite(x):
+    if not _DECIMAL_RE.match(text) or len(text) > 32:
         raise NmeaError(f"bad {name}: {text!r}")
+    x = float(text)
+    if limits is not None and not limits[0] <= x <= limits[1]:
+        raise NmeaError(f"bad {name}: {text!r} outside {limits[0]:g}..{limits[1]:g}")
     return x
 
 
@@ -256,7 +271,7 @@ def _parse_angle(name: str, text: str, hemi: str, regex: re.Pattern, limit_deg: 
 
 
 def _parse_time(text: str, allow_empty: bool) -> float:
-    """hhmmss.ss -> seconds since midnight."""
+    """hhmmss.ss -> seconds since midnight (hh <= 23, mm <= 59, ss.ss < 60)."""
     if text == "":
         if allow_empty:
             return math.nan
@@ -265,18 +280,22 @@ def _parse_time(text: str, allow_empty: bool) -> float:
     if m is None:
         raise NmeaError(f"bad time: {text!r}")
     h, mi, s = int(m.group(1)), int(m.group(2)), float(m.group(3))
-    if h > 23 or mi > 59 or s >= 61.0:
+    if h > 23 or mi > 59 or s >= 60.0:   # no leap second 60 (docs/domain.md §5)
         raise NmeaError(f"bad time: {text!r}")
     return h * 3600.0 + mi * 60.0 + s
 
 
-def _parse_int(name: str, text: str, allow_empty: bool) -> int:
-    """A non-negative integer field; 0 if empty and allowed."""
+def _parse_int(name: str, text: str, allow_empty: bool, limit: int | None = None) -> int:
+    """A non-negative integer field of plain digits, at most ``limit``; 0 if empty and
+    allowed."""
     if text == "" and allow_empty:
         return 0
-    if not text.isdigit():
+    if not _INT_RE.match(text):
         raise NmeaError(f"bad {name}: {text!r}")
-    return int(text)
+    value = int(text)
+    if limit is not None and value > limit:
+        raise NmeaError(f"bad {name}: {text!r} outside 0..{limit}")
+    return value
 
 
 def _check_unit(name: str, value: float, unit: str) -> None:
@@ -302,7 +321,12 @@ def parse_gga(sentence: str) -> Gga:
     Raises
     ------
     NmeaError
-        On bad framing or checksum, a sentence other than GGA, missing or malformed fields.
+        On bad framing or checksum, a sentence other than GGA, missing or malformed fields
+        (numbers are plain ASCII digits), and values outside physical ranges: time of day
+        beyond 23:59:59.99 (no leap second), latitude beyond 90 or longitude beyond 180
+        degrees, minutes >= 60, more than :data:`MAX_SATELLITES` satellites, HDOP outside
+        :data:`HDOP_RANGE`, altitude outside :data:`ALTITUDE_RANGE_M`, geoid separation
+        outside :data:`GEOID_SEP_RANGE_M`.
     """
     fields = _split_checked(sentence)
     kind = fields[0]
@@ -316,8 +340,8 @@ def parse_gga(sentence: str) -> Gga:
     if quality > 8:
         raise NmeaError(f"bad quality: {quality}")
     no_fix = quality == 0
-    altitude_m = _parse_float("altitude", alt_f, no_fix)
-    geoid_sep_m = _parse_float("geoid separation", sep_f, True)
+    altitude_m = _parse_float("altitude", alt_f, no_fix, ALTITUDE_RANGE_M)
+    geoid_sep_m = _parse_float("geoid separation", sep_f, True, GEOID_SEP_RANGE_M)
     _check_unit("altitude", altitude_m, alt_u)
     _check_unit("geoid separation", geoid_sep_m, sep_u)
     return Gga(
@@ -325,8 +349,8 @@ def parse_gga(sentence: str) -> Gga:
         lat_deg=_parse_angle("latitude", lat_f, ns_f, _LAT_RE, 90.0, ("N", "S"), no_fix),
         lon_deg=_parse_angle("longitude", lon_f, ew_f, _LON_RE, 180.0, ("E", "W"), no_fix),
         quality=quality,
-        satellites=_parse_int("satellites", sats_f, no_fix),
-        hdop=_parse_float("hdop", hdop_f, no_fix),
+        satellites=_parse_int("satellites", sats_f, no_fix, MAX_SATELLITES),
+        hdop=_parse_float("hdop", hdop_f, no_fix, HDOP_RANGE),
         altitude_m=altitude_m,
         geoid_sep_m=geoid_sep_m,
         talker=kind[:2],

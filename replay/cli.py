@@ -26,6 +26,7 @@ from replay.export import export_ledger
 from replay.recover import recover
 from replay.replay import iter_events, replay_publish, replay_to_ledger
 from schemas.events import EVENT_TYPES, key_expr
+from schemas.times import MAX_TIME_NS, NS_PER_S
 from services.service import DEFAULT_SITE, Stopper, add_service_arguments
 from services.zenoh_config import add_zenoh_arguments, config_from_args
 
@@ -91,8 +92,9 @@ def cmd_replay(args: argparse.Namespace) -> int:
         raise ValueError("give exactly one of --publish or --ledger PATH")
     for name in ("start_offset", "until"):
         value = getattr(args, name)
-        if value is not None and value < 0:
-            raise ValueError(f"--{name.replace('_', '-')} must be >= 0 s, got {value:g}")
+        if value is not None and not 0 <= value <= MAX_TIME_NS / NS_PER_S:
+            raise ValueError(f"--{name.replace('_', '-')} must be >= 0 s and within the "
+                             f"representable time range, got {value:g}")
     topics = topic_matcher(args.topics)
     if args.ledger:
         return _replay_ledger(args, topics)

@@ -26,7 +26,7 @@ from schemas.events import (
     payload_valid_time_ns,
 )
 from schemas.analytes import AnalytePolicy, spellings as analyte_spellings
-from schemas.times import NS_PER_S
+from schemas.times import MAX_TIME_NS, MIN_TIME_NS, NS_PER_S
 
 #: Every reason the ledger can give for refusing an event.
 REASON_CODES: dict[str, str] = {
@@ -69,9 +69,7 @@ ANALYTE_SUM_TOLERANCE_PCT = 0.1
 LMS200_STEPS_DEG: tuple[float, ...] = (0.25, 0.5, 1.0)
 _STEP_TOLERANCE_RAD = 1e-6
 
-#: Times are stored as signed 64-bit UTC nanoseconds: 1677-09-21 .. 2262-04-11.
-MIN_TIME_NS = -(2**63)
-MAX_TIME_NS = 2**63 - 1
+# Times are stored as signed 64-bit UTC nanoseconds: MIN_TIME_NS .. MAX_TIME_NS (schemas.times).
 
 
 def is_time_ns(value: object) -> bool:
