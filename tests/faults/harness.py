@@ -20,7 +20,7 @@ prints the rows as a markdown table.
 
 Seconds to recover: from the fault's end until the ledger is caught up again, i.e. holds
 (stored or as a gap) every event its producers published more than ``CAUGHT_UP_LAG_S``
-before; measured from a poller that asks the ledger service for its per-source counts
+before, and stays so for ``STAY_CAUGHT_UP_S``; measured from a poller that asks the ledger service for its per-source counts
 and open gaps every ``POLL_PERIOD_S``.
 """
 
@@ -49,6 +49,8 @@ DEFAULT_RESULTS = ROOT / "build" / "faults" / "results.jsonl"
 STAMP_EVERY = 20
 #: the ledger counts as caught up when it holds what was published this long before, s
 CAUGHT_UP_LAG_S = 1.0
+#: ... and stays so for this long after it caught up (or to the end of the run), s
+STAY_CAUGHT_UP_S = 5.0
 #: period of the poller that follows the ledger's counts, s
 POLL_PERIOD_S = 0.25
 #: how long the ledger may take to account for everything once the producers are done, s
@@ -159,18 +161,32 @@ class Poller:
         self._thread.join(30)
 
     def recovered_at(self, fault_end_s: float, streams: list[Stream]) -> float | None:
-        """The first poll at or after ``fault_end_s`` at which the ledger held every event
-        published ``CAUGHT_UP_LAG_S`` before the poll (per source); None if never."""
+        """The first poll at or after ``fault_end_s`` from which the ledger stays caught
+        up for ``STAY_CAUGHT_UP_S`` (or to the last poll): at each poll it holds every
+        event published ``CAUGHT_UP_LAG_S`` before it, per source.  None if never.  (A
+        producer that was stopped publishes what its schedule owes just after the fault's
+        end: the ledger is caught up only once it holds that too.)"""
         by_source: dict[str, list[Stream]] = {}
         for s in streams:
             by_source.setdefault(s.source, []).append(s)
+
+        def caught_up(t: float, counts: dict[str, int]) -> bool:
+            return all(counts.get(src, 0) >= sum(s.published_by(t - CAUGHT_UP_LAG_S)
+                                                 for s in group)
+                       for src, group in by_source.items())
+
+        start = None
         for t, counts in self.samples:
             if t < fault_end_s:
                 continue
-            if all(counts.get(src, 0) >= sum(s.published_by(t - CAUGHT_UP_LAG_S) for s in group)
-                   for src, group in by_source.items()):
-                return t
-        return None
+            if not caught_up(t, counts):
+                start = None
+                continue
+            if start is None:
+                start = t
+            if t - start >= STAY_CAUGHT_UP_S:
+                return start
+        return start
 
 
 class Yard:
