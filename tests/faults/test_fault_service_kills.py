@@ -2,7 +2,7 @@
 
 The yard runs the ledger, the localizer and the recorder (recording in hourly parts,
 ``split_duration = "1h"``); two producers publish 500
-events/s each for 30 s.  The ledger, then the localizer, then the recorder are killed
+events/s each for 20 s.  The ledger, then the localizer, then the recorder are killed
 (SIGKILL, no chance to flush), each once the one before is back.  `stockpile run` must
 restart every one, the restarted ledger must recover what it missed from the producers'
 caches, and the closing check must find every event exactly once or in an exact gap.
@@ -18,7 +18,7 @@ from harness import Yard
 from zenoh_helpers import log_lines, wait_until
 
 RATE_HZ = 500.0
-DURATION_S = 30.0
+DURATION_S = 20.0
 SERVICES = ("ledger", "localizer", "recorder")
 
 
@@ -43,6 +43,7 @@ def test_each_service_sigkilled_in_turn_is_restarted_and_nothing_is_lost(tmp_pat
     assert row["gap_events"] == 0 and row["ledgered"] == row["published"], row
 
 
+@pytest.mark.long_fault
 @pytest.mark.xfail(strict=True, reason="a recorder writing one file (no split) refuses to "
                    "start again because its file exists (replay/record_parts.py check()), so "
                    "`stockpile run` restarts it forever and the site records nothing more")
@@ -51,10 +52,10 @@ def test_a_killed_recorder_without_a_split_comes_back(tmp_path):
     ``--out`` file.  After a SIGKILL `stockpile run` restarts it; it must record again."""
     with Yard(tmp_path, services=("ledger", "recorder"), recorder_split=False) as yard:
         yard.start()
-        yard.start_loadgens(rate_hz=RATE_HZ, duration_s=10.0)
+        yard.start_loadgens(rate_hz=RATE_HZ, duration_s=6.0)
         wait_until(lambda: yard.poller.samples and all(
             yard.poller.samples[-1][1].get(p, 0) >= RATE_HZ * 2 for p in yard.producer_names),
             60, "2 s of events from every producer in the ledger")
-        t_kill, _back_s = yard.kill_service("recorder", timeout_s=30)
+        t_kill, _back_s = yard.kill_service("recorder", timeout_s=15)
         row = yard.finish("SIGKILL recorder writing one file (stockpile run)", [t_kill])
     assert row["ledgered"] == row["published"], row
