@@ -329,6 +329,13 @@ class Yard:
         wait_until(lambda: all(self.poller.samples and self.poller.samples[-1][1].get(src, 0)
                                >= n for src, n in expected.items()), DRAIN_TIMEOUT_S,
                    "the ledger to hold every published event or a gap for it", interval_s=0.5)
+        with open(self.base / "polls.jsonl", "w", encoding="utf-8") as f:   # for a post-mortem
+            for t, counts in self.poller.samples:
+                published: dict[str, int] = {}
+                for s in streams:
+                    published[s.source] = published.get(s.source, 0) + s.published_by(t)
+                f.write(json.dumps({"t_s": t, "accounted": counts, "published": published})
+                        + "\n")
         recover = []
         for end in fault_ends_s:
             at = self.poller.recovered_at(end, streams)
