@@ -20,8 +20,9 @@ prints the rows as a markdown table.
 
 Seconds to recover: from the fault's end until the ledger is caught up again, i.e. holds
 (stored or as a gap) every event its producers published more than ``CAUGHT_UP_LAG_S``
-before, and stays so for ``STAY_CAUGHT_UP_S``; measured from a poller that asks the ledger service for its per-source counts
-and open gaps every ``POLL_PERIOD_S``.
+before, and stays so for ``STAY_CAUGHT_UP_S``; measured from a poller that asks the
+ledger service for its per-source counts and open gaps every ``POLL_PERIOD_S`` (its polls
+are written to ``polls.jsonl`` in the case's directory).
 """
 
 from __future__ import annotations
@@ -318,8 +319,8 @@ class Yard:
                                             + p.log_path.read_text()[-2000:])
         return [s for p in self.producers for s in p.streams()]
 
-    def finish(self, fault: str, fault_ends_s: list[float], *,
-               extra: dict | None = None) -> dict:
+    def finish(self, fault: str, fault_ends_s: list[float], *, extra: dict | None = None,
+               drain_timeout_s: float = DRAIN_TIMEOUT_S) -> dict:
         """Wait for the producers' reports and the ledger to account for them; stop all;
         check the file (:func:`check_ledger`); write and return the case's row."""
         streams = self.reports()
@@ -327,7 +328,7 @@ class Yard:
         for s in streams:
             expected[s.source] = expected.get(s.source, 0) + s.count
         wait_until(lambda: all(self.poller.samples and self.poller.samples[-1][1].get(src, 0)
-                               >= n for src, n in expected.items()), DRAIN_TIMEOUT_S,
+                               >= n for src, n in expected.items()), drain_timeout_s,
                    "the ledger to hold every published event or a gap for it", interval_s=0.5)
         with open(self.base / "polls.jsonl", "w", encoding="utf-8") as f:   # for a post-mortem
             for t, counts in self.poller.samples:
