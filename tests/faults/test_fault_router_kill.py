@@ -25,7 +25,7 @@ OUTAGE_S = 3.0
 DRAIN_TIMEOUT_S = 45.0
 
 
-@pytest.mark.xfail(strict=False, reason="intermittent (2 of 5 runs): after the router "
+@pytest.mark.xfail(strict=False, reason="intermittent (2 of 6 runs): after the router "
                    "restart every client reconnects (6 TLS links up), yet the ledger and the "
                    "recorder receive nothing more and never recover the rest from the "
                    "producers' caches (the ledger stays at ~6,300 of 16,000 events); not "
