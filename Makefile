@@ -40,10 +40,13 @@ test: $(DEV_STAMP)
 accuracy: $(DEV_STAMP)
 	$(PY) -m pytest -q -m accuracy
 
-# Every fault-injection case (tests/faults), the long ones and the 30-minute soak included;
-# make test runs only the quick ones.
+# Every fault-injection case (tests/faults), the long ones and the 30-minute soak included
+# (STOCKPILE_SOAK_MINUTES=3 make faults tries it short); make test runs only the quick ones.
+# Ends with the table of the cases' rows (build/faults/results.jsonl), pass or fail.
 faults: $(DEV_STAMP)
-	$(PY) -m pytest -q -p no:cacheprovider tests/faults --long-faults
+	rm -f build/faults/results.jsonl
+	$(PY) -m pytest -q -p no:cacheprovider tests/faults --long-faults; \
+	status=$$?; $(PY) tests/faults/table.py build/faults/results.jsonl; exit $$status
 
 bench: $(DEV_STAMP)
 	$(PY) bench/ledger.py
