@@ -64,7 +64,8 @@ MEMORY = ":memory:"
 def open_ledger(path: str | os.PathLike[str], clock: SiteClock | None = None, *,
                 read_only: bool = False, signing: SigningPolicy | None = None,
                 accept_loss: bool = False,
-                analytes: AnalytePolicy | AnalyteOptions | None = None) -> LedgerStore:
+                analytes: AnalytePolicy | AnalyteOptions | None = None,
+                memory_limit_mb: int | None = None) -> LedgerStore:
     """Open (or create) a ledger: a DuckDB file, or ``":memory:"`` for the in-memory store.
 
     ``analytes`` is the site's declared analyte list and unknown-analyte policy; a DuckDB
@@ -88,7 +89,8 @@ def open_ledger(path: str | os.PathLike[str], clock: SiteClock | None = None, *,
 
     try:
         return DuckDBStore(path, clock, read_only=read_only, signing=signing,
-                           accept_loss=accept_loss, analytes=analytes)
+                           accept_loss=accept_loss, analytes=analytes,
+                           memory_limit_mb=memory_limit_mb)
     except LedgerLocked as locked:
         if read_only:
             return open_held(Path(path), locked)

@@ -184,6 +184,10 @@ _OPEN_WRITERS: set[str] = set()
 _OPEN_WRITERS_LOCK = threading.Lock()
 
 
+#: a writer's default cap on DuckDB's buffer pool, megabytes (docs/operations.md)
+WRITER_MEMORY_LIMIT_MB = 256
+
+
 class DuckDBStore(LedgerStore):
     """A ledger in one DuckDB file.
 
@@ -198,6 +202,11 @@ class DuckDBStore(LedgerStore):
         writer has open.
     signing : SigningPolicy, optional
         Types that must be signed and the admin key trusted (:mod:`ledger.signing`).
+    memory_limit_mb : int or None
+        A writer's cap on DuckDB's buffer pool, megabytes (None:
+        :data:`WRITER_MEMORY_LIMIT_MB`).
+        Without it a long-running writer keeps the pages it wrote cached and its memory
+        grows with the file; larger work spills to a temporary directory.
 
     Raises
     ------
@@ -214,7 +223,8 @@ class DuckDBStore(LedgerStore):
     def __init__(self, path: str | os.PathLike[str], clock: SiteClock | None = None, *,
                  read_only: bool = False, signing: SigningPolicy | None = None,
                  accept_loss: bool = False,
-                 analytes: AnalytePolicy | AnalyteOptions | None = None) -> None:
+                 analytes: AnalytePolicy | AnalyteOptions | None = None,
+                 memory_limit_mb: int | None = None) -> None:
         super().__init__(clock, read_only=read_only, signing=signing)
         self._given_analytes = analytes
         self.path = Path(path)
@@ -237,6 +247,8 @@ class DuckDBStore(LedgerStore):
             try:
                 with backend_errors():
                     if not read_only:
+                        limit_mb = memory_limit_mb or WRITER_MEMORY_LIMIT_MB
+                        self._con.execute(f"SET memory_limit = '{int(limit_mb)}MB'")
                         self._create_schema()
                     self._check_schema()
                     self._state, self._analytes = self._load_state()

@@ -492,10 +492,13 @@ class Recorder:
 def main(config: Config, *, stopper: Stopper | None = None) -> int:
     """Record until SIGINT/SIGTERM, ``stopper`` or ``config.duration_s``; return an exit code."""
     try:
-        FileNamer(config.out, config.split).check()
+        continued_in = FileNamer(config.out, config.split).check()
     except OSError as exc:
         log(SERVICE, "cannot record", level="error", out=config.out, error=str(exc))
         return 2
+    if continued_in is not None:
+        log(SERVICE, "output exists; continuing in a new part (nothing overwritten)",
+            level="warning", out=config.out, part=str(continued_in))
     runtime = ServiceRuntime(SERVICE, config.site, config.zenoh, name=Path(config.out).stem,
                              status_period_s=config.status_period_s, stopper=stopper)
     site_time = SiteTime("site" if config.clock == "site" else "wall")

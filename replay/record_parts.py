@@ -29,11 +29,17 @@ DRAIN_BATCH = 10_000
 
 
 class FileNamer:
-    """The files of one recording: ``out`` itself, or numbered parts when splitting."""
+    """The files of one recording: ``out`` itself, or numbered parts when splitting.
+
+    A one-file recording whose file is already there (a recorder restarted by
+    ``stockpile run`` after a crash) continues in the first free numbered part instead:
+    nothing is overwritten, and the recording goes on.
+    """
 
     def __init__(self, out: str, split: bool) -> None:
         self.out, self.split = Path(out), split
-        self.next_index = self._first_free() if split else 0
+        self.continues = not split and self.out.exists()
+        self.next_index = self._first_free() if split or self.continues else 0
 
     def _part(self, index: int) -> Path:
         return self.out.with_name(f"{self.out.stem}-{index:04d}{self.out.suffix or '.mcap'}")
@@ -45,15 +51,14 @@ class FileNamer:
             index = max(index, int(path.stem.rsplit("-", 1)[1]) + 1)
         return index
 
-    def check(self) -> None:
-        """Raise FileExistsError when the single output file is already there."""
-        if not self.split and self.out.exists():
-            raise FileExistsError(f"{self.out} exists; record to a new file (nothing was "
-                                  "overwritten)")
+    def check(self) -> Path | None:
+        """Create the output's directory (OSError if it cannot be); return the part a
+        one-file recording continues in when its file is already there, else None."""
         self.out.parent.mkdir(parents=True, exist_ok=True)
+        return self._part(self.next_index) if self.continues else None
 
     def next(self) -> Path:
-        if not self.split:
+        if not self.split and not self.continues:
             return self.out
         path = self._part(self.next_index)
         self.next_index += 1

@@ -148,6 +148,9 @@ class Config:
     analytes : AnalyteOptions or None
         The site's declared analytes and unknown-analyte policy (:mod:`schemas.analytes`);
         None: what the ledger recorded.
+    memory_limit_mb : int or None
+        Cap on DuckDB's buffer pool, megabytes (None: ``WRITER_MEMORY_LIMIT_MB`` of
+        :mod:`ledger.duckdb_store`), so the service's memory stays flat as the file grows.
     """
 
     site: str
@@ -165,6 +168,7 @@ class Config:
     signing: SigningPolicy | None = None
     accept_loss: bool = False
     analytes: AnalyteOptions | None = None
+    memory_limit_mb: int | None = None
 
     def __post_init__(self) -> None:
         if self.batch_size < 1:
@@ -173,6 +177,8 @@ class Config:
             raise ValueError(f"batch interval must be > 0 s, got {self.batch_interval_s}")
         if self.queue_size < 1:
             raise ValueError(f"queue size must be >= 1, got {self.queue_size}")
+        if self.memory_limit_mb is not None and self.memory_limit_mb < 16:
+            raise ValueError(f"memory limit must be >= 16 MB, got {self.memory_limit_mb}")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -197,6 +203,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_signing_options(parser)
     add_accept_loss(parser)
     add_analytes(parser)
+    parser.add_argument("--memory-limit-mb", type=int, default=None, metavar="MB",
+                        help="cap on the database's buffer pool, megabytes (default 256)")
 
 
 def config_from_args(args: argparse.Namespace) -> Config:
@@ -209,7 +217,7 @@ def config_from_args(args: argparse.Namespace) -> Config:
                   queue_size=args.queue_size, history=not args.no_history,
                   checkpoint_dir=args.checkpoints, checkpoint_every_s=args.checkpoint_every,
                   signing=policy_from_args(args), accept_loss=args.accept_loss,
-                  analytes=analytes)
+                  analytes=analytes, memory_limit_mb=args.memory_limit_mb)
 
 
 # -- writing ------------------------------------------------------------------------------
@@ -501,7 +509,7 @@ def main(config: Config, *, stopper: Stopper | None = None) -> int:
             Path(config.ledger_path).parent.mkdir(parents=True, exist_ok=True)
         store = open_ledger(config.ledger_path, clock_by_name(config.clock),
                             signing=config.signing, accept_loss=config.accept_loss,
-                            analytes=config.analytes)
+                            analytes=config.analytes, memory_limit_mb=config.memory_limit_mb)
     except (LedgerError, OSError, ValueError) as exc:
         log(SERVICE, "cannot open the ledger", level="error", ledger=config.ledger_path,
             error=str(exc).splitlines()[0])

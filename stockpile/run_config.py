@@ -33,7 +33,8 @@ command-line option
 (``batch_size = 500`` -> ``--batch-size 500``; ``true`` -> a bare flag; a list
 repeats the option).  Services start in the order ledger, localizer, the rest;
 a service that exits unexpectedly is restarted after ``restart_delay_s`` (default 2 s,
-doubling up to 60 s); SIGINT/SIGTERM stops them in reverse order, the ledger last.
+doubling up to 60 s while it keeps exiting, and back to ``restart_delay_s`` once it ran
+for :data:`STABLE_RUN_S` before exiting); SIGINT/SIGTERM stops them in reverse order, the ledger last.
 ``[analytes]`` becomes every ledger service's ``--analytes`` and ``--unknown-analyte``.
 """
 
@@ -61,6 +62,11 @@ from stockpile import service_cli
 from stockpile.service_cli import SERVICE_MODULES
 
 START_ORDER = ("ledger", "localizer")
+
+
+#: a service that ran this long before exiting restarts after ``restart_delay_s`` again,
+#: not after its doubled delay, seconds
+STABLE_RUN_S = 60.0
 
 
 class ConfigError(ValueError):
@@ -243,12 +249,14 @@ def run(config: YardConfig, *, stopper: Stopper | None = None) -> int:
     children: dict[str, subprocess.Popen] = {}
     delays = {e.name: config.restart_delay_s for e in config.services}
     next_start = {e.name: 0.0 for e in config.services}
+    started_at = {e.name: 0.0 for e in config.services}
     lock = threading.Lock()
 
     def start(entry: ServiceEntry) -> None:
         argv = [sys.executable, "-m", "stockpile.cli",
                 *entry.argv(config.site, config.zenoh_argv, config.tls_dir)]
         children[entry.name] = subprocess.Popen(argv)
+        started_at[entry.name] = time.monotonic()
         log("run", "started", name=entry.name, kind=entry.service,
             pid=children[entry.name].pid)
 
@@ -264,6 +272,8 @@ def run(config: YardConfig, *, stopper: Stopper | None = None) -> int:
                     if code is None:
                         continue
                     if next_start[entry.name] == 0.0:
+                        if now - started_at[entry.name] >= STABLE_RUN_S:
+                            delays[entry.name] = config.restart_delay_s
                         log("run", "exited", level="error", name=entry.name, code=code,
                             restart_in_s=delays[entry.name])
                         next_start[entry.name] = now + delays[entry.name]

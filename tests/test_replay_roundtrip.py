@@ -30,6 +30,7 @@ from mcap_protobuf.decoder import DecoderFactory
 from ledger import open_ledger
 from ledger.cli import export_lines
 from ledger.signing import KEY_TYPES
+from replay.record_parts import FileNamer
 from replay.mcap_scan import McapScan
 from replay.mcap_format import SIGNATURE_SUFFIX
 from replay.mcap_writer import schema_of
@@ -360,9 +361,12 @@ def test_bad_usage_and_missing_files_are_one_line_errors(exported, tmp_path, cap
         assert code == 2, (args, out, err)
         assert len(err.strip().splitlines()) == 1 and err.startswith("stockpile"), (args, err)
     assert not (tmp_path / "x.mcap").exists()
-    # a recorder never overwrites a recording
-    code, _out, err = run(capsys, "record", "--out", str(exported), "--duration", "1s")
-    assert code == 2 and "exists" in err
+    # a recorder never overwrites a recording: given one that exists (a restart under
+    # `stockpile run`), it continues in the first free numbered part
+    namer = FileNamer(str(exported), split=False)
+    part = namer.check()
+    assert part == exported.with_name(f"{exported.stem}-0000{exported.suffix}")
+    assert namer.next() == part and not part.exists()
     assert McapScan(exported).report.path == str(exported)  # still there, untouched
 
 
