@@ -54,13 +54,6 @@ RSS_PERIOD_S = 5.0
 WARMUP_S = 300.0
 #: bound on each process's RSS slope after the warm-up, MB/h (see the module doc)
 MAX_SLOPE_MB_PER_H = 50.0
-#: a known bug: the ledger service's RSS grows with the ledger (about 600 MB at 1.3 million
-#: events in a 3-minute soak, 4,761 MB/h); the soak then ends as xfail, and fails once it
-#: does not (strict by hand: the rest of the soak's checks stay hard)
-LEDGER_MEMORY_GROWS = True
-LEDGER_GROWTH_REASON = ("the ledger service's RSS grows with the ledger file (probably "
-                        "DuckDB's buffer pool: no memory_limit is set, 80 % of RAM by "
-                        "default)")
 #: growth any process may show over a window, whatever its length (allocator and page
 #: jitter), MB: what makes a 3-minute try's bound 20 MB / 2.25 min = 530 MB/h
 NOISE_FLOOR_MB = 20.0
@@ -182,13 +175,4 @@ def test_soak_four_times_the_demo_rate_with_random_kills(tmp_path, seed):
     assert row["gap_events"] == 0, f"events lost (in exact gaps): {row}"
     assert len(checked) >= len(SERVICES) + PRODUCERS - 1, (checked, slopes)
     growing = {k: v for k, v in checked.items() if v[0] > v[1]}
-    others = {k: v for k, v in growing.items() if not k.startswith("ledger:")}
-    assert not others, f"memory grows (MB/h, bound): {others}"
-    ledger_checked = {k: v for k, v in checked.items() if k.startswith("ledger:")}
-    ledger_grows = {k: v for k, v in growing.items() if k.startswith("ledger:")}
-    # a known bug, held strictly: once the ledger's memory is flat this fails, so the
-    # allowance goes
-    assert ledger_grows or not ledger_checked or not LEDGER_MEMORY_GROWS, (
-        f"the ledger's memory is flat now {ledger_checked}: set LEDGER_MEMORY_GROWS = False")
-    if ledger_grows:
-        pytest.xfail(f"{LEDGER_GROWTH_REASON}: {ledger_grows}")
+    assert not growing, f"memory grows (MB/h, bound): {growing}"
