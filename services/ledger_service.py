@@ -83,6 +83,7 @@ from ledger.wire import (encode_records, gap_to_json, head_to_json, quarantine_t
 from schemas.events import Malformed, decode_attachment, event_from_sample
 from services.service import ServiceRuntime, Stopper, ZenohOptions, log
 from services.ledger_checkpoints import Checkpointer
+from services.ledger_disk import DEFAULT_MIN_FREE_MB, DiskGuard, publish_status
 from services.zenoh_config import reader_endpoints
 
 SERVICE = "ledger"
@@ -137,6 +138,8 @@ class Config:
         Seconds between checkpoints while the head moves; one more at every clean stop.
     signing : SigningPolicy or None
         Types that must be signed and the admin key trusted (:mod:`ledger.signing`).
+    min_free_mb : float
+        Free-space watermark, MiB (alarm ``low_disk``, :mod:`services.ledger_disk`).
     """
 
     site: str
@@ -152,6 +155,7 @@ class Config:
     checkpoint_dir: str | None = None
     checkpoint_every_s: float = DEFAULT_CHECKPOINT_EVERY_S
     signing: SigningPolicy | None = None
+    min_free_mb: float = DEFAULT_MIN_FREE_MB
 
     def __post_init__(self) -> None:
         if self.batch_size < 1:
@@ -160,6 +164,8 @@ class Config:
             raise ValueError(f"batch interval must be > 0 s, got {self.batch_interval_s}")
         if self.queue_size < 1:
             raise ValueError(f"queue size must be >= 1, got {self.queue_size}")
+        if not self.min_free_mb >= 0:
+            raise ValueError(f"--min-free-mb must be >= 0 MiB, got {self.min_free_mb}")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -182,6 +188,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                  help="time between checkpoints while the ledger grows, with a unit, wall "
                  "time (default 1h); one more at every clean stop")
     add_signing_options(parser)
+    parser.add_argument("--min-free-mb", type=float, default=DEFAULT_MIN_FREE_MB, metavar="MB",
+                        help="warn and raise the low_disk alarm when the ledger's file system "
+                        f"has less free, MiB (default {DEFAULT_MIN_FREE_MB:g})")
 
 
 def config_from_args(args: argparse.Namespace) -> Config:
@@ -190,7 +199,7 @@ def config_from_args(args: argparse.Namespace) -> Config:
                   batch_size=args.batch_size, batch_interval_s=args.batch_interval,
                   queue_size=args.queue_size, history=not args.no_history,
                   checkpoint_dir=args.checkpoints, checkpoint_every_s=args.checkpoint_every,
-                  signing=policy_from_args(args))
+                  signing=policy_from_args(args), min_free_mb=args.min_free_mb)
 
 
 # -- writing ------------------------------------------------------------------------------
@@ -202,14 +211,15 @@ class Writer:
     """Drains the sample queue into the store in batches; publishes the head after each.
 
     Runs on its own thread (:meth:`run`).  ``on_committed(head_json)`` is called after
-    every batch that changed the ledger.
+    every batch that changed the ledger.  ``disk`` holds a batch a full disk refuses.
     """
 
     def __init__(self, store: LedgerStore, samples: queue.Queue, runtime: ServiceRuntime,
-                 config: Config, on_committed, on_gaps=None) -> None:
+                 config: Config, on_committed, on_gaps=None,
+                 disk: DiskGuard | None = None) -> None:
         self.store, self.samples, self.runtime, self.config = store, samples, runtime, config
         self.on_committed = on_committed
-        self.on_gaps = on_gaps
+        self.on_gaps, self.disk = on_gaps, disk
         self._missing = 0
         self.failed: BaseException | None = None
         self.batches = 0
@@ -236,8 +246,8 @@ class Writer:
         return batch, stop
 
     def run(self) -> None:
-        status = self.runtime.status
-        assert status is not None
+        assert self.runtime.status is not None
+        stop = False
         try:
             while True:
                 raw, stop = self._take_batch()
@@ -249,13 +259,16 @@ class Writer:
             self.failed = exc
             log(SERVICE, "writer failed", level="error", error=f"{type(exc).__name__}: {exc}")
             self.runtime.stopper and self.runtime.stopper.set()
+            # room for the main thread's _STOP; the publishers' caches keep what is dropped
+            while not stop and self.samples.get() is not _STOP:
+                pass
 
     def _append(self, raw: list) -> None:
         status = self.runtime.status
         assert status is not None
         items = [event_from_sample(key, payload, attachment)
                  for key, payload, attachment, _t in raw]
-        result = self.store.append(items)
+        result = self.disk.append(self.store, items) if self.disk else self.store.append(items)
         counts = result.counts
         status.add("received", len(items))
         for name in ("appended", "duplicate", "conflict", "rejected"):
@@ -277,6 +290,8 @@ class Writer:
         self.last_latency_ms = latency_ms
         if counts["appended"] or counts["rejected"] or counts["conflict"]:
             self.on_committed()
+        if self.disk is not None:
+            self.disk.check()
         missing = sum(st.missing for st in self.store.streams())
         if missing != self._missing:
             self._missing = missing
@@ -511,8 +526,12 @@ def _serve(config: Config, store: LedgerStore, samples: queue.Queue,
     def publish_head() -> None:
         head_publisher.put(json.dumps(head_to_json(store.head())).encode())
 
+    status_publisher = publish_status(session, config.site, SERVICE, status)
+    disk = DiskGuard(config.ledger_path, config.min_free_mb, status, runtime.stopper)
+    disk.check(force=True)
     repair = GapRepair(session, config.site, store, samples, runtime)
-    writer = Writer(store, samples, runtime, config, publish_head, on_gaps=repair.check)
+    writer = Writer(store, samples, runtime, config, publish_head, on_gaps=repair.check,
+                    disk=disk)
     reader = Reader(store, config.site, config.chunk_bytes)
     threads = [threading.Thread(target=writer.run, name="ledger-writer", daemon=True),
                threading.Thread(target=reader.run, name="ledger-reader", daemon=True)]
@@ -567,6 +586,8 @@ def _serve(config: Config, store: LedgerStore, samples: queue.Queue,
     reader.queries.put(_STOP)
     threads[1].join(timeout=5.0)
     head_publisher.undeclare()
+    status.on_status = None
+    status_publisher.undeclare()
     if writer.failed is not None:
         runtime.log("stopping after a writer failure", level="error",
                     error=f"{type(writer.failed).__name__}: {writer.failed}")
