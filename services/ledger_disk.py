@@ -14,9 +14,9 @@
   caches.  When space returns the held batch commits first, the alarm clears, and the
   writer goes on by itself.
 
-DuckDB (2.0) ends the transaction whose COMMIT failed and keeps the connection usable,
-so a retry is a plain :meth:`LedgerStore.append` of the same items on the same store;
-the store's writer state moves only when a commit succeeds.
+A retry is a plain :meth:`LedgerStore.append` of the same items on the same store (the
+store's writer state moves only when a commit succeeds; ``docs/operations.md``, "The
+disk watermark", says what DuckDB leaves behind a COMMIT that failed).
 """
 
 from __future__ import annotations

@@ -80,10 +80,11 @@ from ledger.holder import LedgerHolder, remove_holder, this_host, write_holder
 from ledger.store import LedgerStore
 from ledger.wire import (encode_records, gap_to_json, head_to_json, quarantine_to_json,
                          stream_to_json)
-from schemas.events import Malformed, decode_attachment, event_from_sample
+from schemas.events import Malformed, event_from_sample
 from services.service import ServiceRuntime, Stopper, ZenohOptions, log
 from services.ledger_checkpoints import Checkpointer
 from services.ledger_disk import DEFAULT_MIN_FREE_MB, DiskGuard, publish_status
+from services.ledger_repair import GapRepair
 from services.zenoh_config import reader_endpoints
 
 SERVICE = "ledger"
@@ -297,84 +298,6 @@ class Writer:
             self._missing = missing
             if self.on_gaps is not None:
                 self.on_gaps()
-
-
-class GapRepair:
-    """Asks a source's publisher cache again when its stream has open gaps.
-
-    :meth:`check` (called by the writer when the number of missing events changes)
-    logs every newly opened gap with its exact range and, for each source with
-    missing events, declares a short-lived history subscriber on that source's keys
-    (at most one per source at a time, for ``window_s``).  Its samples are queued
-    only when their sequence lies in an open gap, so a cache replay costs almost
-    nothing.
-    """
-
-    def __init__(self, session, site: str, store: LedgerStore, samples: queue.Queue,
-                 runtime: ServiceRuntime, *, window_s: float = 10.0) -> None:
-        self.session, self.site, self.store, self.samples = session, site, store, samples
-        self.runtime = runtime
-        self.window_s = window_s
-        self._reported: set[int] = set()
-        self._active: dict[str, tuple[object, float]] = {}
-        self._open: dict[tuple[str, int], list[tuple[int, int]]] = {}
-        self._lock = threading.Lock()
-        self._closed = False
-
-    def check(self) -> None:
-        status = self.runtime.status
-        gaps = self.store.gaps(open_only=True)
-        open_ranges: dict[tuple[str, int], list[tuple[int, int]]] = {}
-        for gap in gaps:
-            open_ranges.setdefault((gap.source, gap.epoch), []).append((gap.first_seq, gap.last_seq))
-            if gap.gap_id not in self._reported:
-                self._reported.add(gap.gap_id)
-                if status is not None:
-                    status.add("gaps_opened")
-                log(SERVICE, "gap opened", level="warning", source=gap.source, epoch=gap.epoch,
-                    first_seq=gap.first_seq, last_seq=gap.last_seq, missing=gap.size)
-        now = time.monotonic()
-        with self._lock:
-            if self._closed:
-                return
-            self._open = open_ranges
-            for source, (sub, since) in list(self._active.items()):
-                if now - since > self.window_s or not any(k[0] == source for k in open_ranges):
-                    sub.undeclare()
-                    del self._active[source]
-            for source in {k[0] for k in open_ranges}:
-                if source not in self._active:
-                    self._active[source] = (self._ask(source), now)
-                    if status is not None:
-                        status.add("repairs_asked")
-
-    def _wanted(self, source: str, epoch: int, seq: int) -> bool:
-        with self._lock:
-            return any(first <= seq <= last for first, last in self._open.get((source, epoch), ()))
-
-    def _ask(self, source: str):
-        def on_sample(sample) -> None:
-            attachment = sample.attachment
-            if attachment is None:
-                return
-            try:
-                epoch, seq, _valid = decode_attachment(attachment.to_bytes())
-            except ValueError:
-                return
-            if self._wanted(source, epoch, seq):
-                self.samples.put((str(sample.key_expr), sample.payload.to_bytes(),
-                                  attachment.to_bytes(), time.monotonic()))
-
-        return zext.declare_advanced_subscriber(
-            self.session, f"stockpile/{self.site}/@v1/*/{source}", on_sample,
-            history=zext.HistoryConfig(detect_late_publishers=False))
-
-    def close(self) -> None:
-        with self._lock:
-            self._closed = True
-            for sub, _since in self._active.values():
-                sub.undeclare()
-            self._active.clear()
 
 
 # -- reading ------------------------------------------------------------------------------
