@@ -11,8 +11,10 @@
   ``disk_full`` with the operating system's words.  Meanwhile the writer takes no new
   batch: the service's bounded queue fills, the Zenoh callback blocks, and the
   publishers (congestion control BLOCK, :mod:`services.publishing`) hold back with their
-  caches.  When space returns the held batch commits first, the alarm clears, and the
-  writer goes on by itself.
+  caches, for up to Zenoh's block budget; after it the router drops the link and the
+  publishers go on into their caches, from which :mod:`services.ledger_repair` takes
+  the missing range once the ledger resumes.  When space returns the held batch
+  commits first, the alarm clears, and the writer goes on by itself.
 
 A retry is a plain :meth:`LedgerStore.append` of the same items on the same store (the
 store's writer state moves only when a commit succeeds; ``docs/operations.md``, "The

@@ -109,10 +109,6 @@ class StatusReporter:
             log(self.service, message, alarm_cleared=name, **fields)
             self._publish(advance_rate=False)
 
-    def alarmed(self, name: str) -> bool:
-        with self._lock:
-            return name in self.alarms
-
     def _publish(self, *, advance_rate: bool, fields: dict[str, Any] | None = None) -> None:
         if self.on_status is None:
             return
