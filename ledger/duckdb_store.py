@@ -369,7 +369,12 @@ class DuckDBStore(LedgerStore):
                 self._write_rest(plan, new_analytes)
                 self._con.execute(_COMMIT)
             except BaseException:
-                self._con.execute(_ROLLBACK)
+                # a COMMIT that failed (disk full) has already ended the transaction, so
+                # this ROLLBACK fails too: the error raised is the first one, never its own
+                try:
+                    self._con.execute(_ROLLBACK)
+                except duckdb.Error:
+                    pass
                 raise
         self._analytes |= new_analytes
         if self._head_recorder is not None and plan.state is not None:

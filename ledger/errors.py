@@ -8,7 +8,8 @@
     └── DatabaseError                the backend could not do what was asked
         ├── DataError                a value the backend cannot store
         ├── OperationalError         not now: missing file, disk full, I/O error
-        │   └── LedgerLocked         the file is open for writing by another process
+        │   ├── LedgerLocked         the file is open for writing by another process
+        │   └── LedgerDiskFull       the ledger's disk (or quota) is full; retry once space returns
         ├── IntegrityError           stored data contradicts the ledger's invariants
         ├── InternalError            an unexpected backend failure
         ├── ProgrammingError         schema version or SQL mismatch (a bug or an old file)
@@ -21,6 +22,7 @@ Bad *events* are not exceptions: they are quarantined and reported per event in
 from __future__ import annotations
 
 import contextlib
+import errno
 import re
 from typing import Iterator
 
@@ -116,6 +118,9 @@ def map_backend_error(exc: BaseException) -> LedgerError:
     if _MAPPING is None:
         _MAPPING = _duckdb_mapping()
     message = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+    os_error = disk_full_text(exc)
+    if os_error is not None:
+        return LedgerDiskFull(f"the ledger's disk is full: {message}", os_error=os_error)
     if isinstance(exc, OSError):
         return OperationalError(message)
     for backend_cls, ours in _MAPPING:
@@ -145,3 +150,32 @@ class HeadWentBackwards(IntegrityError):
     """The ledger holds less than its head sidecar recorded as committed (a lost WAL tail,
     a stale copy), or another history: it is not opened for writing without
     ``accept_loss`` (:mod:`ledger.head_file`)."""
+
+
+#: the operating system's words for a full disk or quota, as DuckDB passes them on
+_DISK_FULL_TEXTS = ("No space left on device", "Disk quota exceeded")
+_DISK_FULL_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT})
+
+
+class LedgerDiskFull(OperationalError):
+    """The ledger's disk (or the writer's quota) is full: nothing of the failed batch
+    was committed, and the same batch can be appended again once space returns.
+
+    ``os_error`` is the operating system's text (``No space left on device``).
+    """
+
+    def __init__(self, message: str, os_error: str = "No space left on device") -> None:
+        super().__init__(message)
+        self.os_error = os_error
+
+
+def disk_full_text(exc: BaseException) -> str | None:
+    """The OS error text when ``exc`` (an ``OSError`` or a backend error) says the disk
+    or quota is full, else None."""
+    if isinstance(exc, OSError) and exc.errno in _DISK_FULL_ERRNOS:
+        return exc.strerror or _DISK_FULL_TEXTS[0]
+    text = str(exc)
+    for words in _DISK_FULL_TEXTS:
+        if words in text:
+            return words
+    return None

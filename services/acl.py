@@ -58,6 +58,7 @@ ALL_ADV = "stockpile/{site}/@v1/**/@adv/**"
 LEDGER_Q = "stockpile/{site}/@ledger/q/*"
 LEDGER_HEAD = "stockpile/{site}/@ledger/head"
 LEDGER_CHECKPOINT = "stockpile/{site}/@ledger/checkpoint"
+LEDGER_STATUS = "stockpile/{site}/@ledger/status"
 LIVE_OF = "stockpile/{site}/@live/{service}/**"
 LIVE_ANY = "stockpile/{site}/@live/**"
 
@@ -98,12 +99,13 @@ def _event_reader(keys: tuple[str, ...], adv: tuple[str, ...]) -> list[Grant]:
 
 
 def _ledger_reader() -> list[Grant]:
-    """Queries of the ledger service, and its head."""
+    """Queries of the ledger service, its head and its status (alarms)."""
     return [
         Grant(("query",), ("ingress",), (LEDGER_Q,)),
         Grant(("reply",), ("egress",), (LEDGER_Q,)),
-        Grant(("declare_subscriber",), ("ingress",), (LEDGER_HEAD, LEDGER_CHECKPOINT)),
-        Grant(("put",), ("egress",), (LEDGER_HEAD, LEDGER_CHECKPOINT)),
+        Grant(("declare_subscriber",), ("ingress",), (LEDGER_HEAD, LEDGER_CHECKPOINT,
+                                                      LEDGER_STATUS)),
+        Grant(("put",), ("egress",), (LEDGER_HEAD, LEDGER_CHECKPOINT, LEDGER_STATUS)),
     ]
 
 
@@ -135,8 +137,9 @@ ROLE_GRANTS: dict[str, list[Grant]] = {
         Grant(("declare_queryable",), ("ingress",), (LEDGER_Q,)),
         Grant(("query",), ("egress",), (LEDGER_Q,)),
         Grant(("reply",), ("ingress",), (LEDGER_Q,)),
-        Grant(("put",), ("ingress",), (LEDGER_HEAD, LEDGER_CHECKPOINT)),
-        Grant(("declare_subscriber",), ("egress",), (LEDGER_HEAD, LEDGER_CHECKPOINT)),
+        Grant(("put",), ("ingress",), (LEDGER_HEAD, LEDGER_CHECKPOINT, LEDGER_STATUS)),
+        Grant(("declare_subscriber",), ("egress",), (LEDGER_HEAD, LEDGER_CHECKPOINT,
+                                                     LEDGER_STATUS)),
     ],
     "recorder": _event_reader((ALL_EVENTS,), (ALL_ADV,)) + [
         Grant(("declare_subscriber",), ("ingress",), (LEDGER_CHECKPOINT,)),

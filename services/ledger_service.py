@@ -85,10 +85,12 @@ from ledger.store import LedgerStore
 from ledger.wire import (encode_records, gap_to_json, head_to_json, quarantine_to_json,
                          stream_to_json)
 from schemas.analytes import AnalyteOptions, policy_from_args as analyte_options
-from schemas.events import Malformed, decode_attachment, event_from_sample
+from schemas.events import Malformed, event_from_sample
 from services.service import ServiceRuntime, Stopper, ZenohOptions, log
 from services.ledger_backup import BackupRequest, next_sample
 from services.ledger_checkpoints import Checkpointer
+from services.ledger_disk import DEFAULT_MIN_FREE_MB, DiskGuard, publish_status
+from services.ledger_repair import GapRepair
 from services.zenoh_config import reader_endpoints
 
 SERVICE = "ledger"
@@ -151,6 +153,8 @@ class Config:
     memory_limit_mb : int or None
         Cap on DuckDB's buffer pool, megabytes (None: ``WRITER_MEMORY_LIMIT_MB`` of
         :mod:`ledger.duckdb_store`), so the service's memory stays flat as the file grows.
+    min_free_mb : float
+        Free-space watermark, MiB (alarm ``low_disk``, :mod:`services.ledger_disk`).
     """
 
     site: str
@@ -169,6 +173,7 @@ class Config:
     accept_loss: bool = False
     analytes: AnalyteOptions | None = None
     memory_limit_mb: int | None = None
+    min_free_mb: float = DEFAULT_MIN_FREE_MB
 
     def __post_init__(self) -> None:
         if self.batch_size < 1:
@@ -179,6 +184,8 @@ class Config:
             raise ValueError(f"queue size must be >= 1, got {self.queue_size}")
         if self.memory_limit_mb is not None and self.memory_limit_mb < 16:
             raise ValueError(f"memory limit must be >= 16 MB, got {self.memory_limit_mb}")
+        if not self.min_free_mb >= 0:
+            raise ValueError(f"--min-free-mb must be >= 0 MiB, got {self.min_free_mb}")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -205,6 +212,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_analytes(parser)
     parser.add_argument("--memory-limit-mb", type=int, default=None, metavar="MB",
                         help="cap on the database's buffer pool, megabytes (default 256)")
+    parser.add_argument("--min-free-mb", type=float, default=DEFAULT_MIN_FREE_MB, metavar="MB",
+                        help="warn and raise the low_disk alarm when the ledger's file system "
+                        f"has less free, MiB (default {DEFAULT_MIN_FREE_MB:g})")
 
 
 def config_from_args(args: argparse.Namespace) -> Config:
@@ -217,7 +227,8 @@ def config_from_args(args: argparse.Namespace) -> Config:
                   queue_size=args.queue_size, history=not args.no_history,
                   checkpoint_dir=args.checkpoints, checkpoint_every_s=args.checkpoint_every,
                   signing=policy_from_args(args), accept_loss=args.accept_loss,
-                  analytes=analytes, memory_limit_mb=args.memory_limit_mb)
+                  analytes=analytes, memory_limit_mb=args.memory_limit_mb,
+                  min_free_mb=args.min_free_mb)
 
 
 # -- writing ------------------------------------------------------------------------------
@@ -229,14 +240,15 @@ class Writer:
     """Drains the sample queue into the store in batches; publishes the head after each.
 
     Runs on its own thread (:meth:`run`).  ``on_committed(head_json)`` is called after
-    every batch that changed the ledger.
+    every batch that changed the ledger.  ``disk`` holds a batch a full disk refuses.
     """
 
     def __init__(self, store: LedgerStore, samples: queue.Queue, runtime: ServiceRuntime,
-                 config: Config, on_committed, on_gaps=None) -> None:
+                 config: Config, on_committed, on_gaps=None,
+                 disk: DiskGuard | None = None) -> None:
         self.store, self.samples, self.runtime, self.config = store, samples, runtime, config
         self.on_committed = on_committed
-        self.on_gaps = on_gaps
+        self.on_gaps, self.disk = on_gaps, disk
         self._missing = 0
         self.failed: BaseException | None = None
         self.batches = 0
@@ -262,8 +274,8 @@ class Writer:
         return batch, stop
 
     def run(self) -> None:
-        status = self.runtime.status
-        assert status is not None
+        assert self.runtime.status is not None
+        stop = False
         try:
             while True:
                 raw, stop = self._take_batch()
@@ -275,13 +287,17 @@ class Writer:
             self.failed = exc
             log(SERVICE, "writer failed", level="error", error=f"{type(exc).__name__}: {exc}")
             self.runtime.stopper and self.runtime.stopper.set()
+            # room for the main thread's _STOP; the publishers' caches keep what is dropped
+            # (a backup request met on the way is still served: the committed head is sound)
+            while not stop and next_sample(self.samples, self.store) is not _STOP:
+                pass
 
     def _append(self, raw: list) -> None:
         status = self.runtime.status
         assert status is not None
         items = [event_from_sample(key, payload, attachment)
                  for key, payload, attachment, _t in raw]
-        result = self.store.append(items)
+        result = self.disk.append(self.store, items) if self.disk else self.store.append(items)
         counts = result.counts
         status.add("received", len(items))
         for name in ("appended", "duplicate", "conflict", "rejected"):
@@ -303,89 +319,13 @@ class Writer:
         self.last_latency_ms = latency_ms
         if counts["appended"] or counts["rejected"] or counts["conflict"]:
             self.on_committed()
+        if self.disk is not None:
+            self.disk.check()
         missing = sum(st.missing for st in self.store.streams())
         if missing != self._missing:
             self._missing = missing
             if self.on_gaps is not None:
                 self.on_gaps()
-
-
-class GapRepair:
-    """Asks a source's publisher cache again when its stream has open gaps.
-
-    :meth:`check` (called by the writer when the number of missing events changes)
-    logs every newly opened gap with its exact range and, for each source with
-    missing events, declares a short-lived history subscriber on that source's keys
-    (at most one per source at a time, for ``window_s``).  Its samples are queued
-    only when their sequence lies in an open gap, so a cache replay costs almost
-    nothing.
-    """
-
-    def __init__(self, session, site: str, store: LedgerStore, samples: queue.Queue,
-                 runtime: ServiceRuntime, *, window_s: float = 10.0) -> None:
-        self.session, self.site, self.store, self.samples = session, site, store, samples
-        self.runtime = runtime
-        self.window_s = window_s
-        self._reported: set[int] = set()
-        self._active: dict[str, tuple[object, float]] = {}
-        self._open: dict[tuple[str, int], list[tuple[int, int]]] = {}
-        self._lock = threading.Lock()
-        self._closed = False
-
-    def check(self) -> None:
-        status = self.runtime.status
-        gaps = self.store.gaps(open_only=True)
-        open_ranges: dict[tuple[str, int], list[tuple[int, int]]] = {}
-        for gap in gaps:
-            open_ranges.setdefault((gap.source, gap.epoch), []).append((gap.first_seq, gap.last_seq))
-            if gap.gap_id not in self._reported:
-                self._reported.add(gap.gap_id)
-                if status is not None:
-                    status.add("gaps_opened")
-                log(SERVICE, "gap opened", level="warning", source=gap.source, epoch=gap.epoch,
-                    first_seq=gap.first_seq, last_seq=gap.last_seq, missing=gap.size)
-        now = time.monotonic()
-        with self._lock:
-            if self._closed:
-                return
-            self._open = open_ranges
-            for source, (sub, since) in list(self._active.items()):
-                if now - since > self.window_s or not any(k[0] == source for k in open_ranges):
-                    sub.undeclare()
-                    del self._active[source]
-            for source in {k[0] for k in open_ranges}:
-                if source not in self._active:
-                    self._active[source] = (self._ask(source), now)
-                    if status is not None:
-                        status.add("repairs_asked")
-
-    def _wanted(self, source: str, epoch: int, seq: int) -> bool:
-        with self._lock:
-            return any(first <= seq <= last for first, last in self._open.get((source, epoch), ()))
-
-    def _ask(self, source: str):
-        def on_sample(sample) -> None:
-            attachment = sample.attachment
-            if attachment is None:
-                return
-            try:
-                epoch, seq, _valid = decode_attachment(attachment.to_bytes())
-            except ValueError:
-                return
-            if self._wanted(source, epoch, seq):
-                self.samples.put((str(sample.key_expr), sample.payload.to_bytes(),
-                                  attachment.to_bytes(), time.monotonic()))
-
-        return zext.declare_advanced_subscriber(
-            self.session, f"stockpile/{self.site}/@v1/*/{source}", on_sample,
-            history=zext.HistoryConfig(detect_late_publishers=False))
-
-    def close(self) -> None:
-        with self._lock:
-            self._closed = True
-            for sub, _since in self._active.values():
-                sub.undeclare()
-            self._active.clear()
 
 
 # -- reading ------------------------------------------------------------------------------
@@ -538,8 +478,12 @@ def _serve(config: Config, store: LedgerStore, samples: queue.Queue,
     def publish_head() -> None:
         head_publisher.put(json.dumps(head_to_json(store.head())).encode())
 
+    status_publisher = publish_status(session, config.site, SERVICE, status)
+    disk = DiskGuard(config.ledger_path, config.min_free_mb, status, runtime.stopper)
+    disk.check(force=True)
     repair = GapRepair(session, config.site, store, samples, runtime)
-    writer = Writer(store, samples, runtime, config, publish_head, on_gaps=repair.check)
+    writer = Writer(store, samples, runtime, config, publish_head, on_gaps=repair.check,
+                    disk=disk)
     reader = Reader(store, config.site, config.chunk_bytes)
     threads = [threading.Thread(target=writer.run, name="ledger-writer", daemon=True),
                threading.Thread(target=reader.run, name="ledger-reader", daemon=True)]
@@ -595,6 +539,8 @@ def _serve(config: Config, store: LedgerStore, samples: queue.Queue,
     reader.queries.put(_STOP)
     threads[1].join(timeout=5.0)
     head_publisher.undeclare()
+    status.on_status = None
+    status_publisher.undeclare()
     if writer.failed is not None:
         runtime.log("stopping after a writer failure", level="error",
                     error=f"{type(writer.failed).__name__}: {writer.failed}")

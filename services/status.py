@@ -4,6 +4,15 @@
 that logs them as a ``level=status`` line every ``period_s`` seconds, through the same
 logger as every other line (:func:`services.logfmt.log`; the ``status`` level sits
 between info and warning, so ``--quiet`` hides it).
+
+An **alarm** (:meth:`StatusReporter.raise_alarm`) is a condition an operator must see
+now, e.g. the ledger's disk below its watermark.  While it stands, every status line
+carries ``alarm=<name>[,<name>...]`` and the alarm's fields; raising or clearing one logs
+its own line at once, and ``on_status`` (when set: a service that publishes its status
+on Zenoh) receives the same fields as a status line, at every status line and at
+every alarm change.  Example::
+
+    ts=... level=status service=ledger msg=status appended_per_s=0.0 backlog=200000 errors=0 ... alarm=disk_full free_bytes=0 error="No space left on device"
 """
 
 from __future__ import annotations
@@ -41,6 +50,9 @@ class StatusReporter:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._last = (time.monotonic(), 0)
+        self.alarms: dict[str, dict[str, Any]] = {}
+        #: called with the status fields at every status line and alarm change
+        self.on_status: Callable[[dict[str, Any]], None] | None = None
 
     def add(self, name: str, n: int = 1) -> None:
         with self._lock:
@@ -54,19 +66,57 @@ class StatusReporter:
         with self._lock:
             return dict(self.counters)
 
-    def status_fields(self) -> dict[str, Any]:
+    def status_fields(self, *, advance_rate: bool = True) -> dict[str, Any]:
+        """The fields of one status line; ``advance_rate=False`` leaves the rate's
+        reference point where it was (an alarm published between two lines)."""
         now = time.monotonic()
         counters = self.snapshot()
         count = counters.get(self.rate_of, 0)
         t0, c0 = self._last
-        self._last = (now, count)
+        if advance_rate:
+            self._last = (now, count)
         rate = (count - c0) / (now - t0) if now > t0 else 0.0
         fields: dict[str, Any] = {f"{self.rate_of}_per_s": round(rate, 1)}
         if self.backlog is not None:
             fields["backlog"] = self.backlog()
         fields["errors"] = sum(counters.get(k, 0) for k in self.error_keys)
         fields.update(counters)
+        with self._lock:
+            alarms = {name: dict(extra) for name, extra in self.alarms.items()}
+        if alarms:
+            fields["alarm"] = ",".join(sorted(alarms))
+            for extra in alarms.values():
+                fields.update(extra)
         return fields
+
+    def raise_alarm(self, name: str, message: str, **fields: Any) -> None:
+        """Raise (or update) alarm ``name``: a warning line ``message`` with ``fields``
+        when it is new, and ``on_status`` at once whenever its fields changed."""
+        with self._lock:
+            new = name not in self.alarms
+            changed = self.alarms.get(name) != fields
+            self.alarms[name] = dict(fields)
+        if new:
+            log(self.service, message, level="warning", alarm=name, **fields)
+        if changed:
+            self._publish(advance_rate=False)
+
+    def clear_alarm(self, name: str, message: str, **fields: Any) -> None:
+        """Clear alarm ``name`` if it stands: an info line ``message``, ``on_status`` at once."""
+        with self._lock:
+            stood = self.alarms.pop(name, None) is not None
+        if stood:
+            log(self.service, message, alarm_cleared=name, **fields)
+            self._publish(advance_rate=False)
+
+    def _publish(self, *, advance_rate: bool, fields: dict[str, Any] | None = None) -> None:
+        if self.on_status is None:
+            return
+        try:
+            self.on_status(fields if fields is not None
+                           else self.status_fields(advance_rate=advance_rate))
+        except Exception as exc:  # noqa: BLE001 - a closed session must not stop the line
+            log(self.service, "cannot publish the status", level="warning", error=str(exc))
 
     def start(self) -> StatusReporter:
         if self.period_s > 0 and self._thread is None:
@@ -77,7 +127,9 @@ class StatusReporter:
 
     def _run(self) -> None:
         while not self._stop.wait(self.period_s):
-            log(self.service, "status", level="status", **self.status_fields())
+            fields = self.status_fields()
+            log(self.service, "status", level="status", **fields)
+            self._publish(advance_rate=False, fields=fields)
 
     def stop(self) -> None:
         self._stop.set()
