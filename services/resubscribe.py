@@ -33,6 +33,9 @@ QUERY_TIMEOUT_S = 60.0
 #: how long the query for the publishers present at the start may take, s
 PRESENT_TIMEOUT_S = 5.0
 
+#: how long close() waits for the worker to see it, s
+CLOSE_WAIT_S = 5.0
+
 _STOP = object()
 
 
@@ -55,6 +58,7 @@ class CacheRecall:
         self.on_recall = on_recall
         self.query_timeout_s = float(query_timeout_s)
         self.recalls = 0
+        self._closed = False
         self._alive: set[str] = set()
         self._work: queue.Queue = queue.Queue()
         self._thread = threading.Thread(target=self._run, name="cache-recall", daemon=True)
@@ -98,7 +102,7 @@ class CacheRecall:
         replies = [0]
 
         def on_reply(reply: Any) -> None:
-            if reply.ok is not None:
+            if reply.ok is not None and not self._closed:
                 replies[0] += 1
                 self.on_sample(reply.ok)
 
@@ -110,18 +114,21 @@ class CacheRecall:
         except zenoh.ZError:
             return   # the session is closing
         self.recalls += 1
-        done.wait(self.query_timeout_s + 5.0)
+        while not (done.wait(0.5) or self._closed):
+            pass
         if self.on_recall is not None:
             self.on_recall(token, replies[0])
 
     def close(self) -> None:
-        """Stop following tokens; wait for a query under way to end."""
+        """Stop following tokens and handing replies over (a query under way is left to
+        end by itself)."""
+        self._closed = True
         try:
             self._subscriber.undeclare()
         except zenoh.ZError:
             pass
         self._work.put(_STOP)
-        self._thread.join(self.query_timeout_s + 10.0)
+        self._thread.join(CLOSE_WAIT_S)
 
 
 class _Off:
