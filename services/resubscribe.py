@@ -12,7 +12,10 @@ it never does.
 under ``<key>/@adv/pub/**`` and, for every token that appears while it runs (a new
 publisher, or one coming back after its link or the router was lost: the router
 re-announces the tokens it learns again), queries that token's cache and hands every
-reply to ``on_sample``, the subscriber's own callback.  Replies are samples the
+reply to ``on_sample``, the subscriber's own callback.  A token's Delete and Put are not
+always seen across a router restart, so it also checks the session's router every
+``ROUTER_CHECK_S``: once linked to a new one (a restarted router has a new id), it asks
+every present publisher's cache that it has not asked in the last ``RECENT_S``.  Replies are samples the
 subscriber may hold already: its handler must treat a duplicate as a no-op.  Queries run
 on one worker thread, never in zenoh's callback.
 """
@@ -21,6 +24,7 @@ from __future__ import annotations
 
 import queue
 import threading
+import time
 from typing import Any, Callable
 
 import zenoh
@@ -32,6 +36,16 @@ QUERY_TIMEOUT_S = 60.0
 
 #: how long the query for the publishers present at the start may take, s
 PRESENT_TIMEOUT_S = 5.0
+
+#: a query that brought nothing is asked once more this much later, s
+RETRY_AFTER_S = 1.0
+
+#: how often the session's router is checked, s
+ROUTER_CHECK_S = 1.0
+#: after a new router is seen, how long to wait for the publishers to reach it too, s
+ROUTER_SETTLE_S = 5.0
+#: a recall that ended this recently is not repeated for a new router, s
+RECENT_S = 30.0
 
 #: how long close() waits for the worker to see it, s
 CLOSE_WAIT_S = 5.0
@@ -46,8 +60,8 @@ class CacheRecall:
     The publishers whose tokens are present when it starts are not queried (the
     subscriber's history query covers them); a token that goes (its publisher's link or
     the router was lost) and comes back is.  ``on_recall(token_key, replies)`` is called
-    after each query ends (for a log line).
-    ``recalls`` counts the queries made.
+    after each recall ends (for a log line); a recall whose query brings nothing asks once
+    more after ``RETRY_AFTER_S``.  ``recalls`` counts the queries made.
     """
 
     def __init__(self, session: Any, key: str, on_sample: Callable[[Any], None], *,
@@ -59,7 +73,9 @@ class CacheRecall:
         self.query_timeout_s = float(query_timeout_s)
         self.recalls = 0
         self._closed = False
-        self._alive: set[str] = set()
+        self._stop = threading.Event()
+        self._recalled: dict[str, float] = {}   # token -> monotonic s its last recall ended
+        self._present: set[str] = set()   # tokens whose first Put is the subscriber's history
         self._work: queue.Queue = queue.Queue()
         self._thread = threading.Thread(target=self._run, name="cache-recall", daemon=True)
         self._thread.start()
@@ -67,9 +83,13 @@ class CacheRecall:
         # the publishers present now are the subscriber's own history query's business
         for reply in session.liveliness().get(tokens, timeout=present_timeout_s):
             if reply.ok is not None:
-                self._alive.add(str(reply.ok.key_expr))
+                self._present.add(str(reply.ok.key_expr))
         self._subscriber = session.liveliness().declare_subscriber(
             tokens, self._on_token, history=True)
+        self._routers = self._router_ids()
+        self._watch = threading.Thread(target=self._watch_router, name="cache-recall-router",
+                                       daemon=True)
+        self._watch.start()
 
     @classmethod
     def of_events(cls, session: Any, site: str, on_sample: Callable[[Any], None],
@@ -84,20 +104,58 @@ class CacheRecall:
 
     def _on_token(self, sample: Any) -> None:
         token = str(sample.key_expr)
-        if sample.kind == zenoh.SampleKind.DELETE:
-            self._alive.discard(token)
-        elif token not in self._alive:
-            self._alive.add(token)
-            self._work.put(token)
+        if sample.kind == zenoh.SampleKind.DELETE or token in self._present:
+            self._present.discard(token)
+        else:   # a publisher appears, or comes back (its Delete may come late or never)
+            self._work.put(("token", token))
+
+    def _router_ids(self) -> frozenset[str]:
+        try:
+            return frozenset(str(z) for z in self.session.info.routers_zid())
+        except zenoh.ZError:
+            return frozenset()
+
+    def _watch_router(self) -> None:
+        """When the session is linked to a new router (a restarted one has a new id),
+        recall every publisher present: a token's Delete and Put are not always seen."""
+        while not self._stop.wait(ROUTER_CHECK_S):
+            routers = self._router_ids()
+            if not routers or routers == self._routers:
+                continue
+            self._routers = routers
+            self._stop.wait(ROUTER_SETTLE_S)   # let the publishers come back too
+            try:
+                present = list(self.session.liveliness().get(f"{self.key}/@adv/pub/**",
+                                                             timeout=PRESENT_TIMEOUT_S))
+            except zenoh.ZError:
+                return
+            for reply in present:
+                if reply.ok is not None:
+                    self._work.put(("router", str(reply.ok.key_expr)))
 
     def _run(self) -> None:
         while True:
-            token = self._work.get()
-            if token is _STOP:
+            item = self._work.get()
+            if item is _STOP:
                 return
+            why, token = item
+            last = self._recalled.get(token)
+            if why == "router" and last is not None and time.monotonic() - last < RECENT_S:
+                continue   # its token came back with the router: asked already
             self._recall(token)
+            self._recalled[token] = time.monotonic()
 
     def _recall(self, token: str) -> None:
+        replies = self._query(token)
+        if replies == 0 and not self._closed:
+            # its cache may answer only once its queryable is known again: ask once more
+            self._stop.wait(RETRY_AFTER_S)
+            replies = self._query(token)
+        if self.on_recall is not None:
+            self.on_recall(token, replies)
+
+    def _query(self, token: str) -> int:
+        """Ask ``token``'s cache; hand its samples over; return how many."""
         done = threading.Event()
         replies = [0]
 
@@ -112,23 +170,24 @@ class CacheRecall:
                              accept_replies=zenoh.ReplyKeyExpr.ANY,
                              timeout=self.query_timeout_s)
         except zenoh.ZError:
-            return   # the session is closing
+            return 0   # the session is closing
         self.recalls += 1
         while not (done.wait(0.5) or self._closed):
             pass
-        if self.on_recall is not None:
-            self.on_recall(token, replies[0])
+        return replies[0]
 
     def close(self) -> None:
         """Stop following tokens and handing replies over (a query under way is left to
         end by itself)."""
         self._closed = True
+        self._stop.set()
         try:
             self._subscriber.undeclare()
         except zenoh.ZError:
             pass
         self._work.put(_STOP)
         self._thread.join(CLOSE_WAIT_S)
+        self._watch.join(CLOSE_WAIT_S)
 
 
 class _Off:

@@ -58,7 +58,7 @@ def test_recall_asks_a_returning_publishers_cache(seed):
                    "the recall to bring the publisher's cached events")
         with lock:
             assert sorted(got) == sorted(f"event {i}".encode() for i in range(n_events))
-        assert recall.recalls == 1
+        assert recall.recalls >= 1
         publisher.undeclare()
     finally:
         if recall is not None:
