@@ -10,8 +10,8 @@ it), and the closing check must find every event exactly once or in an exact gap
 The second case keeps the router away for 12 s, until the producers have published their
 last event: no live sample ever tells the ledger what it missed, so it must ask the
 producers' caches when their liveliness tokens come back (services.resubscribe; with a
-3 s outage this happened when a client's reconnection attempt fell after the producers'
-last event, in 2 of 6 runs).
+3 s outage it happens when a client's reconnection attempt falls after the producers'
+last event; see docs/operations.md).
 """
 
 from __future__ import annotations
