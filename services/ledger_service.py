@@ -91,6 +91,7 @@ from services.ledger_backup import BackupRequest, next_sample
 from services.ledger_checkpoints import Checkpointer
 from services.ledger_disk import DEFAULT_MIN_FREE_MB, DiskGuard, publish_status
 from services.ledger_repair import GapRepair
+from services.resubscribe import CacheRecall
 from services.zenoh_config import reader_endpoints
 
 SERVICE = "ledger"
@@ -508,10 +509,10 @@ def _serve(config: Config, store: LedgerStore, samples: queue.Queue,
             note="recorded as a gap when the source's next event arrives")
 
     history = zext.HistoryConfig(detect_late_publishers=True) if config.history else None
-    subscriber = zext.declare_advanced_subscriber(
-        session, f"stockpile/{config.site}/@v1/**", on_sample, history=history,
-        subscriber_detection=True)
+    subscriber = zext.declare_advanced_subscriber(session, f"stockpile/{config.site}/@v1/**",
+                                                  on_sample, history=history, subscriber_detection=True)
     miss_listener = subscriber.sample_miss_listener(on_miss)
+    recall = CacheRecall.of_events(session, config.site, on_sample, SERVICE, config.history)
     runtime.log("serving", ledger=config.ledger_path, head=store.head().global_seq,
                 subscribe=f"stockpile/{config.site}/@v1/**",
                 queries=query_key(config.site, "*"), head_key=head_key(config.site))
@@ -529,6 +530,7 @@ def _serve(config: Config, store: LedgerStore, samples: queue.Queue,
         if holder is not None:
             remove_holder(config.ledger_path, os.getpid())
     # clean stop: no new samples, drain what was queued, then stop the threads
+    recall.close()
     miss_listener.undeclare()
     subscriber.undeclare()
     repair.close()

@@ -41,6 +41,8 @@ _DECISION = re.compile(r"CertCommonName\((?P<cn>[^)]*)\).* is unauthorized to (?
 _CACHING = re.compile(r"caching permissions for `(?P<key>[^`]*)`")
 _ANSI = re.compile(r"\x1b\[[0-9;]*m")
 _ABOUT = re.compile(r" on (\S+)\s*$")
+#: a zenoh log line at WARN or ERROR (passed on to the router's log, one line each)
+_ZENOH_PROBLEM = re.compile(r"\b(WARN|ERROR)\b")
 
 
 @dataclass(frozen=True)
@@ -159,6 +161,9 @@ class RefusalLog:
                     del self._caching[about[1]]
                 return
         if " is unauthorized " not in line:
+            if _ZENOH_PROBLEM.search(line):
+                text = _ANSI.sub("", line).strip()
+                log(SERVICE, "zenoh", level="warning", line=text[:500])
             return
         match = _DECISION.search(_ANSI.sub("", line))
         if match is None:
