@@ -67,6 +67,7 @@ from replay.record_parts import (
 )
 from schemas.events import EVENT_TYPES, decode_signed_attachment, parse_key_expr, site_key_expr
 from schemas.times import NS_PER_S
+from services.resubscribe import CacheRecall
 from services.service import ServiceRuntime, SiteTime, Stopper, ZenohOptions, log
 
 SERVICE = "recorder"
@@ -537,6 +538,10 @@ def _record(config: Config, runtime: ServiceRuntime, recorder: Recorder,
                                                       subscriber_detection=True)
         subscribers.append(subscriber)
         listeners.append(subscriber.sample_miss_listener(on_miss))
+    # a publisher back after a router outage: ask its cache (services.resubscribe)
+    recalls = [CacheRecall(session, key, on_sample, on_recall=lambda token, n: runtime.log(
+        "publisher back: cache asked", token=token, replies=n))
+        for key in config.key_exprs] if config.history else []
     checkpoints = session.declare_subscriber(
         checkpoint_topic(config.site),
         lambda sample: recorder.offer_checkpoint(str(sample.key_expr), sample.payload.to_bytes()))
@@ -549,6 +554,8 @@ def _record(config: Config, runtime: ServiceRuntime, recorder: Recorder,
     runtime.announce()
     runtime.stopper.wait(config.duration_s)
     # clean stop: no new samples, then drain the queue and close the file
+    for recall in recalls:
+        recall.close()
     for listener in listeners:
         listener.undeclare()
     for subscriber in subscribers:
