@@ -2,15 +2,13 @@
 
 from __future__ import annotations
 
-import os
 import random
-import signal
-import subprocess
 import sys
 import textwrap
 
 from ledger.clock import ManualClock
 from ledger.duckdb_store import DuckDBStore
+from kill_helpers import run_until_killed
 
 BATCH = 2_000
 
@@ -35,24 +33,8 @@ CHILD = textwrap.dedent(f"""
 
 def _run_until_killed(path, first_batch: int, acks_before_kill: int) -> list[int]:
     """Start the child, SIGKILL it after ``acks_before_kill`` acks; return every ack it wrote."""
-    child = subprocess.Popen([sys.executable, "-c", CHILD, str(path), str(first_batch)],
-                             stdout=subprocess.PIPE, text=True)
-    acked = []
-    try:
-        while len(acked) < acks_before_kill:
-            line = child.stdout.readline()
-            assert line, "child exited before being killed"
-            acked.append(int(line.split()[1]))
-        os.kill(child.pid, signal.SIGKILL)
-        child.wait(timeout=30)
-        # acks the child wrote after we stopped reading, before it died
-        acked += [int(line.split()[1]) for line in child.stdout.read().splitlines() if line]
-    finally:
-        if child.poll() is None:
-            child.kill()
-        child.stdout.close()
-    assert child.returncode == -signal.SIGKILL
-    return acked
+    return run_until_killed([sys.executable, "-c", CHILD, str(path), str(first_batch)],
+                            acks_before_kill)
 
 
 def test_sigkill_keeps_exactly_the_acknowledged_batches(tmp_path, seed):

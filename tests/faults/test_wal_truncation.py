@@ -14,8 +14,6 @@ import json
 import os
 import random
 import shutil
-import signal
-import subprocess
 import sys
 import textwrap
 from pathlib import Path
@@ -24,6 +22,7 @@ import pytest
 
 from ledger import errors, open_ledger
 from ledger.clock import ManualClock
+from kill_helpers import run_until_killed
 
 BATCH = 100
 CASES = 24
@@ -47,23 +46,7 @@ CHILD = textwrap.dedent(f"""
 
 def _write_until_killed(path: Path, acks_before_kill: int) -> list[int]:
     """Run the writer, SIGKILL it right after ``acks_before_kill`` acks; every ack it wrote."""
-    child = subprocess.Popen([sys.executable, "-c", CHILD, str(path)],
-                             stdout=subprocess.PIPE, text=True)
-    acked: list[int] = []
-    try:
-        while len(acked) < acks_before_kill:
-            line = child.stdout.readline()
-            assert line, "the writer exited before being killed"
-            acked.append(int(line.split()[1]))
-        os.kill(child.pid, signal.SIGKILL)
-        child.wait(timeout=30)
-        acked += [int(line.split()[1]) for line in child.stdout.read().splitlines() if line]
-    finally:
-        if child.poll() is None:
-            child.kill()
-        child.stdout.close()
-    assert child.returncode == -signal.SIGKILL
-    return acked
+    return run_until_killed([sys.executable, "-c", CHILD, str(path)], acks_before_kill)
 
 
 def _case(source: Path, wal: bytes, cut: int, directory: Path) -> Path:
