@@ -16,6 +16,7 @@ import pytest
 from ledger.chain import GENESIS, chain_hash
 from ledger.clock import EventClock, ManualClock
 from ledger.duckdb_store import DuckDBStore
+from ledger.errors import HeadWentBackwards
 from ledger.memory import MemoryStore
 from ledger.records import FLAG_UNKNOWN_LOT, AppendOutcome, Head, QuarantineEntry, VerifyReport
 from ledger.signing import SigningPolicy, sign_event
@@ -468,8 +469,12 @@ def test_a_ledger_whose_gapped_stream_lost_its_rows_opens_and_fails_verify(tmp_p
     store.append([joint_event("a.src", 0, 0), joint_event("b.src", 0, 1), joint_event("b.src", 3, 2)])
     store._con.execute("DELETE FROM event_log WHERE source = 'b.src'")
     store.close()
+    # the head sidecar saw the lost rows: a writer opens only once a human accepts the loss
+    with pytest.raises(HeadWentBackwards, match="global_seq 2"):
+        DuckDBStore(path, ManualClock(20))
     for read_only in (False, True):
-        store = DuckDBStore(path, ManualClock(20), read_only=read_only)
+        store = DuckDBStore(path, ManualClock(20), read_only=read_only,
+                            accept_loss=not read_only)
         infos = [(i.source, i.max_seq, i.open_gaps, i.missing) for i in store.streams()]
         assert infos == [("a.src", 0, 0, 0), ("b.src", -1, 1, 2)]
         report = store.verify()
