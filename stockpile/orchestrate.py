@@ -122,7 +122,8 @@ class Supervisor:
     def _make_pki(self) -> Path:
         """A fresh throw-away site PKI in ``<out>/pki``: a CA, the router and every member."""
         pki = self.out_dir / "pki"
-        init_ca(self.site, pki, valid_days=THROWAWAY_PKI_DAYS, force=True)
+        # the CA a day longer than its certificates, issued moments after it
+        init_ca(self.site, pki, valid_days=THROWAWAY_PKI_DAYS + 1, force=True)
         for name, role in {"router": "router", **self.members}.items():
             issue(pki, role, name, valid_days=THROWAWAY_PKI_DAYS, force=True)
         if not self.quiet:

@@ -126,10 +126,12 @@ def test_replay_publishes_exact_identities_idempotently_and_the_recorder_keeps_t
         code = stockpile_main(["replay", str(session), "--publish", "--max", "--linger", "0.2",
                                "--no-progress", *client_args(endpoint)])
         assert code == 0
-        wait_until(lambda: int(_last_status(ledger_log).get("duplicate", 0)) == n, 30,
+        # (at least n: a new publisher's cache may also be asked when its token appears,
+        # services/resubscribe.py, and what that brings is duplicates too)
+        wait_until(lambda: int(_last_status(ledger_log).get("duplicate", 0)) >= n, 30,
                    "the ledger to see the second replay as duplicates")
         assert client.stats()["events"] == n
-        wait_until(lambda: int(_last_status(recorder_log).get("duplicates", 0)) == n, 30,
+        wait_until(lambda: int(_last_status(recorder_log).get("duplicates", 0)) >= n, 30,
                    "the recorder to drop the second replay as duplicates")
 
         # 3. paced by valid time: 3 site seconds of clock ticks at 4x take about 0.75 s
