@@ -38,7 +38,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from ledger import open_ledger
-from services.ledger_client import LedgerClient, LedgerUnavailable
+from services.ledger_client import LedgerClient, LedgerQueryError, LedgerUnavailable
 from services.service import ZenohOptions, open_session
 from zenoh_helpers import PYTHON, free_port, log_lines, site_pki, stockpile, stop, wait_until
 
@@ -134,11 +134,12 @@ class Poller:
         self._thread = threading.Thread(target=self._run, name="ledger-poller", daemon=True)
 
     def accounted(self) -> dict[str, int] | None:
-        """``{source: events stored + events in open gaps}``; None while unavailable."""
+        """``{source: events stored + events in open gaps}``; None while unavailable or
+        while a query times out (a ledger busy catching up)."""
         try:
             stats = self.client.stats()
             gaps = self.client.gaps(open_only=True)
-        except LedgerUnavailable:
+        except (LedgerUnavailable, LedgerQueryError):
             return None
         out = {s: int(n) for s, n in stats["per_source"].items()}
         for g in gaps:
