@@ -106,7 +106,8 @@ class _Importer:
 
     def append(self, batch: list[Line]) -> None:
         try:
-            result = self.store.append([item for _, _, item in batch])
+            result = self.store.append([item for _, _, item in batch],
+                                       origins=[f"{self.name}:{n}" for n, _, _ in batch])
         except (OperationalError, InterfaceError):
             raise  # not the data's fault: disk, I/O, lock, closed store
         except Exception as exc:  # noqa: BLE001 - a line the store cannot take; find it

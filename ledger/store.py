@@ -156,6 +156,7 @@ class _BatchPlanner:
             next_quarantine_id=state.next_quarantine_id,
         )
         self._touched: set[tuple[str, int]] = set()
+        self._origin: str | None = None  # where the current event came from (FILE:LINE)
         self._lots_copied = False
         self._keys_copied = False
         self.plan = BatchPlan()
@@ -193,6 +194,8 @@ class _BatchPlanner:
         else:
             raw = bytes(item.payload) if isinstance(item.payload, (bytes, bytearray, memoryview)) else b""
             epoch, seq, valid = item.epoch, item.seq, item.valid_time_ns
+            if self._origin:
+                detail = f"{self._origin}: {detail}"
         entry = QuarantineEntry(
             quarantine_id=s.next_quarantine_id,
             recorded_time_ns=recorded,
@@ -256,9 +259,15 @@ class _BatchPlanner:
     # -- the batch --------------------------------------------------------------------
 
     def run(self, batch: Sequence[Event | Malformed],
-            stored: dict[Key, tuple[int, bytes]]) -> BatchPlan:
-        for item in batch:
-            self._one(item, stored)
+            stored: dict[Key, tuple[int, bytes]],
+            origins: Sequence[str] | None = None) -> BatchPlan:
+        if origins is None:
+            for item in batch:
+                self._one(item, stored)
+        else:
+            for item, origin in zip(batch, origins, strict=True):
+                self._origin = origin
+                self._one(item, stored)
         self.plan.state = self.state
         return self.plan
 
@@ -407,14 +416,16 @@ class LedgerStore(abc.ABC):
 
     # -- writing ------------------------------------------------------------------------
 
-    def append(self, batch: Sequence[Event | Malformed]) -> AppendResult:
+    def append(self, batch: Sequence[Event | Malformed], *,
+               origins: Sequence[str] | None = None) -> AppendResult:
         """Append one batch atomically; return an outcome per event, in input order.
 
         Events are validated (:func:`schemas.validate.check_event`); an event whose
         ``(source, epoch, seq)`` is already stored with the same payload is a
         ``duplicate`` (a no-op); with another payload a ``conflict`` (quarantined,
         never overwriting).  Rejected and conflicting events are quarantined with
-        their reason and raw bytes; the rest of the batch is kept.
+        their reason and raw bytes; the rest of the batch is kept.  ``origins`` (one per
+        event, e.g. ``FILE:LINE``) prefixes the reason of each refused event.
 
         Raises
         ------
@@ -427,8 +438,10 @@ class LedgerStore(abc.ABC):
         with self._lock:
             self._check_writable()
             stored = self._lookup(keys_to_look_up(self._state, batch)) if batch else {}
+            if origins is not None and len(origins) != len(batch):
+                raise InterfaceError(f"{len(origins)} origins for {len(batch)} events")
             plan = _BatchPlanner(self._state, self.clock, self.signing,
-                                 self.analytes).run(batch, stored)
+                                 self.analytes).run(batch, stored, origins)
             if plan.rows or plan.quarantine or plan.opened_gaps or plan.closed_gaps:
                 self._commit(plan)
             assert plan.state is not None

@@ -191,6 +191,28 @@ class LedgerClient:
 
         return self.session.declare_subscriber(head_key(self.site), on_sample)
 
+    def first_head(self, *, period_s: float = 1.0,
+                   log: Callable[..., None] | None = None) -> dict[str, Any] | None:
+        """The committed head once a ledger service answers, asking every ``period_s``
+        seconds (a service started before its site's ledger waits for it); None when
+        ``stop`` is set first.  ``log("waiting for the ledger service", ...)`` once, as a
+        warning, if the first question goes unanswered."""
+        waited = False
+        while True:
+            try:
+                return self.head()
+            except LedgerUnavailable as exc:
+                if self.stop is not None and self.stop.is_set():
+                    return None
+                if not waited and log is not None:
+                    log("waiting for the ledger service", level="warning", error=str(exc))
+                waited = True
+            if self.stop is not None:
+                if self.stop.wait(period_s):   # the retry period; set: the service stops
+                    return None
+            else:
+                threading.Event().wait(period_s)
+
     def wait_for(self, predicate: Callable[[dict[str, Any]], bool], timeout_s: float) -> dict:
         """Block until a committed head satisfies ``predicate``; return it.
 

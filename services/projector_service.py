@@ -233,7 +233,10 @@ def main(config: Config, *, stopper: Stopper | None = None) -> int:
         subscriber = client.follow_head(lambda head: heads.put(head["global_seq"]))
         rebuilds = 0
         try:
-            head = client.head()["global_seq"]
+            first = client.first_head(log=runtime.log)
+            if first is None:   # stopped before the ledger service answered
+                return 0
+            head = first["global_seq"]
             n = catch_up(client, projection, head, runtime.log)
             status.add("records", n)
             status.add("folded", projection.advance())

@@ -139,6 +139,28 @@ def test_seq_below_int64_on_an_existing_stream(tmp_path):
     assert entries[0].seq is None  # not storable as a number; it stays in the raw bytes
 
 
+def test_lines_the_store_refuses_name_their_file_and_line(tmp_path):
+    """Lines that decode but the ledger refuses (a conflict with a stored event, an event
+    whose body fails validation) are quarantined with FILE:LINE before their reason."""
+    ledger = tmp_path / "ledger.duckdb"
+    first = write_lines(tmp_path / "first.jsonl", [good_line(0).encode()])
+    assert import_file(first, ledger).returncode == 0
+    conflict = good_line(0).replace('"travel_m"', '"slew_rad":1.0,"travel_m"').encode()
+    assert conflict != good_line(0).encode()
+    invalid = event_line(make_event(joint_reading(V0 + 2), source=SOURCE, epoch=0, seq=2)
+                         ).replace(f'"valid_time_ns":{V0 + 2}', '"valid_time_ns":-5').encode()
+    second = write_lines(tmp_path / "second.jsonl", [good_line(1).encode(), conflict, invalid,
+                                                     good_line(3).encode()])
+    run = import_file(second, ledger)
+    assert run.returncode == 0, run.stderr.decode(errors="replace")
+    assert json.loads(run.stdout)["rejected"] + json.loads(run.stdout)["conflict"] == 2
+    with open_ledger(ledger, read_only=True) as store:
+        entries = store.quarantine()
+        assert store.verify().ok
+    assert [e.detail.split(": ")[0] for e in entries] == [f"{second}:2", f"{second}:3"], entries
+    assert entries[0].code == "conflict"
+
+
 @pytest.fixture(params=["memory", "duckdb"])
 def store(request, tmp_path):
     path = ":memory:" if request.param == "memory" else tmp_path / "ledger.duckdb"

@@ -59,7 +59,11 @@ DRAIN_TIMEOUT_S = 180.0
 #: the localizer's machine and certificate in every yard
 MACHINE = "bwr1"
 SERVICE_CERTS = {"ledger": ("ledger", "ledger"), "localizer": (f"{MACHINE}.localizer", "localizer"),
-                 "recorder": ("recorder", "recorder")}
+                 "recorder": ("recorder", "recorder"), "projector": ("projector", "projector"),
+                 "dashboard": ("dashboard", "dashboard"),
+                 "scanner": (f"{MACHINE}.scanner", "scanner"), "gnss": (f"{MACHINE}.gnss", "gnss")}
+#: the pile the projector and the dashboard of a yard follow
+PILE = "P1"
 
 
 def results_path() -> Path:
@@ -196,13 +200,16 @@ class Yard:
 
     ``ledger_clock`` is the ledger's ``--clock`` (``wall`` or ``events``); the recorder
     splits its recording hourly (``PATH-0000.mcap``, ...) unless ``recorder_split`` is
-    false (one file, ``record/site.mcap``).
+    false (one file, ``record/site.mcap``).  ``devices`` gives the serial paths of the
+    ``scanner`` and ``gnss`` services (``tests/faults/serial_feeder.py``); the projector
+    and the dashboard follow pile :data:`PILE` (the dashboard into ``dashboard.rrd``).
     """
 
     def __init__(self, base: Path, *, services: tuple[str, ...] = ("ledger",),
                  producers: int = 2, ledger_clock: str = "wall",
                  restart_delay_s: float = 0.5, recorder_split: bool = True,
-                 poll_period_s: float = POLL_PERIOD_S) -> None:
+                 poll_period_s: float = POLL_PERIOD_S,
+                 devices: dict[str, str] | None = None) -> None:
         self.poll_period_s = poll_period_s
         self.base = Path(base)
         self.base.mkdir(parents=True, exist_ok=True)
@@ -217,6 +224,7 @@ class Yard:
         self.ledger_path = self.base / "ledger.duckdb"
         self.run_log = self.base / "run.log"
         self.router = RouterProcess(self.base, self.pki, self.endpoint)
+        self.devices = devices or {}
         self.config = self._write_config(ledger_clock, restart_delay_s, recorder_split)
         self.run: subprocess.Popen | None = None
         self.producers: list[Producer] = []
@@ -234,6 +242,15 @@ class Yard:
             "recorder": f'[services.recorder]\nout = "{self.base / "record" / "site.mcap"}"\n'
                         + ('split_duration = "1h"\n' if recorder_split else "")
                         + "status_period = 1\n",
+            "projector": f'[services.projector]\npile = "{PILE}"\nstatus_period = 1\n',
+            "dashboard": f'[services.dashboard]\npile = "{PILE}"\n'
+                         f'out = "{self.base / "dashboard.rrd"}"\nstatus_period = 1\n',
+            "scanner": f'[services.scanner]\ndevice = "{self.devices.get("scanner")}"\n'
+                       f'source = "{MACHINE}.scanner"\ntls_name = "{MACHINE}.scanner"\n'
+                       "status_period = 1\n",
+            "gnss": f'[services.gnss]\ndevice = "{self.devices.get("gnss")}"\n'
+                    f'source = "{MACHINE}.gnss"\ntls_name = "{MACHINE}.gnss"\n'
+                    "status_period = 1\n",
         }
         (self.base / "record").mkdir(exist_ok=True)
         text = (f'site = "{SITE}"\nrestart_delay_s = {restart_delay_s}\n[zenoh]\nmode = "client"\n'

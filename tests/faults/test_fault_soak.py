@@ -26,6 +26,7 @@ window instead: 20 MB of allocator and page jitter.
 
 from __future__ import annotations
 
+import json
 import os
 import threading
 import time
@@ -35,7 +36,7 @@ import psutil
 import pytest
 
 import seeding
-from harness import Yard
+from harness import Yard, results_path
 from zenoh_helpers import wait_until
 
 #: the soak's length, minutes ($STOCKPILE_SOAK_MINUTES; at least 30 for the issue's soak)
@@ -164,6 +165,10 @@ def test_soak_four_times_the_demo_rate_with_random_kills(tmp_path, seed):
                 checked[key] = (slopes[key], allowed_slope_mb_per_h(span_h))
         print(f"RSS slopes (MB/h) after {warmup_s:g} s of warm-up: {slopes}; checked "
               f"(slope, bound): {checked}")
+        dump = results_path().with_name("soak_rss.json")   # every sample, for a post-mortem
+        dump.parent.mkdir(parents=True, exist_ok=True)
+        dump.write_text(json.dumps({f"{n}:{p}": pts for (n, p), pts in
+                                    sorted(sampler.samples.items())}))
         extra = {"rate_hz": 4 * DEMO_RATE_HZ, "rss_slope_mb_per_h": slopes,
                  "rss_peak_mb": {f"{n}:{p}": round(max(v for _t, v in pts), 1)
                                  for (n, p), pts in sampler.samples.items()}}
