@@ -249,6 +249,11 @@ class PostgresStore(LedgerStore):
     # -- opening ---------------------------------------------------------------------------
 
     def _open(self) -> None:
+        # pages are read by key in index order: without these, a table not yet analysed
+        # (a fresh or fast-growing ledger) gets plans that scan and sort every row left
+        # for every page
+        self._con.execute("SET enable_sort = off")
+        self._con.execute("SET enable_bitmapscan = off")
         oid = ddl.schema_oid(self._con, self.schema)
         if oid is None:
             oid = self._install_missing()
@@ -442,7 +447,9 @@ class PostgresStore(LedgerStore):
         with self._lock:
             self._check_open()
             with postgres_errors(), self._con.cursor(binary=True) as cur:
-                return cur.execute(sql.replace("{s}", self._s), params).fetchall()
+                # planned for each page's own bounds, never a generic plan
+                return cur.execute(sql.replace("{s}", self._s), params,
+                                   prepare=False).fetchall()
 
     @staticmethod
     def _record(row: tuple) -> RecordedEvent:

@@ -5,10 +5,14 @@ the README's SQL, and how backend errors read."""
 from __future__ import annotations
 
 import dataclasses
+import json
 import os
 import pwd
 import socket
 import stat
+import subprocess
+import sys
+import textwrap
 import threading
 import time
 from pathlib import Path
@@ -26,7 +30,9 @@ from ledger.postgres_sql import quoted
 from ledger.postgres_store import PostgresStore, postgres_errors
 from ledger.records import RecordedEvent
 from ledger.testing import LedgerStoreContract, joint_event, tampered_rows
+from schemas import pb
 from schemas.analytes import AnalyteOptions
+from schemas.events import make_event, set_timestamp_ns
 from stockpile.sample import generate_sample
 
 #: how long a test waits for the writer thread to reach a point, seconds
@@ -369,6 +375,38 @@ def test_the_readme_sql_gives_duckdbs_answers(tmp_path, pg_url):
     duck.close()
 
 
+def _spelled_assays() -> list:
+    """Assays naming analytes in other spellings (``FE``, `` sio2``) and unknown ones."""
+    events = []
+    for seq, analytes in enumerate([{"FE": 61.5, " sio2": 4.25, "Zn": 0.1},
+                                    {"fe": 58.0, "cu": 0.2, "ZN": 0.3, "SiO2": 6.0},
+                                    {"Fe": 60.0, "SiO2": 5.0}]):
+        message = pb.Assay(assay_id=f"A{seq}", lot_id="L1", lab_id="lab1",
+                           analytes=analytes, status=pb.FINAL)
+        set_timestamp_ns(message.window_start, 1_000 * seq)
+        set_timestamp_ns(message.window_end, 1_000 * seq + 500)
+        events.append(make_event(message, source="lab1", epoch=1, seq=seq))
+    return events
+
+
+def test_the_assays_view_reads_spellings_and_lists_unknown_names_as_duckdb(tmp_path, pg_url):
+    events = _spelled_assays()
+    query = ('SELECT assay_id, "Fe", "SiO2", unrecognised_analytes FROM assays '
+             "ORDER BY global_seq")
+    with open_ledger(tmp_path / "l.duckdb", ManualClock(10**6)) as store:
+        outcomes = [o.status for o in store.append(events).outcomes]
+    duck = duckdb.connect(str(tmp_path / "l.duckdb"), read_only=True)
+    want = [(a, fe, si, sorted(json.loads(u))) for a, fe, si, u in duck.execute(query).fetchall()]
+    duck.close()
+    with open_ledger(pg_url, ManualClock(10**6)) as store:
+        assert [o.status for o in store.append(events).outcomes] == outcomes
+    with psycopg.connect(pg_url.split("?")[0], autocommit=True) as con:
+        con.execute(f"SET search_path TO {quoted(pg_url.rsplit('=', 1)[1])}")
+        got = [(a, fe, si, sorted(u)) for a, fe, si, u in con.execute(query).fetchall()]
+    assert outcomes == ["appended"] * 3 and got == want and len(want) == 3
+    assert any(row[3] for row in want) and any(row[1] is not None for row in want)
+
+
 # -- errors -------------------------------------------------------------------------------------
 
 def test_a_lost_connection_is_a_one_line_operational_error(pg_url):
@@ -449,3 +487,26 @@ def test_a_standby_made_from_the_server_replays_what_the_primary_commits(pg_url,
             assert [r.seq for r in replica.read()] == list(range(5)) and replica.verify().ok
     finally:
         standby.stop()
+
+
+def test_without_psycopg_a_postgres_url_is_a_one_line_error_naming_the_extra():
+    code = textwrap.dedent("""
+        import sys
+
+        class NotInstalled:
+            def find_spec(self, name, path=None, target=None):
+                if name.split(".")[0] == "psycopg":
+                    raise ModuleNotFoundError(f"No module named {name!r}", name=name)
+
+        sys.meta_path.insert(0, NotInstalled())
+        from ledger import open_ledger
+        try:
+            open_ledger("postgresql://u@127.0.0.1:1/db")
+        except Exception as exc:
+            print(type(exc).__name__, exc)
+    """)
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=120)
+    assert run.returncode == 0, run.stderr
+    assert run.stdout.startswith("InterfaceError a PostgreSQL ledger needs psycopg")
+    assert "stockpile-ledger[ledger]" in run.stdout and run.stdout.count("\n") == 1
