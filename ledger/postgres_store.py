@@ -379,8 +379,14 @@ class PostgresStore(LedgerStore):
                     "excluded.value", [json.dumps(list(policy.declared)), policy.unknown])
             if ddl.views_analytes(self._con, self.schema) != policy.declared:
                 self._con.execute(f"SET LOCAL lock_timeout = {VIEW_LOCK_TIMEOUT_MS}")
-                for statement in ddl.assays_statements(self.schema, policy.declared):
-                    self._con.execute(statement)
+                try:
+                    for statement in ddl.assays_statements(self.schema, policy.declared):
+                        self._con.execute(statement)
+                except pg_errors.LockNotAvailable:
+                    raise OperationalError(
+                        f"the declared analytes of {self.name} grew, and its assays view "
+                        f"is in use by a reader (waited {VIEW_LOCK_TIMEOUT_MS} ms): open the "
+                        "writer again once that reader is done") from None
                 self._con.execute(
                     f"INSERT INTO {self._s}.ledger_meta VALUES (%s, %s) ON CONFLICT (key) "
                     "DO UPDATE SET value = excluded.value",
