@@ -24,12 +24,12 @@ import pytest
 from ledger import EventClock, is_postgres_url, open_ledger
 from ledger.clock import ManualClock
 from ledger.errors import (IntegrityError, InterfaceError, LedgerDiskFull, LedgerLocked,
-                           OperationalError)
+                           OperationalError, ProgrammingError)
 from ledger.importing import import_lines
 from ledger.postgres_sql import quoted
 from ledger import postgres_store
 from ledger.pg_local import LocalPostgres, PostgresFailed, PostgresNotFound, find_bindir
-from ledger.postgres_store import PostgresStore, postgres_errors
+from ledger.postgres_store import PostgresStore, install, postgres_errors
 from ledger.records import RecordedEvent
 from ledger.testing import LedgerStoreContract, joint_event, tampered_rows
 from schemas import pb
@@ -273,6 +273,7 @@ def test_the_roles_read_and_append_but_never_change_the_log(pg_schemas, login_ro
 
 
 def test_a_user_who_may_not_install_is_told_how(pg_schemas, login_roles):
+    install(pg_schemas.admin_url, pg_schemas.new_schema())  # the roles exist from then on
     role = pg_schemas.new_schema("u").replace("_", "")
     password = login_roles(role, "stockpile_reader")
     url = pg_schemas.url_of(pg_schemas.new_schema(), role, password)
@@ -282,6 +283,14 @@ def test_a_user_who_may_not_install_is_told_how(pg_schemas, login_roles):
     assert "install(" in message and "\n" not in message and password not in message
     with pytest.raises(OperationalError, match="no ledger schema"):
         PostgresStore(url, read_only=True)
+    # what the message says to do: an administrator installs it (twice: idempotent)
+    schema = pg_schemas.names[-1]
+    install(pg_schemas.admin_url, schema)
+    install(pg_schemas.url_of(schema))
+    with PostgresStore(url, read_only=True) as reader:
+        assert reader.head().global_seq == -1 and reader.verify().ok
+    with pytest.raises(ProgrammingError, match="permission denied"):  # a reader never writes
+        PostgresStore(url, ManualClock(1))
 
 
 # -- readers: one snapshot, never half a batch, never blocking the writer ---------------------------
