@@ -123,9 +123,10 @@ def postgres_errors() -> Iterator[None]:
 # -- connecting and installing -------------------------------------------------------------------
 
 def application_name(role: str) -> str:
-    """What a connection calls itself in ``pg_stat_activity``: program, role, host, pid."""
+    """What a connection calls itself in ``pg_stat_activity``: program, role, pid, host
+    (PostgreSQL keeps 63 bytes)."""
     program = os.path.basename(sys.argv[0] or "python") or "python"
-    return f"{program} {role} {socket.gethostname()} pid {os.getpid()}"[:63]
+    return f"{program[:20]} {role} pid {os.getpid()} on {socket.gethostname()}"[:63]
 
 
 def _connect(conninfo: str, role: str, **kwargs: Any) -> psycopg.Connection:
