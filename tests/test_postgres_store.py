@@ -21,13 +21,12 @@ import duckdb
 import psycopg
 import pytest
 
-from ledger import EventClock, is_postgres_url, open_ledger
+from ledger import EventClock, is_postgres_url, open_ledger, postgres_store
 from ledger.clock import ManualClock
 from ledger.errors import (IntegrityError, InterfaceError, LedgerDiskFull, LedgerLocked,
                            OperationalError, ProgrammingError)
 from ledger.importing import import_lines
 from ledger.postgres_sql import quoted
-from ledger import postgres_store
 from ledger.pg_local import LocalPostgres, PostgresFailed, PostgresNotFound, find_bindir
 from ledger.postgres_store import PostgresStore, install, postgres_errors
 from ledger.records import RecordedEvent
