@@ -228,6 +228,7 @@ class SiteFollower:
         self.problem: str | None = None
         self.mirrored = 0
         self._behind: tuple[int, int] | None = None
+        self._reported_head: int | None = None     # none yet: the first round reports
         self._next_quarantine_id = len(store.quarantine())
 
     # -- what others see ----------------------------------------------------------------
@@ -264,6 +265,8 @@ class SiteFollower:
                 self.catch_up()
             except LedgerError as exc:       # the mirror refused the answer, or its database failed
                 self._problem(f"{type(exc).__name__}: {exc}")
+            except Exception as exc:  # noqa: BLE001 - logged; the follower asks again later
+                self._problem(f"unexpected {type(exc).__name__}: {exc}")
             self._report()
             self.wake.wait(self.config.recheck_s)
             self.wake.clear()
@@ -286,6 +289,7 @@ class SiteFollower:
             self._problem(f"the site's head {head} is behind this mirror's {mine} (a site "
                           "ledger restored with a loss?); nothing mirrored")
             return
+        self._report()                  # the range about to be fetched, before the pages
         while mine < head and not self.stopper.is_set():
             try:
                 rows = self.client.read(mine + 1, head + 1, limit=self.config.page_records)
@@ -342,16 +346,18 @@ class SiteFollower:
         self.problem = text
 
     def _report(self) -> None:
-        """Log the ``behind`` range when it changed; publish the status."""
+        """Log the ``behind`` range when it changed, and ``caught up`` when the mirror
+        reached the site's head (again); publish the status."""
         behind = self.behind()
-        if behind != self._behind:
-            self._behind = behind
-            mine = self.store.head().global_seq
-            if behind is None:
+        mine = self.store.head().global_seq
+        if behind is None:
+            if self.reachable and (self._behind is not None or mine != self._reported_head):
                 log(SERVICE, "caught up", site=self.site, head=mine)
-            else:
-                log(SERVICE, "behind", site=self.site, behind=f"{behind[0]}..{behind[1]}",
-                    head=mine)
+                self._reported_head = mine
+        elif behind != self._behind:
+            log(SERVICE, "behind", site=self.site, behind=f"{behind[0]}..{behind[1]}",
+                head=mine)
+        self._behind = behind
         self.on_change()
 
 

@@ -25,6 +25,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -36,7 +37,10 @@ from schemas.jsonl import decode_line, event_line
 from security.pki import init_ca, issue
 from services.ledger_client import LedgerClient, LedgerQueryError, LedgerUnavailable
 from services.publishing import declare_ledger_publisher
+from services.acl import access_control
+from services.router import Uplink, load_members, site_router_config
 from services.service import ZenohOptions, open_session
+from stockpile.run_config import ConfigError, load_config
 from zenoh_helpers import PYTHON, free_port, log_lines, site_pki, stockpile, stop, wait_until
 
 #: site -> seed of its simulated yard
@@ -303,6 +307,118 @@ def test_head_office_mirrors_two_sites_across_an_outage(yard_events, tmp_path):
     assert sorted(arrivals) == list(range(len(arrivals)))
     assert {s: sorted(seq for site_, seq in arrivals.values() if site_ == s) for s in SITES} == {
         s: list(range(fed[s])) for s in SITES}
+
+
+class _Routers:
+    """In-process routers for the trust test: the head office's, and a site's with a
+    stand-in ledger (its queryable answers with the site events it was sent)."""
+
+    def __init__(self, base: Path, *, uplink_head_office: str = "hq.router",
+                 site_cert_uplink: bool = False) -> None:
+        hq_pki, link = base / "hq", base / "link"
+        init_ca(HQ, hq_pki)
+        issue(hq_pki, "router", "hq.router")
+        issue(hq_pki, "hq", "hq")
+        issue(hq_pki, "uplink", "mine.router", out_dir=link)
+        pki = site_pki(base / "mine", "mine", {"ledger": "ledger"})
+        hq_endpoint, site_endpoint = (f"tls/127.0.0.1:{free_port()}" for _ in range(2))
+        self.sessions = [zenoh.open(site_router_config(HQ, ZenohOptions(
+            mode="router", listen=(hq_endpoint,), tls_dir=str(hq_pki), tls_name="hq.router"),
+            load_members(hq_pki)))]
+        options = ZenohOptions(mode="router", listen=(site_endpoint,), tls_dir=str(pki),
+                               tls_name="router",
+                               connect=(hq_endpoint,) if site_cert_uplink else ())
+        uplink = None if site_cert_uplink else Uplink(hq_endpoint, str(link), "mine.router",
+                                                      uplink_head_office)
+        self.sessions.append(zenoh.open(site_router_config("mine", options, load_members(pki),
+                                                           uplink)))
+        ledger = open_session(ZenohOptions(mode="client", connect=(site_endpoint,),
+                                           tls_dir=str(pki), tls_name="ledger"))
+        self.seen: list[str] = []
+        ledger.declare_subscriber("stockpile/mine/@v1/**",
+                                  lambda sample: self.seen.append(str(sample.key_expr)))
+        ledger.declare_queryable("stockpile/mine/@ledger/q/head", lambda query: query.reply(
+            "stockpile/mine/@ledger/q/head", json.dumps({"seen": self.seen}).encode()))
+        self.head = ledger.declare_publisher("stockpile/mine/@ledger/head")
+        self.hq = open_session(ZenohOptions(mode="client", connect=(hq_endpoint,),
+                                            tls_dir=str(hq_pki), tls_name="hq"))
+        self.sessions += [ledger, self.hq]
+
+    def ask(self) -> list[str] | None:
+        """The site events the stand-in ledger saw, asked from the head office (None: no
+        answer)."""
+        for reply in self.hq.get("stockpile/mine/@ledger/q/head", timeout=1.0):
+            if reply.ok is not None:
+                return json.loads(reply.ok.payload.to_bytes())["seen"]
+        return None
+
+    def close(self) -> None:
+        for session in reversed(self.sessions):
+            session.close()
+
+
+def test_an_uplink_carries_ledger_reads_and_nothing_that_writes(tmp_path):
+    """The head office reads a site's ledger and follows its head over the uplink; what it
+    puts on the site's event keys never reaches the site; without the uplink's own
+    credentials (the site router's certificate on a plain connect) or with the head office
+    not granted (another name), its queries go unanswered."""
+    routers = _Routers(tmp_path / "linked")
+    try:
+        heads: list[bytes] = []
+        routers.hq.declare_subscriber("stockpile/mine/@ledger/head",
+                                      lambda sample: heads.append(sample.payload.to_bytes()))
+        wait_until(lambda: routers.ask() == [], 30, "the head office's first answer")
+        routers.hq.put("stockpile/mine/@v1/assay/lab1", b"forged",
+                       congestion_control=zenoh.CongestionControl.BLOCK)
+        assert routers.ask() == []     # asked after the put, on the same links, in order
+
+        def head_seen() -> bool:
+            routers.head.put(b'{"global_seq": 8}')
+            return bool(heads)
+
+        wait_until(head_seen, 30, "the site's head at the head office", interval_s=0.2)
+    finally:
+        routers.close()
+    for case, kwargs in (("site-cert", {"site_cert_uplink": True}),
+                         ("not-granted", {"uplink_head_office": "other.router"})):
+        routers = _Routers(tmp_path / case, **kwargs)
+        try:
+            deadline = time.monotonic() + 5.0       # answered within 1 s when linked (above)
+            while time.monotonic() < deadline:
+                assert routers.ask() is None, case
+        finally:
+            routers.close()
+
+
+def test_uplink_names_grants_and_yard_config(tmp_path):
+    """An uplink certificate's name says its site, and it is granted that site's ledger
+    keys only; a site router grants the head office reads only; ``[router] uplink`` in a
+    yard config."""
+    acl = access_control(HQ, {"mine.router": "uplink", "hq": "hq"})
+    mine = [r for r in acl["rules"] if r["id"].startswith("mine.router:")]
+    assert {k for r in mine for k in r["key_exprs"]} == {"stockpile/mine/@ledger/q/*",
+                                                         "stockpile/mine/@ledger/head"}
+    for bad in ("mine", ".router", "*.router"):
+        with pytest.raises(ValueError, match="uplink certificate is named"):
+            access_control(HQ, {bad: "uplink"})
+    site = access_control("mine", {"ledger": "ledger"}, head_office="hq.router")
+    granted = [r for r in site["rules"] if r["id"].startswith("hq.router:")]
+    assert {(f, m) for r in granted for f in r["flows"] for m in r["messages"]} == {
+        ("egress", "declare_queryable"), ("ingress", "query"), ("egress", "reply"),
+        ("ingress", "declare_subscriber"), ("egress", "put")}
+    with pytest.raises(ValueError, match="also a certificate of this site"):
+        access_control("mine", {"hq.router": "auditor"}, head_office="hq.router")
+    toml = tmp_path / "yard.toml"
+    body = ('site = "mine"\n[tls]\ndir = "/srv/pki"\n[router]\nlisten = ["tls/127.0.0.1:7447"]\n'
+            'uplink = "tls/hq.example.com:7447"\n{extra}[services.ledger]\nledger = "x.duckdb"\n')
+    toml.write_text(body.format(extra='uplink_tls = "/srv/hq-link"\n'))
+    assert load_config(toml).router_uplink == Uplink("tls/hq.example.com:7447", "/srv/hq-link",
+                                                     "mine.router", "hq.router")
+    toml.write_text(body.format(extra=""))
+    with pytest.raises(ConfigError, match="uplink needs uplink_tls"):
+        load_config(toml)
+    with pytest.raises(ValueError, match="tls/HOST:PORT"):
+        Uplink("tcp/hq.example.com:7447", "/srv/hq-link", "mine.router")
 
 
 def _arrival_rows(ledgers: Path) -> dict[int, tuple[str, int]]:
