@@ -42,6 +42,7 @@ from services.router import Uplink, load_members, site_router_config
 from services.service import ZenohOptions, open_session
 from stockpile.run_config import ConfigError, load_config
 from zenoh_helpers import PYTHON, free_port, log_lines, site_pki, stockpile, stop, wait_until
+from zenoh_helpers import stop_all as stop_each
 
 #: site -> seed of its simulated yard
 SITES = {"mine": 11, "port": 12}
@@ -156,11 +157,10 @@ class Network:
                                          tls_dir=str(self.pkis[site]), tls_name=name))
 
     def stop_all(self) -> list[int]:
-        codes = []
-        for process in reversed(self.processes):
-            if process.poll() is None:
-                codes.append(stop(process))
-        return codes
+        """Stop what still runs: the services (newest first), then the routers."""
+        routers = [p for p in self.processes if "router" in p.args]
+        ordered = [p for p in reversed(self.processes) if p not in routers] + routers[::-1]
+        return stop_each(*[p for p in ordered if p.poll() is None])
 
 
 def _head(client: LedgerClient) -> int | None:
