@@ -37,6 +37,7 @@ Data flow, per site S of ``--sites``::
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import json
 import os
 import threading
@@ -368,6 +369,9 @@ def _open_mirrors(config: Config) -> dict[str, LedgerStore]:
     """Every site's mirror opened for writing (a directory is created when missing)."""
     if not is_database_url(config.ledger_base):
         Path(config.ledger_base).mkdir(parents=True, exist_ok=True)
+    elif importlib.util.find_spec("ledger.postgres_store") is None:
+        raise ValueError("a postgresql:// head office needs the PostgreSQL ledger backend "
+                         "(ledger/postgres_store.py), which this install does not have")
     stores: dict[str, LedgerStore] = {}
     try:
         for site in config.sites:

@@ -427,6 +427,23 @@ def test_uplink_names_grants_and_yard_config(tmp_path):
         Uplink("tcp/hq.example.com:7447", "/srv/hq-link", "mine.router")
 
 
+def test_bad_head_office_options_are_one_line_errors(tmp_path):
+    for args, needle in ((["--sites", "mine,mine"], "names a site twice"),
+                         (["--sites", "hq,mine"], "also in --sites"),
+                         (["--sites", "a/b"], "site must be"),
+                         (["--sites", "mine", "--page-records", "0"], "--page-records"),
+                         (["--sites", "mine", "--ledger", "postgresql://127.0.0.1/x"],
+                          "postgresql")):
+        ledger = [] if "--ledger" in args else ["--ledger", str(tmp_path / "hq")]
+        done = subprocess.run([PYTHON, "-m", "stockpile.cli", "service", "hq", "--site", HQ,
+                               *ledger, *args], capture_output=True, text=True, timeout=120)
+        assert done.returncode == 2, done.stderr
+        lines = [line for line in done.stderr.splitlines() if "level=status" not in line]
+        problem = [line for line in lines if "error" in line]
+        assert len(problem) == 1 and needle in problem[0], lines
+        assert "Traceback" not in done.stderr
+
+
 def _arrival_rows(ledgers: Path) -> dict[int, tuple[str, int]]:
     """``hq_seq -> (site, site_global_seq)`` from the head office's arrivals."""
     import duckdb  # noqa: PLC0415 - deferred like the service's: a heavy import
