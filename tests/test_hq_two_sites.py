@@ -203,9 +203,9 @@ def _cli(*args: str) -> str:
     return done.stdout
 
 
-def _check_mirrors(network: Network, ledgers: Path) -> None:
-    """Every mirror holds exactly its site's ledger; reads at the head office answer as
-    at the site."""
+def _check_mirrors(network: Network, ledgers: Path, *, reads: bool = True) -> None:
+    """Every mirror holds exactly its site's ledger; with ``reads``, ``project`` and
+    ``audit assays`` at the head office answer as at the site."""
     for site in SITES:
         site_path = str(network.base / f"{site}.duckdb")
         mirror_path = str(ledgers / f"{site}.duckdb")
@@ -216,10 +216,14 @@ def _check_mirrors(network: Network, ledgers: Path) -> None:
             assert b.gaps() == a.gaps() and not a.gaps(open_only=True)
             report = b.verify()
             assert report.ok and report.rows_checked == a.head().global_seq + 1, report
+        if not reads:
+            continue
         at_site = _cli("project", "--ledger", site_path, "--pile", "P1", "--json")
         at_hq = _cli("project", "--ledger", str(ledgers), "--site", site, "--pile", "P1",
                      "--json")
         assert json.loads(at_hq) == json.loads(at_site)
+    if not reads:
+        return
     together = json.loads(_cli("audit", "assays", "--ledger", str(ledgers), "--json"))
     alone = {site: json.loads(_cli("audit", "assays", "--ledger",
                                    str(network.base / f"{site}.duckdb"), "--json"))
@@ -308,7 +312,7 @@ def test_head_office_mirrors_two_sites_across_an_outage(yard_events, tmp_path):
         codes = network.stop_all()
     assert codes == [0] * len(codes)
     _check_mirrors(network, tmp_path / "hq")
-    _check_mirrors(network, tmp_path / "hq-late")
+    _check_mirrors(network, tmp_path / "hq-late", reads=False)   # the same files, read above
     arrivals = _arrival_rows(tmp_path / "hq")
     assert sorted(arrivals) == list(range(len(arrivals)))
     assert {s: sorted(seq for site_, seq in arrivals.values() if site_ == s) for s in SITES} == {
