@@ -312,7 +312,7 @@ def test_head_office_mirrors_two_sites_across_an_outage(yard_events, tmp_path):
         codes = network.stop_all()
     assert codes == [0] * len(codes)
     _check_mirrors(network, tmp_path / "hq")
-    _check_mirrors(network, tmp_path / "hq-late", reads=False)   # the same files, read above
+    _check_mirrors(network, tmp_path / "hq-late", reads=False)   # reads: as for the first
     arrivals = _arrival_rows(tmp_path / "hq")
     assert sorted(arrivals) == list(range(len(arrivals)))
     assert {s: sorted(seq for site_, seq in arrivals.values() if site_ == s) for s in SITES} == {
