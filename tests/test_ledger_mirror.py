@@ -20,7 +20,7 @@ import pytest
 
 from ledger import open_ledger
 from ledger.clock import ManualClock
-from ledger.mirror import MirrorRefused, mirrored_sites, site_ledger
+from ledger.mirror import MirrorRefused, ledger_for, mirrored_sites, site_ledger
 from ledger.signing import sign_event
 from ledger.store import LedgerStore
 from ledger.testing import TAMPER_FIELDS, joint_event, tampered_rows
@@ -218,6 +218,17 @@ def test_site_ledgers_under_a_head_office(tmp_path):
     assert mirrored_sites(tmp_path) == ["mine-2", "port"]
     with pytest.raises(ValueError, match="give --site"):
         mirrored_sites(url)
+    # what the read commands open for --ledger and --site
+    port = str(tmp_path / "port.duckdb")
+    assert ledger_for(port, None) == port and ledger_for(str(tmp_path), "port") == port
+    assert ledger_for(url, "port").endswith("schema=site_port")
+    with pytest.raises(ValueError, match=r"head office's ledgers: give --site \(mirrored: "
+                       r"mine-2, port\)"):
+        ledger_for(str(tmp_path), None)
+    with pytest.raises(ValueError, match="no mirror of site 'quay'"):
+        ledger_for(str(tmp_path), "quay")
+    with pytest.raises(ValueError, match="--site needs --ledger to be a head office"):
+        ledger_for(port, "port")
 
 
 def test_gaps_compare_as_the_site_closes_them_later(rng, tmp_path):
