@@ -138,23 +138,26 @@ LIVE_SEEN = Grant(("liveliness_token",), ("egress",), (LIVE_ANY,))
 CLOCK_READ = [Grant(("declare_subscriber",), ("ingress",), ("stockpile/{site}/@v1/clock/**",)),
               Grant(("put",), ("egress",), ("stockpile/{site}/@v1/clock/**",))]
 
+#: the ledger's read queries (``q/backup`` is not one: it makes the site write a backup)
+LEDGER_READS = ("events", "as_of", "stats", "head", "gaps", "quarantine", "streams")
+READ_QUERIES = tuple(f"stockpile/{{site}}/@ledger/q/{what}" for what in LEDGER_READS)
 #: at the head-office router, a site router's link ({site}: the site its name names)
 UPLINK_GRANTS = [
-    Grant(("declare_queryable",), ("ingress",), (LEDGER_Q,)),
-    Grant(("query",), ("egress",), (LEDGER_Q,)),
-    Grant(("reply",), ("ingress",), (LEDGER_Q,)),
+    Grant(("declare_queryable",), ("ingress",), READ_QUERIES),
+    Grant(("query",), ("egress",), READ_QUERIES),
+    Grant(("reply",), ("ingress",), READ_QUERIES),
     Grant(("declare_subscriber",), ("egress",), (LEDGER_HEAD,)),
     Grant(("put",), ("ingress",), (LEDGER_HEAD,)),
 ]
 #: at a site router, the head-office router's link: reads of the ledger, nothing else
 HEAD_OFFICE_GRANTS = [
-    Grant(("declare_queryable",), ("egress",), (LEDGER_Q,)),
-    Grant(("query",), ("ingress",), (LEDGER_Q,)),
-    Grant(("reply",), ("egress",), (LEDGER_Q,)),
+    Grant(("declare_queryable",), ("egress",), READ_QUERIES),
+    Grant(("query",), ("ingress",), READ_QUERIES),
+    Grant(("reply",), ("egress",), READ_QUERIES),
     Grant(("declare_subscriber",), ("ingress",), (LEDGER_HEAD,)),
     Grant(("put",), ("egress",), (LEDGER_HEAD,)),
 ]
-ANY_SITE_LEDGER_Q = "stockpile/*/@ledger/q/*"
+ANY_SITE_READS = tuple(q.replace("{site}", "*") for q in READ_QUERIES)
 ANY_SITE_HEAD = "stockpile/*/@ledger/head"
 HQ_STATUS = "stockpile/{site}/@hq/status"
 #: where an uplink certificate's name says which site it links (``<site>.router``)
@@ -177,8 +180,8 @@ ROLE_GRANTS: dict[str, list[Grant]] = {
     "auditor": _ledger_reader() + [LIVE_READ, LIVE_SEEN],
     "dashboard": _ledger_reader() + [LIVE_READ, LIVE_SEEN],
     "projector": _ledger_reader(),
-    "hq": [Grant(("query",), ("ingress",), (ANY_SITE_LEDGER_Q,)),
-           Grant(("reply",), ("egress",), (ANY_SITE_LEDGER_Q,)),
+    "hq": [Grant(("query",), ("ingress",), ANY_SITE_READS),
+           Grant(("reply",), ("egress",), ANY_SITE_READS),
            Grant(("declare_subscriber",), ("ingress",), (ANY_SITE_HEAD, HQ_STATUS)),
            Grant(("put",), ("egress",), (ANY_SITE_HEAD, HQ_STATUS)),
            Grant(("put",), ("ingress",), (HQ_STATUS,))],

@@ -347,17 +347,19 @@ class _Routers:
         self.seen: list[str] = []
         ledger.declare_subscriber("stockpile/mine/@v1/**",
                                   lambda sample: self.seen.append(str(sample.key_expr)))
-        ledger.declare_queryable("stockpile/mine/@ledger/q/head", lambda query: query.reply(
-            "stockpile/mine/@ledger/q/head", json.dumps({"seen": self.seen}).encode()))
+        for what in ("head", "backup"):
+            key = f"stockpile/mine/@ledger/q/{what}"
+            ledger.declare_queryable(key, lambda query, key=key: query.reply(
+                key, json.dumps({"seen": self.seen}).encode()))
         self.head = ledger.declare_publisher("stockpile/mine/@ledger/head")
         self.hq = open_session(ZenohOptions(mode="client", connect=(hq_endpoint,),
                                             tls_dir=str(hq_pki), tls_name="hq"))
         self.sessions += [ledger, self.hq]
 
-    def ask(self) -> list[str] | None:
-        """The site events the stand-in ledger saw, asked from the head office (None: no
-        answer)."""
-        for reply in self.hq.get("stockpile/mine/@ledger/q/head", timeout=1.0):
+    def ask(self, what: str = "head") -> list[str] | None:
+        """The site events the stand-in ledger saw, asked from the head office on
+        ``q/<what>`` (None: no answer)."""
+        for reply in self.hq.get(f"stockpile/mine/@ledger/q/{what}", timeout=1.0):
             if reply.ok is not None:
                 return json.loads(reply.ok.payload.to_bytes())["seen"]
         return None
@@ -381,6 +383,7 @@ def test_an_uplink_carries_ledger_reads_and_nothing_that_writes(tmp_path):
         routers.hq.put("stockpile/mine/@v1/assay/lab1", b"forged",
                        congestion_control=zenoh.CongestionControl.BLOCK)
         assert routers.ask() == []     # asked after the put, on the same links, in order
+        assert routers.ask("backup") is None      # a backup request writes at the site
 
         def head_seen() -> bool:
             routers.head.put(b'{"global_seq": 8}')
@@ -406,8 +409,9 @@ def test_uplink_names_grants_and_yard_config(tmp_path):
     yard config."""
     acl = access_control(HQ, {"mine.router": "uplink", "hq": "hq"})
     mine = [r for r in acl["rules"] if r["id"].startswith("mine.router:")]
-    assert {k for r in mine for k in r["key_exprs"]} == {"stockpile/mine/@ledger/q/*",
-                                                         "stockpile/mine/@ledger/head"}
+    assert {k for r in mine for k in r["key_exprs"]} == {
+        "stockpile/mine/@ledger/head", *(f"stockpile/mine/@ledger/q/{q}" for q in (
+            "events", "as_of", "stats", "head", "gaps", "quarantine", "streams"))}
     for bad in ("mine", ".router", "*.router"):
         with pytest.raises(ValueError, match="uplink certificate is named"):
             access_control(HQ, {bad: "uplink"})
