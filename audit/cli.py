@@ -22,6 +22,7 @@ from schemas.times import NS_PER_S, format_time_ns, parse_time_ns
 
 from common.progress import Progress, enabled_from_args, progress
 from ledger import open_ledger
+from ledger.mirror import is_database_url, ledger_for, mirrored_sites
 from audit.report import audit_assays, audit_cuts, audit_history
 
 # -- output helpers -------------------------------------------------------------------------
@@ -69,10 +70,20 @@ def _fold_progress(label: str, args: argparse.Namespace) -> Progress:
     return progress(unit="geometry events", desc=label, enabled=enabled_from_args(args))
 
 
-def _open(path: str):
-    if not Path(path).exists():
+def _open(args: argparse.Namespace, site: str | None = None):
+    """The ledger ``--ledger`` names, or a site's mirror in a head office's (``--site``)."""
+    path = ledger_for(args.ledger, site or args.site)
+    if not is_database_url(path) and not Path(path).exists():
         raise ValueError(f"no ledger at {path}")
     return open_ledger(path, read_only=True)
+
+
+def _sites(args: argparse.Namespace) -> list[str | None]:
+    """The sites a report covers: every mirrored one for a head office's directory without
+    ``--site``, else the one ledger ``--ledger`` and ``--site`` name (``[None]``)."""
+    if args.site is None and not is_database_url(args.ledger) and Path(args.ledger).is_dir():
+        return list(mirrored_sites(args.ledger)) or [None]
+    return [None]
 
 
 def _known(args) -> int | None:
@@ -196,7 +207,7 @@ def _print_cuts(report, rows: list[dict[str, Any]], with_truth: bool, a: str,
 
 def cmd_cuts(args: argparse.Namespace) -> int:
     truth = load_truth_cuts(args.truth) if args.truth else None
-    with _open(args.ledger) as store, _fold_progress("audit cuts", args) as bar:
+    with _open(args) as store, _fold_progress("audit cuts", args) as bar:
         report = audit_cuts(store, args.pile, _known(args),
                             progress=lambda fraction, events: bar.update_to(events,
                                                                             fraction=fraction))
@@ -219,7 +230,7 @@ def cmd_history(args: argparse.Namespace) -> int:
     every = int(round(args.every * NS_PER_S))
     start = parse_time_ns(args.start) if args.start else None
     end = parse_time_ns(args.end) if args.end else None
-    with _open(args.ledger) as store, _fold_progress("audit history", args) as bar:
+    with _open(args) as store, _fold_progress("audit history", args) as bar:
         report = audit_history(store, args.pile, every, _known(args), start_ns=start, end_ns=end,
                                progress=lambda fraction, events: bar.update_to(
                                    events, fraction=fraction), max_rows=args.max_rows)
@@ -256,61 +267,81 @@ def cmd_history(args: argparse.Namespace) -> int:
     return 0
 
 
+def _with_site(site: str | None, rows: list[dict]) -> list[dict]:
+    """Rows of one site's report with a leading ``site`` field (a head office's report)."""
+    return rows if site is None else [{"site": site, **row} for row in rows]
+
+
 def cmd_assays(args: argparse.Namespace) -> int:
-    with _open(args.ledger) as store:
-        report = audit_assays(store, _known(args))
+    reports = []
+    for site in _sites(args):
+        with _open(args, site) as store:
+            reports.append((site, audit_assays(store, _known(args))))
+    many = reports[0][0] is not None   # a head office's sites: a site column in every table
+    report = reports[0][1]
+    labs = [row for site, r in reports for row in _with_site(site, [lab.__dict__ for lab in r.labs])]
+    lists = {key: [row for site, r in reports for row in _with_site(site, getattr(r, key))]
+             for key in ("superseded", "provisional", "unknown_lots", "lots_without_assays",
+                         "signatures")}
+    assays = sum(r.assays for _site, r in reports)
     if args.json:
         _dump({"known_time": format_time_ns(report.known_time_ns),
-               "known_time_ns": report.known_time_ns, "assays": report.assays,
-               "labs": [lab.__dict__ for lab in report.labs],
-               "superseded": report.superseded, "provisional": report.provisional,
-               "unknown_lots": report.unknown_lots,
-               "lots_without_assays": report.lots_without_assays,
-               "signatures": report.signatures})
+               "known_time_ns": report.known_time_ns, "assays": assays, "labs": labs, **lists})
         return 0
-    print(f"{report.assays} assays as known at {format_time_ns(report.known_time_ns)}")
+
+    def cells(row: dict, values: list[str]) -> list[str]:
+        return [row["site"], *values] if many else values
+
+    def heads(*names: str) -> list[str]:
+        return ["site", *names] if many else list(names)
+
+    print(f"{assays} assays as known at {format_time_ns(report.known_time_ns)}")
     print("\n  lateness per lab (recorded time - end of the sampling window, hours)")
-    if report.labs:
-        bins = list(report.labs[0].histogram)
-        headers = ["lab", "assays", "min h", "median h", "mean h", "p90 h", "max h", *bins]
-        body = [[lab.lab_id, str(lab.assays), _num(lab.min_h, ".2f"), _num(lab.median_h, ".2f"),
-                 _num(lab.mean_h, ".2f"), _num(lab.p90_h, ".2f"), _num(lab.max_h, ".2f"),
-                 *[str(lab.histogram[b]) for b in bins]] for lab in report.labs]
-        print(table(headers, body, right=[False] + [True] * (len(headers) - 1), indent=4))
+    if labs:
+        bins = list(labs[0]["histogram"])
+        headers = heads("lab", "assays", "min h", "median h", "mean h", "p90 h", "max h", *bins)
+        body = [cells(lab, [lab["lab_id"], str(lab["assays"]), _num(lab["min_h"], ".2f"),
+                            _num(lab["median_h"], ".2f"), _num(lab["mean_h"], ".2f"),
+                            _num(lab["p90_h"], ".2f"), _num(lab["max_h"], ".2f"),
+                            *[str(lab["histogram"][b]) for b in bins]]) for lab in labs]
+        print(table(headers, body, right=[False] * (1 + many) + [True] * (len(headers) - 1 - many),
+                    indent=4))
     else:
         print("    none")
-    print(f"\n  superseded assays ({len(report.superseded)})")
-    if report.superseded:
-        body = [[s["assay_id"], s["lot_id"], s["status"] or "?", s["superseded_by"], s["by_status"],
-                 _when(s["superseded_at_ns"]),
-                 ", ".join(f"{a} {s['delta_pp'][a]:+.2f}" for a in ("Fe", "SiO2")
-                           if a in s["delta_pp"]) + " pp" if s["delta_pp"] else "-"]
-                for s in report.superseded]
-        print(table(["assay", "lot", "status", "superseded by", "its status", "at (UTC)",
-                     "change"], body, indent=4))
+    print(f"\n  superseded assays ({len(lists['superseded'])})")
+    if lists["superseded"]:
+        body = [cells(s, [s["assay_id"], s["lot_id"], s["status"] or "?", s["superseded_by"],
+                          s["by_status"], _when(s["superseded_at_ns"]),
+                          ", ".join(f"{a} {s['delta_pp'][a]:+.2f}" for a in ("Fe", "SiO2")
+                                    if a in s["delta_pp"]) + " pp" if s["delta_pp"] else "-"])
+                for s in lists["superseded"]]
+        print(table(heads("assay", "lot", "status", "superseded by", "its status", "at (UTC)",
+                          "change"), body, indent=4))
     else:
         print("    none")
-    print(f"\n  provisional assays ({len(report.provisional)})")
-    if report.provisional:
-        body = [[p["assay_id"], p["lot_id"], p["lab_id"], _when(p["recorded_ns"]),
-                 p["replaced_by"] or ("still provisional" if p["open"] else "-")]
-                for p in report.provisional]
-        print(table(["assay", "lot", "lab", "recorded (UTC)", "replaced by"], body, indent=4))
+    print(f"\n  provisional assays ({len(lists['provisional'])})")
+    if lists["provisional"]:
+        body = [cells(p, [p["assay_id"], p["lot_id"], p["lab_id"], _when(p["recorded_ns"]),
+                          p["replaced_by"] or ("still provisional" if p["open"] else "-")])
+                for p in lists["provisional"]]
+        print(table(heads("assay", "lot", "lab", "recorded (UTC)", "replaced by"), body, indent=4))
     else:
         print("    none")
-    print(f"\n  assays for lots not declared when recorded ({len(report.unknown_lots)})")
-    if report.unknown_lots:
-        body = [[u["assay_id"], u["lot_id"], u["lab_id"], _when(u["recorded_ns"]),
-                 "yes" if u["declared_by_k"] else "no"] for u in report.unknown_lots]
-        print(table(["assay", "lot", "lab", "recorded (UTC)", "declared by K"], body, indent=4))
+    print(f"\n  assays for lots not declared when recorded ({len(lists['unknown_lots'])})")
+    if lists["unknown_lots"]:
+        body = [cells(u, [u["assay_id"], u["lot_id"], u["lab_id"], _when(u["recorded_ns"]),
+                          "yes" if u["declared_by_k"] else "no"]) for u in lists["unknown_lots"]]
+        print(table(heads("assay", "lot", "lab", "recorded (UTC)", "declared by K"), body,
+                    indent=4))
     else:
         print("    none")
-    _print_signers(report.signatures)
-    print(f"\n  lots without assays ({len(report.lots_without_assays)})")
-    if report.lots_without_assays:
-        body = [[lot["lot_id"], _when(lot["declared_ns"]), _num(lot["planned_tonnes_t"])]
-                for lot in report.lots_without_assays]
-        print(table(["lot", "declared (UTC)", "planned t"], body, indent=4))
+    _print_signers(lists["signatures"])
+    print(f"\n  lots without assays ({len(lists['lots_without_assays'])})")
+    if lists["lots_without_assays"]:
+        body = [cells(lot, [lot["lot_id"], _when(lot["declared_ns"]),
+                            _num(lot["planned_tonnes_t"])])
+                for lot in lists["lots_without_assays"]]
+        print(table(heads("lot", "declared (UTC)", "planned t"), body, indent=4))
     else:
         print("    none")
     return 0
@@ -342,7 +373,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     sub = p.add_subparsers(dest="audit", metavar="REPORT", required=True, parser_class=type(p))
 
     def common(sp, *, pile: bool, fold: bool) -> None:
-        sp.add_argument("--ledger", required=True, help="ledger file (opened read-only)")
+        sp.add_argument("--ledger", required=True, help="ledger file (opened read-only), or a "
+                        "head office's ledgers (every site's for assays, or --site)")
+        sp.add_argument("--site", help="the site whose mirror to read in a head office's --ledger")
         if pile:
             sp.add_argument("--pile", required=True, help="pile id")
         add_bitemporal(sp, valid=False)

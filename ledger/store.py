@@ -33,37 +33,19 @@ from schemas.validate import (ANALYTE_TYPES, REASON_CODES, InvalidEvent, check_a
 from ledger.chain import GENESIS, chain_hash, payload_hash
 from ledger.clock import SiteClock, WallClock
 from ledger.errors import InterfaceError, LedgerError
+from ledger.mirror import plan_mirror
 from ledger.signing import KEY_TYPES, KeyRegistry, SigningPolicy, signature_block
 from ledger.verifying import (CHAIN_MISMATCH, GapHistory, QuarantineLinks, SignatureCheck,
                               flags_problem, quarantine_link)
-from ledger.records import (
-    FLAG_UNKNOWN_LOT,
-    AppendOutcome,
-    AppendResult,
-    Gap,
-    Head,
-    LedgerStats,
-    QuarantineEntry,
-    RecordedEvent,
-    StreamInfo,
-    VerifyReport,
-)
+from ledger.records import (FLAG_UNKNOWN_LOT, AppendOutcome, AppendResult, Gap, Head,
+                            LedgerStats, QuarantineEntry, RecordedEvent, StreamInfo, VerifyReport)
 
 Key = tuple[str, int, int]
 
 #: Types whose decoded body is kept beside the payload (as JSON) for the SQL views.
-BODY_TYPES: frozenset[str] = frozenset(
-    {
-        "site_declared",
-        "pile_declared",
-        "machine_declared",
-        "lot_declared",
-        "stack_started",
-        "stack_ended",
-        "reclaim_cut",
-        "assay",
-    }
-)
+BODY_TYPES: frozenset[str] = frozenset({
+    "site_declared", "pile_declared", "machine_declared", "lot_declared", "stack_started",
+    "stack_ended", "reclaim_cut", "assay"})
 
 
 @dataclass
@@ -447,6 +429,20 @@ class LedgerStore(abc.ABC):
             assert plan.state is not None
             self._state = plan.state
             return AppendResult(tuple(plan.outcomes), self._state.head_seq)
+
+    def mirror(self, rows: Sequence[RecordedEvent], quarantine: Sequence[QuarantineEntry] = (),
+               gaps: Sequence[Gap] = ()) -> Head:
+        """Append another ledger's rows and quarantine entries verbatim after this head,
+        atomically, its gap table ``gaps`` compared; the new head.  Raises MirrorRefused
+        naming what was tampered with or does not continue this ledger (:mod:`ledger.mirror`)."""
+        with self._lock:
+            self._check_writable()
+            plan = plan_mirror(_BatchPlanner(self._state, self.clock), rows, quarantine, gaps,
+                               self.gaps() if gaps else (), BODY_TYPES)
+            if plan.rows or plan.quarantine:
+                self._commit(plan)
+            self._state = plan.state
+            return self.head()
 
     # -- reading ------------------------------------------------------------------------
 

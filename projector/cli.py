@@ -11,6 +11,7 @@ from common.options import add_bitemporal
 from schemas.times import format_time_ns, parse_time_ns
 
 from ledger import open_ledger
+from ledger.mirror import ledger_for
 from projector.query import SnapshotStore, project
 
 
@@ -38,7 +39,7 @@ def _clean(value):
 def cmd_project(args: argparse.Namespace) -> int:
     valid = parse_time_ns(args.valid_time) if args.valid_time else None
     known = parse_time_ns(args.known_time) if args.known_time else None
-    with open_ledger(args.ledger, read_only=True) as store:
+    with open_ledger(ledger_for(args.ledger, args.site), read_only=True) as store:
         snapshots = SnapshotStore(args.snapshots) if args.snapshots else None
         try:
             state = project(store, args.pile, valid, known, snapshots=snapshots)
@@ -85,7 +86,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "project", help="the pile as of a valid time, as known at a known time",
         description="Rebuild a pile from the ledger: its volume, tonnes and grade, its "
         "deposits and what every reclaim cut delivered, as of valid time V as known at K.")
-    p.add_argument("--ledger", required=True, help="ledger file (opened read-only)")
+    p.add_argument("--ledger", required=True, help="ledger file (opened read-only), or a head "
+                   "office's ledgers with --site")
+    p.add_argument("--site", help="the site whose mirror to read in a head office's --ledger")
     p.add_argument("--pile", required=True, help="pile id")
     add_bitemporal(p)
     p.add_argument("--snapshots", metavar="PATH", help="a snapshot file to start from (DuckDB)")

@@ -11,7 +11,9 @@ A certificate's subject is ``CN=<name>, OU=<role>, O=<site>``: the common name i
 the service (Zenoh's access control matches it), the organisational unit records its role
 (one of :data:`ROLES`).  Every certificate is for TLS client authentication; a ``router``
 certificate is also for server authentication and names the hosts it answers on
-(default ``localhost`` and ``127.0.0.1``).
+(default ``localhost`` and ``127.0.0.1``).  A head office's PKI issues two more roles:
+``hq`` (the head-office service) and ``uplink`` (a site router's link into the head
+office, named ``<site>.router``; ``docs/security.md``).
 
 Layout of the CA directory (``init_ca``; ``issue`` writes there unless given ``out_dir``)::
 
@@ -55,7 +57,8 @@ from security.crl import DEFAULT_CRL_VALID_DAYS, REVOCATION_REASONS, sign_crl
 
 #: the roles the product knows; a certificate records one (its subject's OU)
 ROLES: tuple[str, ...] = ("router", "scanner", "gnss", "plc", "localizer", "lab", "ledger",
-                          "projector", "recorder", "dashboard", "auditor", "replay")
+                          "projector", "recorder", "dashboard", "auditor", "replay", "hq",
+                          "uplink")
 
 #: roles whose certificate is also a TLS server certificate (with host names)
 SERVER_ROLES: tuple[str, ...] = ("router",)

@@ -16,6 +16,14 @@ Message kinds (zenoh 1.x): ``put``, ``delete``, ``declare_subscriber``, ``query`
 ``reply``, ``declare_queryable``, ``liveliness_token``, ``liveliness_query``,
 ``declare_liveliness_subscriber``.  Flows: ``ingress`` is from the client to the
 router, ``egress`` from the router to the client.
+
+A head office links the sites' routers to its own (``docs/security.md``).  At the
+head-office router, a site router's link (an ``uplink`` certificate named
+``<site>.router``) may announce and answer that site's ledger queries and put its head
+(:data:`UPLINK_GRANTS`), and the head-office service (role ``hq``) may query every
+site's ledger and follow its head.  At a site router, the head-office router's link
+(:func:`access_control`'s ``head_office``) may do the mirror image: query the ledger and
+follow its head, nothing that writes to the site (:data:`HEAD_OFFICE_GRANTS`).
 """
 
 from __future__ import annotations
@@ -65,7 +73,7 @@ LIVE_ANY = "stockpile/{site}/@live/**"
 #: the service name in a role's liveliness token (``stockpile/<site>/@live/<service>/...``)
 ROLE_SERVICE = {"scanner": "scanner", "gnss": "gnss", "plc": "plc", "localizer": "localizer",
                 "lab": "lab", "ledger": "ledger", "projector": "projector",
-                "recorder": "recorder", "dashboard": "dashboard"}
+                "recorder": "recorder", "dashboard": "dashboard", "hq": "hq"}
 
 
 def _publisher(types: tuple[str, ...]) -> list[Grant]:
@@ -130,6 +138,31 @@ LIVE_SEEN = Grant(("liveliness_token",), ("egress",), (LIVE_ANY,))
 CLOCK_READ = [Grant(("declare_subscriber",), ("ingress",), ("stockpile/{site}/@v1/clock/**",)),
               Grant(("put",), ("egress",), ("stockpile/{site}/@v1/clock/**",))]
 
+#: the ledger's read queries (``q/backup`` is not one: it makes the site write a backup)
+LEDGER_READS = ("events", "as_of", "stats", "head", "gaps", "quarantine", "streams")
+READ_QUERIES = tuple(f"stockpile/{{site}}/@ledger/q/{what}" for what in LEDGER_READS)
+#: at the head-office router, a site router's link ({site}: the site its name names)
+UPLINK_GRANTS = [
+    Grant(("declare_queryable",), ("ingress",), READ_QUERIES),
+    Grant(("query",), ("egress",), READ_QUERIES),
+    Grant(("reply",), ("ingress",), READ_QUERIES),
+    Grant(("declare_subscriber",), ("egress",), (LEDGER_HEAD,)),
+    Grant(("put",), ("ingress",), (LEDGER_HEAD,)),
+]
+#: at a site router, the head-office router's link: reads of the ledger, nothing else
+HEAD_OFFICE_GRANTS = [
+    Grant(("declare_queryable",), ("egress",), READ_QUERIES),
+    Grant(("query",), ("ingress",), READ_QUERIES),
+    Grant(("reply",), ("egress",), READ_QUERIES),
+    Grant(("declare_subscriber",), ("ingress",), (LEDGER_HEAD,)),
+    Grant(("put",), ("egress",), (LEDGER_HEAD,)),
+]
+ANY_SITE_READS = tuple(q.replace("{site}", "*") for q in READ_QUERIES)
+ANY_SITE_HEAD = "stockpile/*/@ledger/head"
+HQ_STATUS = "stockpile/{site}/@hq/status"
+#: where an uplink certificate's name says which site it links (``<site>.router``)
+UPLINK_SUFFIX = ".router"
+
 ROLE_GRANTS: dict[str, list[Grant]] = {
     **{role: _publisher(types) + CLOCK_READ for role, types in PUBLISHES.items()},
     "replay": _republisher(),
@@ -147,6 +180,12 @@ ROLE_GRANTS: dict[str, list[Grant]] = {
     "auditor": _ledger_reader() + [LIVE_READ, LIVE_SEEN],
     "dashboard": _ledger_reader() + [LIVE_READ, LIVE_SEEN],
     "projector": _ledger_reader(),
+    "hq": [Grant(("query",), ("ingress",), ANY_SITE_READS),
+           Grant(("reply",), ("egress",), ANY_SITE_READS),
+           Grant(("declare_subscriber",), ("ingress",), (ANY_SITE_HEAD, HQ_STATUS)),
+           Grant(("put",), ("egress",), (ANY_SITE_HEAD, HQ_STATUS)),
+           Grant(("put",), ("ingress",), (HQ_STATUS,))],
+    "uplink": UPLINK_GRANTS,
 }
 ROLE_GRANTS["localizer"] = ROLE_GRANTS["localizer"] + _event_reader(
     tuple(f"stockpile/{{site}}/@v1/{t}/**" for t in SUBSCRIBES["localizer"]),
@@ -160,17 +199,37 @@ def _fill(template: str, site: str, name: str) -> str:
     return template.replace("{site}", site).replace("{name}", name)
 
 
-def access_control(site: str, members: Mapping[str, str]) -> dict:
+def uplink_site(name: str) -> str:
+    """The site an uplink certificate's name links (``<site>.router``), else ValueError."""
+    site = name[:-len(UPLINK_SUFFIX)] if name.endswith(UPLINK_SUFFIX) else ""
+    if not site or "/" in site or "*" in site or site.startswith("@"):
+        raise ValueError(f"{name}: an uplink certificate is named <site>{UPLINK_SUFFIX}")
+    return site
+
+
+def access_control(site: str, members: Mapping[str, str], *,
+                   head_office: str | None = None) -> dict:
     """The router's ``access_control`` block for ``{certificate name: role}``.
 
-    Deny by default; each certificate name is a subject with its role's grants.  Raises
-    ValueError for an unknown role.
+    Deny by default; each certificate name is a subject with its role's grants (an
+    ``uplink`` name's for the site it names).  ``head_office`` is the common name of the
+    head-office router's certificate, granted :data:`HEAD_OFFICE_GRANTS` on this site's
+    ledger (the link this router opens to it).  Raises ValueError for an unknown role, a
+    badly named uplink, or a head office named like a member.
     """
-    rules, subjects, policies = [], [], []
+    entries = []
     for name, role in sorted(members.items()):
         if role not in ROLES:
             raise ValueError(f"{name}: unknown role {role!r} (known: {', '.join(ROLES)})")
-        grants = ROLE_GRANTS.get(role, [])
+        where = uplink_site(name) if role == "uplink" else site
+        entries.append((name, role, where, ROLE_GRANTS.get(role, [])))
+    if head_office:
+        if head_office in members:
+            raise ValueError(f"the head office's router {head_office!r} is also a certificate "
+                             "of this site: give its own name")
+        entries.append((head_office, "head-office", site, HEAD_OFFICE_GRANTS))
+    rules, subjects, policies = [], [], []
+    for name, role, where, grants in entries:
         if not grants:
             continue
         subject = f"cert:{name}"
@@ -180,7 +239,7 @@ def access_control(site: str, members: Mapping[str, str]) -> dict:
             rule_id = f"{name}:{role}:{i}"
             rules.append({"id": rule_id, "permission": "allow", "flows": list(grant.flows),
                           "messages": list(grant.messages),
-                          "key_exprs": sorted({_fill(k, site, name) for k in grant.keys})})
+                          "key_exprs": sorted({_fill(k, where, name) for k in grant.keys})})
             ids.append(rule_id)
         policies.append({"id": f"policy:{name}", "rules": ids, "subjects": [subject]})
     return {"enabled": True, "default_permission": "deny", "rules": rules,

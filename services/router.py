@@ -9,6 +9,14 @@ certificate may publish, subscribe, query and answer comes from its role
 (``--pki DIR``, default ``--tls-dir``: ``index.json`` as ``stockpile pki`` writes it;
 revoked certificates get no rights).
 
+A site router links to its head office's router with ``--uplink tls/HOST:PORT`` (Zenoh
+routers do not link up on their own): that one link is made with the head office's
+credentials from ``--uplink-tls DIR`` (the head-office CA as its only root, this site's
+``uplink`` certificate ``<site>.router``), given in the endpoint's own TLS settings, so
+the site's own links keep trusting the site CA alone; the head-office router's
+certificate name (``--head-office-name``) is granted reads of this site's ledger and
+nothing else (:func:`services.acl.access_control`, ``docs/security.md``).
+
 Refused messages are logged, one ``refused`` line per (subject, message, key) with a
 count: the router reads zenoh's access-control trace on its own standard output.
 
@@ -30,6 +38,7 @@ import zenoh
 
 from services.acl import access_control, members_from_index
 from services.service import ServiceRuntime, Stopper, ZenohOptions, log
+from services.zenoh_config import InsecureEndpoint, split_endpoint, tls_files
 
 SERVICE = "router"
 DEFAULT_LISTEN = "tls/127.0.0.1:7447"
@@ -45,6 +54,49 @@ _ABOUT = re.compile(r" on (\S+)\s*$")
 _ZENOH_PROBLEM = re.compile(r"\b(WARN|ERROR)\b")
 
 
+#: the head-office router's certificate name a site router grants reads when none is given
+DEFAULT_HEAD_OFFICE = "hq.router"
+
+
+@dataclass(frozen=True)
+class Uplink:
+    """The link a site router opens to its head office's router.
+
+    Attributes
+    ----------
+    endpoint : str
+        The head-office router, ``tls/HOST:PORT``.
+    tls_dir : str
+        The head office's files for this link: ``ca.pem`` (the head-office CA) and this
+        site's uplink certificate ``NAME.pem`` / ``NAME.key``.
+    name : str
+        The uplink certificate's name, ``<site>.router``.
+    head_office : str
+        The head-office router's certificate name, granted reads of this site's ledger.
+    """
+
+    endpoint: str
+    tls_dir: str
+    name: str
+    head_office: str = DEFAULT_HEAD_OFFICE
+
+    def __post_init__(self) -> None:
+        proto, host, port = split_endpoint(self.endpoint)
+        if proto != "tls" or not host or not port or "#" in self.endpoint:
+            raise ValueError(f"--uplink {self.endpoint}: give the head office's router as "
+                             "tls/HOST:PORT")
+
+    def link_endpoint(self) -> str:
+        """The endpoint with this link's own TLS settings (zenoh's endpoint config)."""
+        files = tls_files(self.tls_dir, self.name)
+        if any(c in str(path) for path in files for c in "#;="):
+            raise InsecureEndpoint(f"--uplink-tls {self.tls_dir}: a path with '#', ';' or '=' "
+                                   "cannot be given in an endpoint")
+        ca, cert, key = files
+        return (f"{self.endpoint}#root_ca_certificate_file={ca};"
+                f"connect_certificate_file={cert};connect_private_key_file={key}")
+
+
 @dataclass(frozen=True)
 class Config:
     """Options of the router.
@@ -56,6 +108,8 @@ class Config:
         (default: the TLS directory).
     acl : bool
         Generate and enforce access control (off only with ``--insecure --no-acl``).
+    uplink : Uplink or None
+        The link to the head office's router, if this site has one.
     """
 
     site: str
@@ -64,6 +118,7 @@ class Config:
     acl: bool = True
     status_period_s: float = 5.0
     members: dict[str, str] = field(default_factory=dict)
+    uplink: Uplink | None = None
 
     def __post_init__(self) -> None:
         if self.zenoh.mode != "router":
@@ -75,6 +130,8 @@ class Config:
                              "(stockpile pki), or say --insecure")
         if not self.acl and not self.zenoh.insecure:
             raise ValueError("--no-acl needs --insecure")
+        if self.uplink is not None and not self.zenoh.tls_dir:
+            raise ValueError("--uplink needs this router on TLS (--tls-dir, --tls-name)")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -82,7 +139,30 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="site PKI directory with index.json (default: --tls-dir)")
     parser.add_argument("--no-acl", action="store_true",
                         help="no access control (only with --insecure: a test bench)")
+    parser.add_argument("--uplink", metavar="ENDPOINT",
+                        help="the head office's router (tls/HOST:PORT): link to it and grant it "
+                        "reads of this site's ledger")
+    parser.add_argument("--uplink-tls", metavar="DIR",
+                        help="the head office's files for the uplink: DIR/ca.pem (its CA, "
+                        "trusted on that link only) and this site's uplink certificate")
+    parser.add_argument("--uplink-name", metavar="NAME",
+                        help="the uplink certificate's name in --uplink-tls (default "
+                        "SITE.router)")
+    parser.add_argument("--head-office-name", default=DEFAULT_HEAD_OFFICE, metavar="NAME",
+                        help="the head-office router's certificate name, granted reads of this "
+                        f"site's ledger (default {DEFAULT_HEAD_OFFICE})")
     parser.set_defaults(mode="router")
+
+
+def uplink_from_args(args: argparse.Namespace) -> Uplink | None:
+    """The uplink the options describe (None without ``--uplink``); ValueError when
+    ``--uplink`` and ``--uplink-tls`` do not come together."""
+    if bool(args.uplink) != bool(args.uplink_tls):
+        raise ValueError("--uplink and --uplink-tls go together")
+    if not args.uplink:
+        return None
+    return Uplink(args.uplink, args.uplink_tls, args.uplink_name or f"{args.site}.router",
+                  args.head_office_name)
 
 
 def config_from_args(args: argparse.Namespace) -> Config:
@@ -95,7 +175,8 @@ def config_from_args(args: argparse.Namespace) -> Config:
     pki = args.pki or options.tls_dir
     members = load_members(pki) if pki and not args.no_acl else {}
     return Config(site=args.site, zenoh=options, pki_dir=pki, acl=not args.no_acl,
-                  status_period_s=args.status_period, members=members)
+                  status_period_s=args.status_period, members=members,
+                  uplink=uplink_from_args(args))
 
 
 def load_members(pki_dir: str) -> dict[str, str]:
@@ -116,11 +197,22 @@ def load_members(pki_dir: str) -> dict[str, str]:
 
 
 def router_config(config: Config) -> zenoh.Config:
-    """The router's ``zenoh.Config``: the shared options plus the generated ACL."""
-    zconfig = config.zenoh.to_config()
-    if config.acl:
-        zconfig.insert_json5("access_control",
-                             json.dumps(access_control(config.site, config.members)))
+    """The router's ``zenoh.Config``: the shared options, the uplink, the generated ACL."""
+    return site_router_config(config.site, config.zenoh, config.members if config.acl else None,
+                              config.uplink)
+
+
+def site_router_config(site: str, options: ZenohOptions, members: dict[str, str] | None,
+                       uplink: Uplink | None = None) -> zenoh.Config:
+    """A router's ``zenoh.Config`` from its options, with the link to ``uplink`` (its own
+    TLS settings) and the access control for ``members`` (None: no access control)."""
+    zconfig = options.to_config()
+    if uplink is not None:
+        zconfig.insert_json5("connect/endpoints",
+                             json.dumps([*options.connect, uplink.link_endpoint()]))
+    if members is not None:
+        zconfig.insert_json5("access_control", json.dumps(access_control(
+            site, members, head_office=uplink.head_office if uplink else None)))
     return zconfig
 
 
@@ -201,6 +293,7 @@ def main(config: Config, *, stopper: Stopper | None = None) -> int:
         for role in config.members.values():
             roles[role] = roles.get(role, 0) + 1
         runtime.log("routing", listen=list(config.zenoh.listen),
+                    uplink=config.uplink.endpoint if config.uplink else "-",
                     tls=bool(config.zenoh.tls_dir), acl=config.acl,
                     certificates=len(config.members),
                     roles=",".join(f"{r}:{n}" for r, n in sorted(roles.items())))

@@ -13,6 +13,8 @@ The config (TOML; a documented example ships as ``docs/yard.example.toml``)::
 
     [router]                     # optional: run a Zenoh router here, on these endpoints
     listen = ["tls/127.0.0.1:7447"]
+    uplink = "tls/hq.example.com:7447"   # optional: link to the head office's router,
+    uplink_tls = "/srv/stockpile/hq-link" # with its CA and this site's uplink certificate
 
     [analytes]                   # optional: the site's declared analytes (schemas.analytes)
     declared = ["Fe", "SiO2", "Al2O3", "P", "LOI"]
@@ -28,7 +30,10 @@ The config (TOML; a documented example ships as ``docs/yard.example.toml``)::
 With ``[tls]``, each service connects with the certificate named by its table's
 ``tls_name`` (default: the table's name), and the router (``[router] tls_name``, default
 ``router``) enforces the access control generated from the PKI's index
-(:mod:`services.acl`).  Every other key of a service table becomes that service's
+(:mod:`services.acl`); with ``uplink`` it links to the head office's router
+(:class:`services.router.Uplink`: ``uplink_tls``, ``uplink_name`` default
+``<site>.router``, ``head_office_name`` default ``hq.router``; ``docs/deployment.md``).
+Every other key of a service table becomes that service's
 command-line option
 (``batch_size = 500`` -> ``--batch-size 500``; ``true`` -> a bare flag; a list
 repeats the option).  Services start in the order ledger, localizer, the rest;
@@ -41,7 +46,6 @@ for :data:`STABLE_RUN_S` before exiting); SIGINT/SIGTERM stops them in reverse o
 from __future__ import annotations
 
 import argparse
-import json
 import signal
 import subprocess
 import sys
@@ -55,8 +59,7 @@ from typing import Any
 from common.options import plain_text
 from ledger.views import check_declared
 from schemas.analytes import UNKNOWN_POLICIES, declared_list
-from services.acl import access_control
-from services.router import load_members
+from services.router import DEFAULT_HEAD_OFFICE, Uplink, load_members, site_router_config
 from services.service import Stopper, ZenohOptions, log, open_session
 from stockpile import service_cli
 from stockpile.service_cli import SERVICE_MODULES
@@ -108,6 +111,7 @@ class YardConfig:
     restart_delay_s: float = 2.0
     tls_dir: str | None = None
     router_tls_name: str = "router"
+    router_uplink: Uplink | None = None
 
 
 def load_config(path: str | Path) -> YardConfig:
@@ -154,7 +158,22 @@ def load_config(path: str | Path) -> YardConfig:
                  else len(START_ORDER))
     return YardConfig(site, zenoh_argv, router_listen, entries,
                       float(data.get("restart_delay_s", 2.0)), tls_dir,
-                      str(router.get("tls_name", "router")))
+                      str(router.get("tls_name", "router")), _uplink(site, router, tls_dir, path))
+
+
+def _uplink(site: str, router: Any, tls_dir: str | None, path: str | Path) -> Uplink | None:
+    """``[router] uplink`` (with ``uplink_tls``, ``uplink_name``, ``head_office_name``) as
+    an :class:`Uplink`; None without it; :class:`ConfigError` when it is incomplete."""
+    if not isinstance(router, dict) or "uplink" not in router:
+        return None
+    if not isinstance(router.get("uplink_tls"), str) or not tls_dir:
+        raise ConfigError(f"{path}: [router] uplink needs uplink_tls = \"DIR\" and [tls]")
+    try:
+        return Uplink(str(router["uplink"]), router["uplink_tls"],
+                      str(router.get("uplink_name", f"{site}.router")),
+                      str(router.get("head_office_name", DEFAULT_HEAD_OFFICE)))
+    except ValueError as exc:
+        raise ConfigError(f"{path}: [router] {exc}") from None
 
 
 def _add_analytes(entries: list[ServiceEntry], table: Any, path: str | Path) -> None:
@@ -233,10 +252,8 @@ def router_options(config: YardConfig) -> tuple[ZenohOptions, Any]:
         return ZenohOptions(mode="router", listen=tuple(config.router_listen)), None
     options = ZenohOptions(mode="router", listen=tuple(config.router_listen),
                            tls_dir=config.tls_dir, tls_name=config.router_tls_name)
-    zconfig = options.to_config()
-    zconfig.insert_json5("access_control", json.dumps(
-        access_control(config.site, load_members(config.tls_dir))))
-    return options, zconfig
+    return options, site_router_config(config.site, options, load_members(config.tls_dir),
+                                       config.router_uplink)
 
 
 def run(config: YardConfig, *, stopper: Stopper | None = None) -> int:

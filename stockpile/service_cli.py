@@ -71,6 +71,11 @@ def _services_router() -> ModuleType:
     return router
 
 
+def _services_hq_service() -> ModuleType:
+    from services import hq_service  # deferred: its extra may be missing
+    return hq_service
+
+
 def _replay_record() -> ModuleType:
     from replay import record  # deferred: its extra may be missing
     return record
@@ -95,6 +100,8 @@ SERVICE_MODULES: dict[str, Service] = {
     "dashboard": Service(_services_dashboard, "dashboard",
                          "follow the ledger service and log one pile to Rerun (web viewer, "
                          ".rrd)"),
+    "hq": Service(_services_hq_service, "ledger",
+                  "the head office: mirror every site's ledger from its queryables"),
     "recorder": Service(_replay_record, "ledger",
                         "record the site's events to MCAP files, rotating by size or time"),
 }

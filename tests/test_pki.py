@@ -321,7 +321,7 @@ def test_a_bad_role_is_a_one_line_error_exit_2(tmp_path):
     assert out.returncode == 2 and out.stdout == ""
     assert out.stderr.splitlines() == [
         "stockpile: error: unknown role 'chef': choose from router, scanner, gnss, plc, "
-        "localizer, lab, ledger, projector, recorder, dashboard, auditor, replay"]
+        "localizer, lab, ledger, projector, recorder, dashboard, auditor, replay, hq, uplink"]
     assert sorted(p.name for p in ca_dir.iterdir()) == before
 
 
