@@ -12,6 +12,7 @@ import json
 import math
 import sys
 from pathlib import Path
+from urllib.parse import urlsplit
 from typing import Any, Sequence
 
 from common.options import (add_bitemporal, add_duration, add_max_rows, add_progress,
@@ -79,9 +80,16 @@ def _open(args: argparse.Namespace, site: str | None = None):
 
 
 def _sites(args: argparse.Namespace) -> list[str | None]:
-    """The sites a report covers: every mirrored one for a head office's directory without
-    ``--site``, else the one ledger ``--ledger`` and ``--site`` name (``[None]``)."""
-    if args.site is None and not is_database_url(args.ledger) and Path(args.ledger).is_dir():
+    """The sites a report covers: without ``--site``, every mirrored one of a head office
+    (a directory, or a database URL naming no ``schema=`` whose database holds
+    ``site_<site>`` schemas), else the one ledger ``--ledger`` and ``--site`` name
+    (``[None]``)."""
+    if args.site is not None:
+        return [None]
+    if is_database_url(args.ledger):
+        if "schema=" not in urlsplit(args.ledger).query:
+            return list(mirrored_sites(args.ledger)) or [None]
+    elif Path(args.ledger).is_dir():
         return list(mirrored_sites(args.ledger)) or [None]
     return [None]
 

@@ -49,6 +49,8 @@ from ledger.verifying import quarantine_link
 PG_SCHEMES = ("postgresql", "postgres")
 #: a site name usable as a file name and a PostgreSQL schema suffix
 _SITE_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9_-]{0,62}")
+#: a site whose mirror is a PostgreSQL schema (site_<site>, a plain identifier)
+_SCHEMA_SITE_RE = re.compile(r"[a-z0-9][a-z0-9_]{0,57}")
 #: the file of a site's mirror in a head office's directory
 MIRROR_SUFFIX = ".duckdb"
 
@@ -80,6 +82,10 @@ def site_ledger(base: str | os.PathLike[str], site: str) -> str:
     check_site(site)
     text = str(base)
     if is_database_url(text):
+        if not _SCHEMA_SITE_RE.fullmatch(site):
+            raise ValueError(f"site {site!r}: a PostgreSQL head office names each site's "
+                             "schema site_<site>, so site names are lower-case letters, "
+                             "digits and _ there")
         parts = urlsplit(text)
         query = [(k, v) for k, v in parse_qsl(parts.query) if k != "schema"]
         query.append(("schema", f"site_{site}"))
@@ -88,15 +94,37 @@ def site_ledger(base: str | os.PathLike[str], site: str) -> str:
 
 
 def mirrored_sites(base: str | os.PathLike[str]) -> list[str]:
-    """The sites with a mirror in a head office's directory, sorted (ValueError for a
-    database URL, whose schemas are not listed here, or a directory that does not exist)."""
+    """The sites with a mirror under a head office's ledger, sorted: the ``<site>.duckdb``
+    files of a directory, or the ``site_<site>`` schemas of a PostgreSQL database
+    (ValueError for a directory that does not exist or a database that cannot be read)."""
     if is_database_url(base):
-        raise ValueError("give --site: the sites of a PostgreSQL head office are not listed")
+        return _database_sites(str(base))
     folder = Path(base)
     if not folder.is_dir():
         raise ValueError(f"no head-office ledger directory at {folder}")
     return sorted(p.name[:-len(MIRROR_SUFFIX)] for p in folder.glob(f"*{MIRROR_SUFFIX}")
                   if _SITE_RE.fullmatch(p.name[:-len(MIRROR_SUFFIX)]))
+
+
+def _database_sites(url: str) -> list[str]:
+    """The ``site_<site>`` schemas of a PostgreSQL head office, as site names."""
+    try:
+        # deferred: psycopg is the PostgreSQL backend's dependency, not every install's
+        import psycopg
+    except ImportError as exc:
+        raise ValueError(f"a PostgreSQL head office needs psycopg: {exc}") from None
+    parts = urlsplit(url)
+    query = [(k, v) for k, v in parse_qsl(parts.query) if k != "schema"]
+    try:
+        with psycopg.connect(urlunsplit(parts._replace(query=urlencode(query))),
+                             connect_timeout=10) as con:
+            names = [r[0] for r in con.execute(
+                "SELECT nspname FROM pg_namespace WHERE nspname LIKE 'site\\_%' "
+                "ORDER BY nspname").fetchall()]
+    except psycopg.Error as exc:
+        raise ValueError(f"cannot list the sites of the head office: "
+                         f"{str(exc).strip().splitlines()[0]}") from None
+    return [n[len("site_"):] for n in names if _SITE_RE.fullmatch(n[len("site_"):])]
 
 
 def ledger_for(ledger: str, site: str | None) -> str:

@@ -26,6 +26,7 @@ import json
 import subprocess
 import sys
 import time
+import uuid
 from dataclasses import replace
 from pathlib import Path
 
@@ -33,6 +34,7 @@ import pytest
 import zenoh
 
 from ledger import open_ledger
+from ledger.mirror import is_database_url, site_ledger
 from schemas.events import encode_attachment, key_expr
 from schemas.jsonl import decode_line, event_line
 from security.pki import init_ca, issue
@@ -152,7 +154,7 @@ class Network:
                     self.endpoints[site], "--tls-dir", str(self.pkis[site]), "--tls-name",
                     "ledger")
 
-    def head_office(self, ledgers: Path) -> tuple[subprocess.Popen, Path]:
+    def head_office(self, ledgers: str) -> tuple[subprocess.Popen, Path]:
         return self._start("hq", "service", "hq", "--site", HQ, "--ledger", str(ledgers),
                            "--sites", ",".join(SITES), "--recheck", "1", "--query-timeout",
                            "5", "--status-period", "1", "--page-records", "700", "--mode", "client", "--connect",
@@ -203,12 +205,12 @@ def _cli(*args: str) -> str:
     return done.stdout
 
 
-def _check_mirrors(network: Network, ledgers: Path, *, reads: bool = True) -> None:
+def _check_mirrors(network: Network, ledgers: str, *, reads: bool = True) -> None:
     """Every mirror holds exactly its site's ledger; with ``reads``, ``project`` and
     ``audit assays`` at the head office answer as at the site."""
     for site in SITES:
         site_path = str(network.base / f"{site}.duckdb")
-        mirror_path = str(ledgers / f"{site}.duckdb")
+        mirror_path = site_ledger(ledgers, site)
         assert _export(mirror_path) == _export(site_path)
         with open_ledger(site_path, read_only=True) as a, \
                 open_ledger(mirror_path, read_only=True) as b:
@@ -233,7 +235,24 @@ def _check_mirrors(network: Network, ledgers: Path, *, reads: bool = True) -> No
         assert together[key] == [{"site": s, **row} for s in SITES for row in alone[s][key]]
 
 
-def test_head_office_mirrors_two_sites_across_an_outage(yard_events, tmp_path):
+@pytest.fixture(params=["duckdb", "postgresql"])
+def hq_bases(request, tmp_path) -> tuple[str, str]:
+    """The head-office ledgers of a test (the live one, the late one): two directories,
+    or two fresh databases on the tests' PostgreSQL server (one schema per site each)."""
+    if request.param == "duckdb":
+        return str(tmp_path / "hq"), str(tmp_path / "hq-late")
+    server = request.getfixturevalue("pg_server")
+    import psycopg  # noqa: PLC0415 - only the PostgreSQL case needs it
+
+    names = [f"hq_{uuid.uuid4().hex[:10]}", f"hqlate_{uuid.uuid4().hex[:10]}"]
+    with psycopg.connect(server.url(), autocommit=True) as con:
+        for name in names:
+            con.execute(f"CREATE DATABASE {name}")
+    return server.url(database=names[0]), server.url(database=names[1])
+
+
+def test_head_office_mirrors_two_sites_across_an_outage(yard_events, tmp_path, hq_bases):
+    hq_base, late_base = hq_bases
     network = Network(tmp_path)
     parts = {site: [events[i * len(events) // 3:(i + 1) * len(events) // 3] for i in range(3)]
              for site, events in yard_events.items()}
@@ -244,7 +263,7 @@ def test_head_office_mirrors_two_sites_across_an_outage(yard_events, tmp_path):
         for site in SITES:
             network.site_router(site, linked=True)
             network.ledger(site)
-        hq, hq_log = network.head_office(tmp_path / "hq")
+        hq, hq_log = network.head_office(hq_base)
         for site in SITES:
             feeder_session, audit_session = network.session(site, "feeder"), network.session(
                 site, "audit")
@@ -299,7 +318,7 @@ def test_head_office_mirrors_two_sites_across_an_outage(yard_events, tmp_path):
             s: (str(fed[s] - 1), "-") for s in SITES}
         assert _lines(hq_log, "site reachable", cut_site, cut_from)
         # a head office started after both sites finished catches up from nothing
-        late, late_log = network.head_office(tmp_path / "hq-late")
+        late, late_log = network.head_office(late_base)
         for site in SITES:
             wait_until(lambda: _caught_up(late_log, site, fed[site] - 1), WAIT_S,
                        f"the late head office to mirror {site}")
@@ -311,9 +330,9 @@ def test_head_office_mirrors_two_sites_across_an_outage(yard_events, tmp_path):
             session.close()
         codes = network.stop_all()
     assert codes == [0] * len(codes)
-    _check_mirrors(network, tmp_path / "hq")
-    _check_mirrors(network, tmp_path / "hq-late", reads=False)   # reads: as for the first
-    arrivals = _arrival_rows(tmp_path / "hq")
+    _check_mirrors(network, hq_base)
+    _check_mirrors(network, late_base, reads=False)   # reads: as for the first
+    arrivals = _arrival_rows(hq_base)
     assert sorted(arrivals) == list(range(len(arrivals)))
     assert {s: sorted(seq for site_, seq in arrivals.values() if site_ == s) for s in SITES} == {
         s: list(range(fed[s])) for s in SITES}
@@ -452,12 +471,19 @@ def test_bad_head_office_options_are_one_line_errors(tmp_path):
         assert "Traceback" not in done.stderr
 
 
-def _arrival_rows(ledgers: Path) -> dict[int, tuple[str, int]]:
+def _arrival_rows(ledgers: str) -> dict[int, tuple[str, int]]:
     """``hq_seq -> (site, site_global_seq)`` from the head office's arrivals."""
-    import duckdb  # noqa: PLC0415 - deferred like the service's: a heavy import
+    query = "SELECT hq_seq, site, site_global_seq FROM hq.arrival_rows"
+    if is_database_url(ledgers):
+        import psycopg  # noqa: PLC0415 - only the PostgreSQL case needs it
 
-    with duckdb.connect(str(ledgers / "hq" / "arrivals.duckdb"), read_only=True) as con:
-        rows = con.execute("SELECT hq_seq, site, site_global_seq FROM hq.arrival_rows").fetchall()
+        with psycopg.connect(ledgers) as con:
+            rows = con.execute(query).fetchall()
+    else:
+        import duckdb  # noqa: PLC0415 - deferred like the service's: a heavy import
+
+        with duckdb.connect(str(Path(ledgers) / "hq" / "arrivals.duckdb"), read_only=True) as con:
+            rows = con.execute(query).fetchall()
     return {hq_seq: (site, seq) for hq_seq, site, seq in rows}
 
 

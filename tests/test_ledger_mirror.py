@@ -207,8 +207,11 @@ def test_tampered_or_discontinuous_input_is_refused_with_nothing_stored(kind, rn
 def test_site_ledgers_under_a_head_office(tmp_path):
     assert site_ledger(tmp_path, "port") == str(tmp_path / "port.duckdb")
     url = "postgresql://hq@127.0.0.1:5432/ledger?sslmode=require&schema=public"
-    assert site_ledger(url, "mine-2") == ("postgresql://hq@127.0.0.1:5432/ledger?"
-                                          "sslmode=require&schema=site_mine-2")
+    assert site_ledger(url, "mine_2") == ("postgresql://hq@127.0.0.1:5432/ledger?"
+                                          "sslmode=require&schema=site_mine_2")
+    for not_a_schema in ("mine-2", "Port"):   # a schema name is a plain identifier
+        with pytest.raises(ValueError, match="lower-case letters"):
+            site_ledger(url, not_a_schema)
     for bad in ("", "a/b", "../x", "@v1", "x" * 64):
         with pytest.raises(ValueError, match="site must be"):
             site_ledger(tmp_path, bad)
@@ -216,7 +219,7 @@ def test_site_ledgers_under_a_head_office(tmp_path):
         open_ledger(site_ledger(tmp_path, site)).close()
     (tmp_path / "hq").mkdir()
     assert mirrored_sites(tmp_path) == ["mine-2", "port"]
-    with pytest.raises(ValueError, match="give --site"):
+    with pytest.raises(ValueError, match="cannot list the sites"):
         mirrored_sites(url)
     # what the read commands open for --ledger and --site
     port = str(tmp_path / "port.duckdb")
