@@ -131,7 +131,8 @@ class PgColumns:
                     for name in ("fsync", "synchronous_commit", "shared_buffers")}
         return (f"postgresql   : {version} (LocalPostgres on 127.0.0.1, "
                 + ", ".join(f"{k} {v}" for k, v in settings.items())
-                + f"); psycopg {importlib.metadata.version('psycopg')}, one fresh database per system and row")
+                + f"); psycopg {importlib.metadata.version('psycopg')} "
+                f"({self._psycopg.pq.__impl__}), one fresh database per system and row")
 
     # -- databases --------------------------------------------------------------------------
 
@@ -148,8 +149,12 @@ class PgColumns:
             sql.Identifier(name)))
 
     def _es_recorder(self, database: str):
+        # its insert through a database function: the default path (a psycopg pipeline)
+        # hung for good on a batch of 10,000 scans (33 MB), waiting on a server that
+        # waited for the rest of the statement
         datastore = self._es.PostgresDatastore(
-            database, "127.0.0.1", self.server.port, "postgres", self.server.password)
+            database, "127.0.0.1", self.server.port, "postgres", self.server.password,
+            enable_db_functions=True)
         recorder = self._es.PostgresApplicationRecorder(datastore)
         recorder.create_table()
         return datastore, recorder
