@@ -1,11 +1,14 @@
-"""The ledger benchmark's inputs and the two systems it measures (see ``bench/ledger.py``).
+"""The ledger benchmark's inputs and the calls into the systems it measures (see
+``bench/ledger.py``).
 
 The pre-built workloads (:class:`Workload`: a ``scan`` stream from :func:`scan_workload`,
 a ``yard mix`` stream from :class:`YardStream`) and, for each measurement, the call into
-our DuckDB ledger (:func:`ours_append`, :func:`ours_read`) and the matching call into
-``eventsourcing``'s SQLite recorder (:func:`es_recorder`, :func:`es_stored`,
-:func:`es_append`, :func:`es_read_notifications`, :func:`es_read_events`).  Each timed
-function returns ``(seconds, count)``; building the inputs is never timed.
+our ledger (:func:`ours_append` on a DuckDB file or a PostgreSQL URL, :func:`ours_read`)
+and the matching call into ``eventsourcing``'s recorders (:func:`es_recorder` for SQLite,
+:func:`es_stored`, :func:`es_append` for any of its application recorders,
+:func:`es_read_notifications`, :func:`es_read_events`).  Each timed function returns
+``(seconds, count)``; building the inputs is never timed.  The PostgreSQL server and
+its databases are ``bench/_ledger_pg.py``'s.
 """
 
 from __future__ import annotations
@@ -197,7 +200,9 @@ def batches(n: int, size: int) -> list[tuple[int, int]]:
 
 
 def ours_append(path: str, work: Workload, batch: int, store=None) -> tuple[float, dict[str, int]]:
-    """Append ``work`` in batches to a ledger at ``path``; return (seconds, outcome counts)."""
+    """Append ``work`` in batches to the ledger ``path`` names (a DuckDB file or a
+    ``postgresql://`` URL, opened with :func:`ledger.open_ledger`); return (seconds,
+    outcome counts).  Opening and closing the ledger are not timed."""
     own = store is None
     clock = ManualClock(T0_NS)
     if own:
@@ -247,7 +252,8 @@ def es_stored(work: Workload) -> list:
 
 def es_append(recorder, stored: list, batch: int, *, expect_duplicates: bool = False
               ) -> tuple[float, int]:
-    """insert_events in batches; return (seconds, batches refused with IntegrityError)."""
+    """insert_events in batches into any eventsourcing application recorder (SQLite,
+    PostgreSQL); return (seconds, batches refused with IntegrityError)."""
     refused = 0
     spans = batches(len(stored), batch)
     gc.collect()

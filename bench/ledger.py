@@ -1,10 +1,11 @@
-"""Ledger benchmark: our DuckDB ledger side by side with Python ``eventsourcing``.
+"""Ledger benchmark: our ledger on DuckDB and on PostgreSQL beside Python ``eventsourcing``.
 
 Run it from the project root with the project's virtualenv::
 
-    .venv/bin/python bench/ledger.py              # full run, a few minutes on 2 cores
+    .venv/bin/python bench/ledger.py              # full run, several minutes on 2 cores
     .venv/bin/python bench/ledger.py --quick      # smoke test, well under a minute
     .venv/bin/python bench/ledger.py --events-1m 300000 --seed 7
+    .venv/bin/python bench/ledger.py --no-postgres   # DuckDB and SQLite columns only
     make bench                                    # same as the first line
 
 What it measures (all inputs are pre-built before any clock starts; building
@@ -22,46 +23,70 @@ protobufs is not what we measure):
        declaration and an assay every 30 s of yard time (late by 4 h, as assays
        are), so mostly small messages.
 
-   Ours: :func:`ledger.open_ledger` on a fresh DuckDB file per row,
-   ``store.append(batch)`` with every check on (validation, idempotency key
-   lookup, hash chain, gap tracking); recorded time comes from a
-   :class:`ledger.ManualClock` set before each batch, so runs are deterministic.
-   Peer: ``eventsourcing``'s ``SQLiteApplicationRecorder`` on a fresh SQLite file
-   (WAL mode, its defaults) per row, ``insert_events(batch)`` with the same event
-   count, payload bytes and batch sizes; its duplicate check is the unique
-   ``(originator_id, originator_version)`` key.  Mapping: ``originator_id`` = a
-   UUID per (source, epoch), ``originator_version`` = seq, ``topic`` = type,
-   ``state`` = payload bytes.
+   Four systems per row, one after the other (interleaved row by row):
+
+   ``duckdb``
+       ours: :func:`ledger.open_ledger` on a fresh DuckDB file per row,
+       ``store.append(batch)`` with every check on (validation, idempotency key
+       lookup, hash chain, gap tracking); recorded time comes from a
+       :class:`ledger.ManualClock` set before each batch, so runs are deterministic.
+   ``es_sqlite``
+       ``eventsourcing``'s ``SQLiteApplicationRecorder`` on a fresh SQLite file (WAL
+       mode, its defaults) per row, ``insert_events(batch)`` with the same event
+       count, payload bytes and batch sizes; its duplicate check is the unique
+       ``(originator_id, originator_version)`` key.  Mapping: ``originator_id`` = a
+       UUID per (source, epoch), ``originator_version`` = seq, ``topic`` = type,
+       ``state`` = payload bytes.
+   ``pg``
+       ours again, the same calls on a ``postgresql://`` URL: a fresh database per row
+       on one local server the bench starts (``ledger.pg_local.LocalPostgres``,
+       fsync and synchronous commit on), as its superuser over TCP on 127.0.0.1.
+   ``es_pg``
+       ``eventsourcing``'s ``PostgresApplicationRecorder`` (psycopg 3) on the same
+       server, a fresh database per row, the same stored events as ``es_sqlite``,
+       inserted through its database function (``enable_db_functions``; its default
+       pipeline path hung on a batch of 10,000 scans).
+
+   Ratios: ``duck/sqlite``, ``pg/es_pg`` and ``pg/duckdb``.  A batch-1 row on
+   PostgreSQL appends only the first 1,000 events (100 with ``--quick``; marked
+   ``*``): every batch is a commit that waits for its WAL flush.  Without server
+   binaries (or psycopg), or with ``--no-postgres``, the PostgreSQL cells are ``n/a``
+   and a line under the table says why.  The PostgreSQL side is in
+   ``bench/_ledger_pg.py``.
 
 2. **Idempotent re-append**: the batch-1,000 rows' events appended again at batch
-   1,000 (every event a duplicate).  Ours classifies each event as ``duplicate``
-   and writes nothing; eventsourcing raises ``IntegrityError`` at the first
-   duplicate of each batch and rolls the batch back (it has no per-event outcome).
+   1,000 (every event a duplicate), on all four systems.  Ours classifies each
+   event as ``duplicate`` and writes nothing; eventsourcing raises
+   ``IntegrityError`` at the first duplicate of each batch and rolls the batch back
+   (it has no per-event outcome).
 
 3. **Read-back throughput** (events/s): the ``yard mix`` batch-10,000 ledger
    (reopened) read in full with ``store.read()``; the peer reads its whole
    application sequence with ``select_notifications`` (pages of 10,000, global
    order, the fair equivalent) and, for reference, ``select_events`` per
-   originator.  Best of 2 passes.
+   originator.  Best of 2 passes.  DuckDB and SQLite only.
 
 4. **As-of query time** (ms) on a ledger of 1,000,000 small yard-mix events
    (joint readings, frame transforms, lots and assays; built with
    ``store.append`` at batch 10,000, progress on stderr): ``store.as_of(V, K,
    types=["assay"])`` and a broad ``store.as_of(V, K)`` at a few (valid time V,
-   known time K) points.  eventsourcing has no bitemporal query: "n/a".
+   known time K) points.  eventsourcing has no bitemporal query: "n/a".  DuckDB only.
 
 The last lines compare against the targets: >= 50,000 events/s appended at batch
-1,000 (``yard mix`` and ``scan`` separately) and >= 500,000 events/s read back.
+1,000 on DuckDB (``yard mix`` and ``scan`` separately) and >= 500,000 events/s read
+back.
 
 Numbers on a small shared machine (2 cores) are noisy by tens of percent from run
-to run; the ratios (ours / eventsourcing, measured in the same run, interleaved)
-are the meaningful figure.  The garbage collector is frozen over the pre-built
-inputs (``gc.freeze``) so that collecting them is not timed on either side.
+to run; the ratios (measured in the same run, interleaved) are the meaningful
+figure, and the load average is printed at the start and the end.  The garbage
+collector is frozen over the pre-built inputs (``gc.freeze``) so that collecting
+them is not timed on either side.
 
 Flags: ``--quick`` (small counts), ``--events-1m N`` (size of the as-of ledger),
-``--seed S`` (payload randomness), ``--tmpdir DIR`` (where the scratch files go).
+``--seed S`` (payload randomness), ``--tmpdir DIR`` (where the scratch files go),
+``--no-postgres`` (skip the PostgreSQL columns).
 
-The workloads and the calls into both systems are in ``bench/_ledger_systems.py``.
+The workloads and the calls into the systems are in ``bench/_ledger_systems.py``.
 """
 
 from __future__ import annotations
@@ -103,6 +128,7 @@ from bench._ledger_systems import (  # noqa: E402
     ours_read,
     scan_workload,
 )
+from bench._ledger_pg import PG_BATCH1_EVENTS, PgColumns, PgRates, pg_events  # noqa: E402
 from ledger import ManualClock, open_ledger  # noqa: E402
 from schemas.times import NS_PER_H, NS_PER_S  # noqa: E402
 
@@ -148,6 +174,14 @@ def best_of(runs: int, fn: Callable[[], tuple[float, int]]) -> tuple[float, int]
     return min(results, key=lambda r: r[0])
 
 
+def load_average() -> str:
+    """The system's 1, 5 and 15 minute load averages, as one string."""
+    try:
+        return " ".join(f"{x:.2f}" for x in os.getloadavg())
+    except OSError:
+        return "?"
+
+
 def machine_info() -> list[str]:
     cpu = platform.processor() or "?"
     try:
@@ -171,6 +205,7 @@ def machine_info() -> list[str]:
 
     return [
         f"machine      : {platform.machine()} {cpu}, nproc {usable} (os.cpu_count {os.cpu_count()})",
+        f"load average : {load_average()} (1, 5, 15 min) at the start",
         f"os           : {platform.platform()}",
         f"python       : {platform.python_version()} ({platform.python_implementation()})",
         f"duckdb       : {version('duckdb')}   pyarrow {version('pyarrow')}   numpy {version('numpy')}"
@@ -204,14 +239,15 @@ def out(text: str = "") -> None:
 # --- the benchmark ------------------------------------------------------------------------
 
 
-def _print_header(args: argparse.Namespace) -> None:
+def _print_header(args: argparse.Namespace, pg: PgColumns) -> None:
     out("stockpile-ledger benchmark: bench/ledger.py" + ("  (--quick)" if args.quick else ""))
     for line in machine_info():
         out(line)
-    out(f"seed {args.seed}; ours = DuckDB ledger file (open_ledger), every check on; "
-        "peer = eventsourcing SQLite file")
-    out("note: a 2-core shared machine is noisy (tens of %); the ratios (ours/es, same run) "
-        "are the meaningful figure.")
+    out(pg.describe())
+    out(f"seed {args.seed}; ours = our ledger (open_ledger), every check on, on a DuckDB file"
+        " and on PostgreSQL; peer = eventsourcing's SQLite file and PostgreSQL recorders")
+    out("note: a 2-core shared machine is noisy (tens of %); the ratios (same run, "
+        "interleaved row by row) are the meaningful figure.")
     out()
 
 
@@ -232,9 +268,35 @@ def _build_workloads(rng: np.random.Generator, counts: dict[tuple[str, int], int
 
 
 def _append_table() -> Table:
-    return Table([("workload", 24, "<"), ("batch", 6, ">"), ("events", 8, ">"),
-                  ("payload_MB", 10, ">"), ("ours_ev/s", 10, ">"),
-                  ("eventsourcing_ev/s", 18, ">"), ("ratio_ours/es", 13, ">")])
+    return Table([("workload", 20, "<"), ("batch", 6, ">"), ("events", 7, ">"),
+                  ("MB", 6, ">"), ("duckdb", 9, ">"), ("es_sqlite", 10, ">"),
+                  ("duck/sqlite", 11, ">"), ("pg_events", 9, ">"), ("pg", 9, ">"),
+                  ("es_pg", 9, ">"), ("pg/es_pg", 8, ">"), ("pg/duckdb", 9, ">")])
+
+
+def _print_legend() -> None:
+    out("   events/s.  duckdb: ours on a DuckDB file;  es_sqlite: eventsourcing's"
+        " SQLiteApplicationRecorder;")
+    out("   pg: ours on PostgreSQL;  es_pg: eventsourcing's PostgresApplicationRecorder"
+        " (same server);  x/y: ratio of events/s")
+
+
+def pg_cells(pg: PgRates | None, duckdb_ev_s: float) -> list[str]:
+    """The PostgreSQL cells of a row: events (``*`` when capped), rates and ratios."""
+    if pg is None:
+        return ["n/a"] * 5
+    events = f"{pg.events:,}" + ("*" if pg.capped else "")
+    return [events, fmt_rate(pg.ours_ev_s), fmt_rate(pg.es_ev_s),
+            fmt_ratio(pg.ours_ev_s, pg.es_ev_s), fmt_ratio(pg.ours_ev_s, duckdb_ev_s)]
+
+
+def _print_pg_note(pg: PgColumns, quick: bool, capped: bool) -> None:
+    if not pg.available:
+        out(f"   PostgreSQL columns: {pg.reason}")
+    elif capped:
+        cap = PG_BATCH1_EVENTS[1 if quick else 0]
+        out(f"   * batch 1 on PostgreSQL: the first {cap:,} events only (every batch is a "
+            "commit that waits for its WAL flush); pg/duckdb compares rates over those")
 
 
 def _reappend(name: str, w: Workload, st: list, batch: int, ours_path: str, recorder
@@ -259,19 +321,31 @@ def _remove_files(*paths: str) -> None:
                 os.remove(path + suffix)
 
 
+def _pg_row(pg: PgColumns, tag: str, w: Workload, st: list, batch: int, quick: bool
+            ) -> tuple[PgRates | None, PgRates | None]:
+    """The row's PostgreSQL figures (and at batch 1,000 its re-append's); None when n/a."""
+    if not pg.available:
+        return None, None
+    n = pg_events(len(w), batch, quick)
+    log(f"append {w.name} batch {batch:,} x {n:,} events on PostgreSQL ...")
+    return pg.append_row(tag, w.head(n), st[:n], batch, capped=n < len(w),
+                         reappend_batch=1_000 if batch == 1_000 else None)
+
+
 def section_append(workloads: dict[str, Workload], stored: dict[str, list],
-                   counts: dict[tuple[str, int], int], tmp: str
+                   counts: dict[tuple[str, int], int], tmp: str, pg: PgColumns, quick: bool
                    ) -> dict[tuple[str, int], tuple[float, float]]:
     """Sections 1 and 2: append throughput per workload and batch size, and re-append.
 
-    Returns ``(ours, eventsourcing)`` events/s per ``(workload, batch)``; keeps the
-    ``yard mix`` batch-10,000 files in ``tmp`` for the read-back.
+    Returns ``(ours, eventsourcing)`` events/s on DuckDB and SQLite per ``(workload,
+    batch)``; keeps the ``yard mix`` batch-10,000 files in ``tmp`` for the read-back.
     """
     results: dict[tuple[str, int], tuple[float, float]] = {}
     table = _append_table()
-    out("1. Append throughput (events/s), fresh file per row; all checks on")
+    out("1. Append throughput (events/s), a fresh file or database per row; all checks on")
+    _print_legend()
     out(table.header())
-    dup_rows = []
+    dup_rows, capped = [], False
     for name, work in workloads.items():
         for batch in BATCH_SIZES:
             n = counts[(name, batch)]
@@ -288,21 +362,29 @@ def section_append(workloads: dict[str, Workload], stored: dict[str, list],
             es_s, _ = es_append(recorder, st, batch)
             ours_r, es_r = rate(n, ours_s), rate(n, es_s)
             results[(name, batch)] = (ours_r, es_r)
-            out(table.row(name, f"{batch:,}", f"{n:,}", f"{w.payload_mb:,.1f}",
-                          fmt_rate(ours_r), fmt_rate(es_r), fmt_ratio(ours_r, es_r)))
-            if batch == 1_000:
-                dup_rows.append(_reappend(name, w, st, batch, ours_path, recorder))
+            dup = _reappend(name, w, st, batch, ours_path, recorder) if batch == 1_000 else None
             datastore.close()
             if batch != 10_000 or name != "yard mix":
                 _remove_files(ours_path, es_path)
+            pg_rates, pg_dup = _pg_row(pg, tag, w, st, batch, quick)
+            capped = capped or (pg_rates is not None and pg_rates.capped)
+            out(table.row(name, f"{batch:,}", f"{n:,}", f"{w.payload_mb:,.1f}",
+                          fmt_rate(ours_r), fmt_rate(es_r), fmt_ratio(ours_r, es_r),
+                          *pg_cells(pg_rates, ours_r)))
+            if dup is not None:
+                dup_rows.append((dup, pg_dup))
+    _print_pg_note(pg, quick, capped)
     out()
     out("2. Idempotent re-append (every event a duplicate), events/s")
     out("   ours: per-event 'duplicate' outcome, nothing written;"
         " eventsourcing: IntegrityError at the first duplicate, batch rolled back")
     out(table.header())
-    for name, batch, n, mb, ours_r, es_r in dup_rows:
+    for (name, batch, n, mb, ours_r, es_r), pg_dup in dup_rows:
         out(table.row(f"{name} (re-append)", f"{batch:,}", f"{n:,}", f"{mb:,.1f}",
-                      fmt_rate(ours_r), fmt_rate(es_r), fmt_ratio(ours_r, es_r)))
+                      fmt_rate(ours_r), fmt_rate(es_r), fmt_ratio(ours_r, es_r),
+                      *pg_cells(pg_dup, ours_r)))
+    if not pg.available:
+        out(f"   PostgreSQL columns: {pg.reason}")
     out()
     return results
 
@@ -439,14 +521,27 @@ def run(args: argparse.Namespace) -> int:
     n_1m = args.events_1m if args.events_1m is not None else (
         EVENTS_1M_QUICK if args.quick else EVENTS_1M)
     wall_start = time.perf_counter()
-    _print_header(args)
+    if not args.no_postgres:
+        log("starting a local PostgreSQL server ...")
+    with PgColumns.start(enabled=not args.no_postgres, log=log) as pg:
+        _print_header(args, pg)
+        results, read_ours = _measure(args, counts, n_1m, pg)
+    print_targets(results, read_ours)
+    out(f"load average {load_average()} (1, 5, 15 min) at the end")
+    out(f"total wall time {time.perf_counter() - wall_start:,.0f} s")
+    return 0
+
+
+def _measure(args: argparse.Namespace, counts: dict[tuple[str, int], int], n_1m: int,
+             pg: PgColumns) -> tuple[dict[tuple[str, int], tuple[float, float]], float]:
+    """Sections 1 to 4: returns the append results and the read-back events/s."""
     workloads, stored = _build_workloads(np.random.default_rng(args.seed), counts)
     gc.collect()
     gc.freeze()  # the pre-built inputs are not what we measure: keep the GC off them
 
     tmp = tempfile.TemporaryDirectory(prefix="bench-ledger-", dir=args.tmpdir)
     try:
-        results = section_append(workloads, stored, counts, tmp.name)
+        results = section_append(workloads, stored, counts, tmp.name, pg, args.quick)
         read_ours = section_read_back(workloads, stored, counts[("yard mix", 10_000)], tmp.name)
         del workloads, stored
         gc.unfreeze()
@@ -455,14 +550,13 @@ def run(args: argparse.Namespace) -> int:
     finally:
         gc.unfreeze()
         tmp.cleanup()
-    print_targets(results, read_ours)
-    out(f"total wall time {time.perf_counter() - wall_start:,.0f} s")
-    return 0
+    return results, read_ours
 
 
 def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(
-        description="Benchmark the DuckDB ledger against eventsourcing's SQLite recorder.")
+        description="Benchmark our ledger (DuckDB, PostgreSQL) against eventsourcing's "
+                    "SQLite and PostgreSQL recorders.")
     parser.add_argument("--quick", action="store_true",
                         help="small counts: a smoke test that finishes in well under a minute")
     parser.add_argument("--events-1m", type=int, default=None, metavar="N",
@@ -470,7 +564,10 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
                              f"{EVENTS_1M_QUICK:,} with --quick)")
     parser.add_argument("--seed", type=int, default=20260301, help="random seed for payloads")
     parser.add_argument("--tmpdir", default=None,
-                        help="folder for the scratch ledger and SQLite files (default: system temp)")
+                        help="folder for the scratch ledger and SQLite files (default: system "
+                             "temp; the PostgreSQL server's directory is always in system temp)")
+    parser.add_argument("--no-postgres", action="store_true",
+                        help="skip the PostgreSQL columns (no local server is started)")
     args = parser.parse_args(argv)
     if args.events_1m is not None and args.events_1m < 1:
         parser.error("--events-1m must be at least 1")
