@@ -14,8 +14,8 @@ import sys
 from pathlib import Path
 from typing import Any, Sequence
 
-from common.options import (add_bitemporal, add_duration, add_max_rows, add_progress,
-                            format_duration_s)
+from common.options import (add_bitemporal, add_duration, add_ledger, add_max_rows,
+                            add_progress, describe_ledger, format_duration_s, is_ledger_url)
 from schemas.analytes import canonical_name
 from schemas.jsonl import json_safe
 from schemas.times import NS_PER_S, format_time_ns, parse_time_ns
@@ -70,8 +70,9 @@ def _fold_progress(label: str, args: argparse.Namespace) -> Progress:
 
 
 def _open(path: str):
-    if not Path(path).exists():
-        raise ValueError(f"no ledger at {path}")
+    """The ledger read-only: a file (which must exist) or a ``postgresql://`` URL."""
+    if not is_ledger_url(path) and not Path(path).exists():
+        raise ValueError(f"no ledger at {describe_ledger(path)}")
     return open_ledger(path, read_only=True)
 
 
@@ -197,6 +198,7 @@ def _print_cuts(report, rows: list[dict[str, Any]], with_truth: bool, a: str,
 def cmd_cuts(args: argparse.Namespace) -> int:
     truth = load_truth_cuts(args.truth) if args.truth else None
     with _open(args.ledger) as store, _fold_progress("audit cuts", args) as bar:
+        head = store.head().global_seq
         report = audit_cuts(store, args.pile, _known(args),
                             progress=lambda fraction, events: bar.update_to(events,
                                                                             fraction=fraction))
@@ -207,8 +209,8 @@ def cmd_cuts(args: argparse.Namespace) -> int:
     rows = [_cut_row(c, truth, analyte, args.threshold_pp) for c in report.cuts]
     if args.json:
         _dump({"pile_id": report.pile_id, "known_time": format_time_ns(report.known_time_ns),
-               "known_time_ns": report.known_time_ns, "analytes": list(report.analytes),
-               "pile_tonnes_t": report.pile_tonnes_t, "threshold_pp": args.threshold_pp,
+               "known_time_ns": report.known_time_ns, "head_global_seq": head,
+               "analytes": list(report.analytes), "pile_tonnes_t": report.pile_tonnes_t, "threshold_pp": args.threshold_pp,
                "cuts": rows})
         return 0
     _print_cuts(report, rows, truth is not None, analyte, args.threshold_pp)
@@ -220,6 +222,7 @@ def cmd_history(args: argparse.Namespace) -> int:
     start = parse_time_ns(args.start) if args.start else None
     end = parse_time_ns(args.end) if args.end else None
     with _open(args.ledger) as store, _fold_progress("audit history", args) as bar:
+        head = store.head().global_seq
         report = audit_history(store, args.pile, every, _known(args), start_ns=start, end_ns=end,
                                progress=lambda fraction, events: bar.update_to(
                                    events, fraction=fraction), max_rows=args.max_rows)
@@ -229,7 +232,8 @@ def cmd_history(args: argparse.Namespace) -> int:
                          f"{', '.join(report.analytes)})")
     if args.json:
         _dump({"pile_id": report.pile_id, "known_time": format_time_ns(report.known_time_ns),
-               "known_time_ns": report.known_time_ns, "every_ns": report.every_ns,
+               "known_time_ns": report.known_time_ns, "head_global_seq": head,
+               "every_ns": report.every_ns,
                "analytes": list(report.analytes),
                "points": [{"valid_time": format_time_ns(p.valid_time_ns),
                            "valid_time_ns": p.valid_time_ns,
@@ -258,10 +262,12 @@ def cmd_history(args: argparse.Namespace) -> int:
 
 def cmd_assays(args: argparse.Namespace) -> int:
     with _open(args.ledger) as store:
+        head = store.head().global_seq
         report = audit_assays(store, _known(args))
     if args.json:
         _dump({"known_time": format_time_ns(report.known_time_ns),
-               "known_time_ns": report.known_time_ns, "assays": report.assays,
+               "known_time_ns": report.known_time_ns, "head_global_seq": head,
+               "assays": report.assays,
                "labs": [lab.__dict__ for lab in report.labs],
                "superseded": report.superseded, "provisional": report.provisional,
                "unknown_lots": report.unknown_lots,
@@ -342,7 +348,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     sub = p.add_subparsers(dest="audit", metavar="REPORT", required=True, parser_class=type(p))
 
     def common(sp, *, pile: bool, fold: bool) -> None:
-        sp.add_argument("--ledger", required=True, help="ledger file (opened read-only)")
+        add_ledger(sp, help="opened read-only")
         if pile:
             sp.add_argument("--pile", required=True, help="pile id")
         add_bitemporal(sp, valid=False)

@@ -19,6 +19,9 @@ functions, so that a concept is spelled the same everywhere:
     events per atomic ledger batch (default :data:`DEFAULT_BATCH_SIZE`).
 ``--accept-loss``
     open a ledger for writing although its head went backwards (``ledger.head_file``).
+``--ledger PATH|URL``
+    a ledger file, or a ``postgresql://`` URL of a PostgreSQL ledger (:func:`add_ledger`);
+    messages name a ledger with :func:`describe_ledger`, which masks a URL's password.
 ``--analytes A,...`` / ``--unknown-analyte quarantine|flag``
     the ledger writer's declared analyte list and what it does with an analyte on no
     list (parsed by ``schemas.analytes.policy_from_args``).
@@ -43,6 +46,7 @@ import argparse
 import re
 import sys
 from typing import Any, Callable, Sequence
+from urllib.parse import urlsplit, urlunsplit
 
 PROG = "stockpile"
 
@@ -65,6 +69,12 @@ VALID_TIME_HELP = ("valid time V: ISO-8601 or integer UTC ns (default: the end o
                    "everything)")
 KNOWN_TIME_HELP = ("known time K: ISO-8601 or integer UTC ns (default: everything recorded "
                    "so far)")
+
+#: URL schemes of a PostgreSQL ledger (``--ledger postgresql://...``)
+LEDGER_URL_SCHEMES = ("postgresql", "postgres")
+
+#: how a ledger's password shows in messages
+MASKED_PASSWORD = "***"
 
 _DURATION_RE = re.compile(r"(\d+(?:\.\d*)?|\.\d+)\s*(ms|min|sec|s|m|h|d)")
 
@@ -363,3 +373,42 @@ def check_range_rows(count: int, limit: int = DEFAULT_MAX_ROWS, *, what: str = "
     if count > limit:
         raise ValueError(f"the range is {count:,} {what}, more than the limit of {limit:,}"
                          + (f": {hint}" if hint else ""))
+
+
+# -- ledgers: a file or a PostgreSQL URL ----------------------------------------------------
+
+
+def is_ledger_url(text: str | Any) -> bool:
+    """Whether ``--ledger`` names a PostgreSQL ledger (``postgresql://`` or ``postgres://``)
+    rather than a file.  Such a value must never become a ``Path`` (that collapses
+    ``//``)."""
+    scheme, sep, _rest = str(text).partition("://")
+    return bool(sep) and scheme.lower() in LEDGER_URL_SCHEMES
+
+
+def describe_ledger(text: str | Any) -> str:
+    """A ledger as messages name it: a file path as given; a URL with its password
+    replaced by ``***`` (the user, host, port, database and query stay).  A password is
+    never printed."""
+    text = str(text)
+    if not is_ledger_url(text):
+        return text
+    try:
+        parts = urlsplit(text)
+        netloc = parts.netloc
+    except ValueError:
+        return text.partition("://")[0] + "://" + MASKED_PASSWORD
+    userinfo, at, hostport = netloc.rpartition("@")
+    if at and ":" in userinfo:
+        user = userinfo.split(":", 1)[0]
+        netloc = f"{user}:{MASKED_PASSWORD}@{hostport}"
+    query = re.sub(r"(?i)(^|&)(password=)[^&]*", r"\1\2" + MASKED_PASSWORD, parts.query)
+    return urlunsplit((parts.scheme, netloc, parts.path, query, parts.fragment))
+
+
+def add_ledger(parser: argparse.ArgumentParser | Any, *, help: str = "", required: bool = True,
+               metavar: str = "PATH|URL") -> argparse.Action:
+    """``--ledger PATH|URL``: a ledger file or a ``postgresql://`` URL; ``help`` says what
+    the command does with it (e.g. "opened read-only")."""
+    text = "ledger file or postgresql:// URL" + (f" ({help})" if help else "")
+    return parser.add_argument("--ledger", required=required, metavar=metavar, help=text)
