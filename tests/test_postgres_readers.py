@@ -197,6 +197,7 @@ class Yard:
         self.endpoint = f"tls/127.0.0.1:{free_port()}"
         self.processes: list[subprocess.Popen] = []
         self.session = None
+        self.sessions: list = []   # other sessions of this process, closed with the yard
         self.watch: HeadWatch | None = None
 
     def client_args(self, name: str) -> list[str]:
@@ -252,8 +253,8 @@ class Yard:
     def close(self) -> None:
         if self.watch is not None:
             self.watch.close()
-        if self.session is not None:
-            self.session.close()
+        for session in self.sessions + ([self.session] if self.session is not None else []):
+            session.close()
         for process in reversed(self.processes):
             stop(process, 60)
 
@@ -396,10 +397,15 @@ def test_three_readers_while_the_ledger_service_appends(small_yard_sim, tmp_path
     }
     with Yard(tmp_path, url) as yard:
         yard.start()
-        plc = CutPlc(yard.session, cut_line["body"], cut_line["valid_time_ns"] + 3600 * NS_PER_S)
+        plc_session = open_session(ZenohOptions(mode="client", connect=(yard.endpoint,),
+                                                tls_dir=str(yard.pki), tls_name="cutter"))
+        yard.sessions.append(plc_session)
+        plc = CutPlc(plc_session, cut_line["body"],
+                     cut_line["valid_time_ns"] + 3600 * NS_PER_S)
         quiet = run_phase(yard, plc, ["load0", "load1"], [], admin, schema)
         busy = run_phase(yard, plc, ["load2", "load3"], list(readers.values()), admin, schema)
         published_cuts = plc.publisher.count
+        plc.publisher.close()
     print(f"commit latency p99 without readers {quiet.p99_ms:.1f} ms "
           f"({quiet.rate_hz:,.0f} events/s), with three readers {busy.p99_ms:.1f} ms "
           f"({busy.rate_hz:,.0f} events/s); p50 {np.percentile(quiet.latencies_ms, 50):.1f} / "
