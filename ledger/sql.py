@@ -342,13 +342,13 @@ class PostgresSql:
         self.con.isolation_level = psycopg.IsolationLevel.REPEATABLE_READ
         self.con.read_only = True
         try:
-            found = self.con.execute("SELECT to_regclass(format('%I.event_log', %s::text)), "
+            found = self.con.execute("SELECT to_regclass(format('%%I.event_log', %s::text)), "
                                      "current_setting('server_version')",
                                      [self.schema]).fetchone()
             if found[0] is None:
                 raise SqlError(f"no ledger schema {self.schema!r} in {self.name}")
             self.server_version = found[1]
-            self.con.execute("SELECT set_config('search_path', format('%I, public', "
+            self.con.execute("SELECT set_config('search_path', format('%%I, public', "
                              "%s::text), false)", [self.schema])
             self.con.commit()
         except psycopg.Error as exc:

@@ -118,8 +118,8 @@ SQL_QUERIES = (
     "FROM events GROUP BY type ORDER BY type",
     "SELECT assay_id, lot_id, lab_id, status, superseded, recorded_time_ns FROM assays "
     "ORDER BY global_seq",
-    "SELECT cut_id, pile_id, valid_time_ns FROM reclaim_cuts ORDER BY global_seq",
-    "SELECT lot_id, recorded_time_ns FROM lots ORDER BY lot_id",
+    "SELECT cut_id, pile_id, bench_id, belt_tonnes FROM reclaim_cuts ORDER BY global_seq",
+    "SELECT lot_id, origin, planned_tonnes, global_seq FROM lots ORDER BY lot_id",
     "SELECT count(*) AS open_gaps FROM gaps WHERE closed_recorded_ns IS NULL",
 )
 
