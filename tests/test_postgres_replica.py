@@ -12,7 +12,10 @@ writing to the standby is refused in one line.
 from __future__ import annotations
 
 import json
+import shutil
+import tempfile
 import time
+from pathlib import Path
 from urllib.parse import urlsplit, urlunsplit
 
 import psycopg
@@ -50,13 +53,21 @@ def wait_replayed(primary_admin: str, standby_admin: str) -> str:
 
 
 @pytest.fixture
-def standby(pg_server, tmp_path):
-    """A hot standby of the session's server, stopped after the test."""
-    server = pg_server.make_standby(tmp_path / "standby")
+def standby(pg_server):
+    """A hot standby of the session's server, stopped and removed after the test.
+
+    Its directory is a fresh one directly under the temporary directory: run as root, the
+    server runs as ``nobody``, who cannot pass through pytest's private ``tmp_path``.
+    """
+    directory = Path(tempfile.mkdtemp(prefix="stockpile-standby-"))
     try:
-        yield server
+        server = pg_server.make_standby(directory)
+        try:
+            yield server
+        finally:
+            server.stop()
     finally:
-        server.stop()
+        shutil.rmtree(directory, ignore_errors=True)
 
 
 def test_audit_on_a_standby_equals_audit_on_the_primary(small_yard_sim, tmp_path_factory,
