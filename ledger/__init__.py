@@ -8,6 +8,9 @@
 - :mod:`ledger.store`: the store interface and the shared append logic
 - :mod:`ledger.duckdb_store`: the default backend (one DuckDB file)
 - :mod:`ledger.memory`: the in-memory backend
+- :mod:`ledger.postgres_store`: a PostgreSQL backend (one schema; readers while one writer
+  appends); :mod:`ledger.postgres_sql` its schema, :mod:`ledger.pg_local` a throw-away
+  local server
 - :mod:`ledger.testing`: the contract test class every backend passes
 - :mod:`ledger.errors`: the exception tree
 - :mod:`ledger.records`: the immutable records the ledger returns
@@ -59,6 +62,32 @@ from ledger.signing import SigningPolicy
 from ledger.store import LedgerStore
 
 MEMORY = ":memory:"
+#: what a PostgreSQL ledger's URL starts with
+POSTGRES_SCHEMES = ("postgresql://", "postgres://")
+
+
+def is_postgres_url(text: object) -> bool:
+    """Whether ``text`` names a PostgreSQL ledger (``postgresql://...`` or
+    ``postgres://...``) rather than a DuckDB file."""
+    return isinstance(text, str) and text.startswith(POSTGRES_SCHEMES)
+
+
+def _open_postgres(url: str, clock: SiteClock | None, *, read_only: bool,
+                   signing: SigningPolicy | None, accept_loss: bool,
+                   analytes: AnalytePolicy | AnalyteOptions | None) -> LedgerStore:
+    """A :class:`~ledger.postgres_store.PostgresStore`; options that only mean something
+    for a DuckDB file are refused in one line."""
+    if accept_loss:
+        raise InterfaceError("accept_loss (--accept-loss) applies to a DuckDB file's head "
+                             "sidecar; a PostgreSQL ledger keeps its committed head in the "
+                             "server's WAL and has none")
+    try:
+        # deferred: psycopg is only needed by the processes that open a PostgreSQL ledger
+        from ledger.postgres_store import PostgresStore
+    except ImportError as exc:
+        raise InterfaceError(f"a PostgreSQL ledger needs psycopg (pip install "
+                             f"'stockpile-ledger[ledger]'): {exc}") from None
+    return PostgresStore(url, clock, read_only=read_only, signing=signing, analytes=analytes)
 
 
 def open_ledger(path: str | os.PathLike[str], clock: SiteClock | None = None, *,
@@ -66,7 +95,9 @@ def open_ledger(path: str | os.PathLike[str], clock: SiteClock | None = None, *,
                 accept_loss: bool = False,
                 analytes: AnalytePolicy | AnalyteOptions | None = None,
                 memory_limit_mb: int | None = None) -> LedgerStore:
-    """Open (or create) a ledger: a DuckDB file, or ``":memory:"`` for the in-memory store.
+    """Open (or create) a ledger: a DuckDB file, a PostgreSQL URL
+    (``postgresql://USER@HOST/DB?schema=NAME``, :mod:`ledger.postgres_store`), or
+    ``":memory:"`` for the in-memory store.
 
     ``analytes`` is the site's declared analyte list and unknown-analyte policy; a DuckDB
     ledger records it and adds it to the list it recorded before (None: the recorded
@@ -78,7 +109,12 @@ def open_ledger(path: str | os.PathLike[str], clock: SiteClock | None = None, *,
     For writing, a file is checked against its head sidecar (:mod:`ledger.head_file`):
     a ledger whose head went backwards raises :class:`HeadWentBackwards`, unless
     ``accept_loss`` (a human has looked), which logs the loss and rewrites the sidecar.
+    A PostgreSQL ledger has no sidecar: ``accept_loss`` is refused for it, and
+    ``memory_limit_mb`` (DuckDB's buffer pool cap) does not apply and is ignored.
     """
+    if is_postgres_url(path):
+        return _open_postgres(str(path), clock, read_only=read_only, signing=signing,
+                              accept_loss=accept_loss, analytes=analytes)
     if str(path) == MEMORY:
         if read_only:
             raise InterfaceError("an in-memory ledger cannot be opened read-only")
@@ -107,5 +143,5 @@ __all__ = [
     "IntegrityError", "InterfaceError", "InternalError", "LedgerError", "LedgerStats",
     "LedgerLocked", "LedgerStore", "MEMORY", "ManualClock", "NotSupportedError", "OperationalError",
     "ProgrammingError", "QuarantineEntry", "RecordedEvent", "SiteClock", "StreamInfo",
-    "VerifyReport", "WallClock", "clock_by_name", "open_ledger",
+    "VerifyReport", "WallClock", "clock_by_name", "is_postgres_url", "open_ledger",
 ]

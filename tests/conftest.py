@@ -11,6 +11,8 @@ import sys  # noqa: E402
 
 import pytest  # noqa: E402
 
+pytest_plugins = ["pg_fixtures"]  # the PostgreSQL server and schemas (tests/pg_fixtures.py)
+
 # the checks in the shared bad-input helpers are plain asserts: give them pytest's messages
 pytest.register_assert_rewrite("bad_input_helpers")
 
