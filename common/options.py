@@ -46,7 +46,6 @@ import argparse
 import re
 import sys
 from typing import Any, Callable, Sequence
-from urllib.parse import urlsplit, urlunsplit
 
 PROG = "stockpile"
 
@@ -75,6 +74,8 @@ LEDGER_URL_SCHEMES = ("postgresql", "postgres")
 
 #: how a ledger's password shows in messages
 MASKED_PASSWORD = "***"
+
+_QUERY_PASSWORD = re.compile(r"(?i)([?&]password=)[^&#]*")
 
 _DURATION_RE = re.compile(r"(\d+(?:\.\d*)?|\.\d+)\s*(ms|min|sec|s|m|h|d)")
 
@@ -388,22 +389,18 @@ def is_ledger_url(text: str | Any) -> bool:
 
 def describe_ledger(text: str | Any) -> str:
     """A ledger as messages name it: a file path as given; a URL with its password
-    replaced by ``***`` (the user, host, port, database and query stay).  A password is
-    never printed."""
+    replaced by ``***`` (in the user information and in a ``password=`` parameter).  A
+    password is never printed: when the URL is ambiguous (an ``@`` in its query), more is
+    masked rather than less."""
     text = str(text)
     if not is_ledger_url(text):
         return text
-    try:
-        parts = urlsplit(text)
-        netloc = parts.netloc
-    except ValueError:
-        return text.partition("://")[0] + "://" + MASKED_PASSWORD
-    userinfo, at, hostport = netloc.rpartition("@")
-    if at and ":" in userinfo:
-        user = userinfo.split(":", 1)[0]
-        netloc = f"{user}:{MASKED_PASSWORD}@{hostport}"
-    query = re.sub(r"(?i)(^|&)(password=)[^&]*", r"\1\2" + MASKED_PASSWORD, parts.query)
-    return urlunsplit((parts.scheme, netloc, parts.path, query, parts.fragment))
+    scheme, _sep, rest = text.partition("://")
+    at = rest.rfind("@")
+    if at >= 0 and ":" in rest[:at]:
+        rest = rest[:at].split(":", 1)[0] + ":" + MASKED_PASSWORD + rest[at:]
+    rest = _QUERY_PASSWORD.sub(r"\1" + MASKED_PASSWORD, rest)
+    return f"{scheme}://{rest}"
 
 
 def add_ledger(parser: argparse.ArgumentParser | Any, *, help: str = "", required: bool = True,
