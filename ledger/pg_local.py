@@ -187,9 +187,12 @@ class _Runner:
     def check_reachable(self, path: Path) -> None:
         """Raise :class:`PostgresFailed` when the server's user cannot enter ``path`` (a
         private parent directory, such as root's home or pytest's temporary folders)."""
+        # the child changes directory before it drops root, so the shell does it instead
+        shell = shutil.which("sh") or "/bin/sh"
         try:
-            subprocess.run([str(self.bindir / "postgres"), "--version"], capture_output=True,
-                           timeout=30, env=self.env(), cwd=path, check=True, **self._identity())
+            subprocess.run([shell, "-c", 'cd -- "$1" && test -w .', "sh", str(path)],
+                           capture_output=True, timeout=30, env=self.env(), cwd="/",
+                           check=True, **self._identity())
         except (OSError, subprocess.SubprocessError):
             who = f"user {UNPRIVILEGED_USER}" if self.as_root else "this user"
             raise PostgresFailed(f"{path} cannot be entered by {who}, who runs the server "

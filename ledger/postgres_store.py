@@ -123,9 +123,10 @@ def postgres_errors() -> Iterator[None]:
 # -- connecting and installing -------------------------------------------------------------------
 
 def application_name(role: str) -> str:
-    """What a connection calls itself in ``pg_stat_activity``: program, role, host, pid."""
+    """What a connection calls itself in ``pg_stat_activity``: program, role, pid, host
+    (PostgreSQL keeps 63 bytes)."""
     program = os.path.basename(sys.argv[0] or "python") or "python"
-    return f"{program} {role} {socket.gethostname()} pid {os.getpid()}"[:63]
+    return f"{program[:20]} {role} pid {os.getpid()} on {socket.gethostname()}"[:63]
 
 
 def _connect(conninfo: str, role: str, **kwargs: Any) -> psycopg.Connection:
@@ -251,9 +252,9 @@ class PostgresStore(LedgerStore):
     def _open(self) -> None:
         # pages are read by key in index order: without these, a table not yet analysed
         # (a fresh or fast-growing ledger) gets plans that scan and sort every row left
-        # for every page
-        self._con.execute("SET enable_sort = off")
-        self._con.execute("SET enable_bitmapscan = off")
+        # for every page.  The penalty they add to a plan that must sort would switch on
+        # JIT compilation, which costs more than any of these short queries: off.
+        self._con.execute("SET enable_sort = off; SET enable_bitmapscan = off; SET jit = off")
         oid = ddl.schema_oid(self._con, self.schema)
         if oid is None:
             oid = self._install_missing()
@@ -379,8 +380,14 @@ class PostgresStore(LedgerStore):
                     "excluded.value", [json.dumps(list(policy.declared)), policy.unknown])
             if ddl.views_analytes(self._con, self.schema) != policy.declared:
                 self._con.execute(f"SET LOCAL lock_timeout = {VIEW_LOCK_TIMEOUT_MS}")
-                for statement in ddl.assays_statements(self.schema, policy.declared):
-                    self._con.execute(statement)
+                try:
+                    for statement in ddl.assays_statements(self.schema, policy.declared):
+                        self._con.execute(statement)
+                except pg_errors.LockNotAvailable:
+                    raise OperationalError(
+                        f"the declared analytes of {self.name} grew, and its assays view "
+                        f"is in use by a reader (waited {VIEW_LOCK_TIMEOUT_MS} ms): open the "
+                        "writer again once that reader is done") from None
                 self._con.execute(
                     f"INSERT INTO {self._s}.ledger_meta VALUES (%s, %s) ON CONFLICT (key) "
                     "DO UPDATE SET value = excluded.value",

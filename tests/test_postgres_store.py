@@ -21,13 +21,14 @@ import duckdb
 import psycopg
 import pytest
 
-from ledger import EventClock, is_postgres_url, open_ledger
+from ledger import EventClock, is_postgres_url, open_ledger, postgres_store
 from ledger.clock import ManualClock
 from ledger.errors import (IntegrityError, InterfaceError, LedgerDiskFull, LedgerLocked,
-                           OperationalError)
+                           OperationalError, ProgrammingError)
 from ledger.importing import import_lines
 from ledger.postgres_sql import quoted
-from ledger.postgres_store import PostgresStore, postgres_errors
+from ledger.pg_local import LocalPostgres, PostgresFailed, PostgresNotFound, find_bindir
+from ledger.postgres_store import PostgresStore, install, postgres_errors
 from ledger.records import RecordedEvent
 from ledger.testing import LedgerStoreContract, joint_event, tampered_rows
 from schemas import pb
@@ -271,6 +272,7 @@ def test_the_roles_read_and_append_but_never_change_the_log(pg_schemas, login_ro
 
 
 def test_a_user_who_may_not_install_is_told_how(pg_schemas, login_roles):
+    install(pg_schemas.admin_url, pg_schemas.new_schema())  # the roles exist from then on
     role = pg_schemas.new_schema("u").replace("_", "")
     password = login_roles(role, "stockpile_reader")
     url = pg_schemas.url_of(pg_schemas.new_schema(), role, password)
@@ -280,6 +282,14 @@ def test_a_user_who_may_not_install_is_told_how(pg_schemas, login_roles):
     assert "install(" in message and "\n" not in message and password not in message
     with pytest.raises(OperationalError, match="no ledger schema"):
         PostgresStore(url, read_only=True)
+    # what the message says to do: an administrator installs it (twice: idempotent)
+    schema = pg_schemas.names[-1]
+    install(pg_schemas.admin_url, schema)
+    install(pg_schemas.url_of(schema))
+    with PostgresStore(url, read_only=True) as reader:
+        assert reader.head().global_seq == -1 and reader.verify().ok
+    with pytest.raises(ProgrammingError, match="permission denied"):  # a reader never writes
+        PostgresStore(url, ManualClock(1))
 
 
 # -- readers: one snapshot, never half a batch, never blocking the writer ---------------------------
@@ -407,6 +417,23 @@ def test_the_assays_view_reads_spellings_and_lists_unknown_names_as_duckdb(tmp_p
     assert any(row[3] for row in want) and any(row[1] is not None for row in want)
 
 
+def test_a_writer_growing_the_analytes_while_a_reader_holds_assays_says_why(pg_url,
+                                                                             monkeypatch):
+    PostgresStore(pg_url, ManualClock(1)).close()
+    monkeypatch.setattr(postgres_store, "VIEW_LOCK_TIMEOUT_MS", 100)
+    schema = quoted(pg_url.rsplit("=", 1)[1])
+    with psycopg.connect(pg_url.split("?")[0]) as reader:  # a transaction left open
+        reader.execute(f"SELECT count(*) FROM {schema}.assays").fetchone()
+        with pytest.raises(OperationalError, match="in use by a reader") as refused:
+            PostgresStore(pg_url, ManualClock(2), analytes=AnalyteOptions(("Fe", "Zn")))
+        assert "\n" not in str(refused.value)
+    with PostgresStore(pg_url, ManualClock(3), analytes=AnalyteOptions(("Fe", "Zn"))):
+        pass  # once the reader is done
+    with psycopg.connect(pg_url.split("?")[0]) as con:
+        columns = [c.name for c in con.execute(f"SELECT * FROM {schema}.assays").description]
+    assert "Zn" in columns
+
+
 # -- errors -------------------------------------------------------------------------------------
 
 def test_a_lost_connection_is_a_one_line_operational_error(pg_url):
@@ -510,3 +537,24 @@ def test_without_psycopg_a_postgres_url_is_a_one_line_error_naming_the_extra():
     assert run.returncode == 0, run.stderr
     assert run.stdout.startswith("InterfaceError a PostgreSQL ledger needs psycopg")
     assert "stockpile-ledger[ledger]" in run.stdout and run.stdout.count("\n") == 1
+
+
+def test_binaries_that_are_missing_or_private_are_a_clear_error(tmp_path, monkeypatch):
+    monkeypatch.setenv("STOCKPILE_PG_BINDIR", str(tmp_path))
+    with pytest.raises(PostgresNotFound, match="holds no PostgreSQL server binaries"):
+        find_bindir()
+    monkeypatch.delenv("STOCKPILE_PG_BINDIR")
+    try:
+        real = find_bindir()
+    except PostgresNotFound:
+        pytest.skip("no PostgreSQL server binaries on this machine")
+    if os.geteuid() != 0:
+        pytest.skip("only root runs the server as another user")
+    private = tmp_path / "private"  # pytest's temporary folders are private (0700)
+    private.mkdir()
+    for name in ("initdb", "postgres", "pg_isready"):
+        (private / name).symlink_to(real / name)
+    with pytest.raises(PostgresNotFound, match="not executable by user nobody|do not run"):
+        LocalPostgres(bindir=private)
+    with pytest.raises(PostgresFailed, match="cannot be entered by user nobody"):
+        LocalPostgres(tmp_path / "data", bindir=real)
