@@ -316,7 +316,8 @@ class PostgresSql:
         # deferred: psycopg is in the [ledger] extra, and only a PostgreSQL ledger needs it
         try:
             import psycopg
-            from ledger.postgres_store import CONNECT_TIMEOUT_S, split_url
+            from ledger.postgres_sql import split_url
+            from ledger.postgres_store import CONNECT_TIMEOUT_S
         except ImportError as exc:
             raise SqlError(f"a PostgreSQL ledger needs psycopg (pip install "
                            f"'stockpile-ledger[ledger]'): {one_line(exc)}") from None
