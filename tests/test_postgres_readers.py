@@ -471,10 +471,10 @@ def test_three_readers_while_the_ledger_service_appends(small_yard_sim, tmp_path
                     "IS NULL AND source = ANY(%s)", [published]) == [(0,)]
     if busy.p99_ms > 2 * quiet.p99_ms:
         # Known, measured, open (docs/deployment.md, "Readers"): with `psql` alone as the
-        # reader the p99 stays within 2x; the `audit` and `project` readers' queries (each
-        # read-only open aggregates the whole log for the writer's state, and audit's span
-        # calls stats(), more aggregates, in the server's backends at normal priority)
-        # take the writer's CPU on 2 cores.  The answers above are still checked; this
-        # records the numbers instead of passing.
+        # reader the p99 stays within 2x; two processes that only start `stockpile ...
+        # --help` back to back, touching no database, raise it as much as the `audit` and
+        # `project` readers do: on these 2 cores the cost is the reader processes' Python
+        # start-up beside the writer, not PostgreSQL.  The answers above are still
+        # checked; this records the numbers instead of passing.
         pytest.xfail(f"commit p99 with readers {busy.p99_ms:.0f} ms is more than 2x the "
                      f"{quiet.p99_ms:.0f} ms without (issue 38: within 2x)")
