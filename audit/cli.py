@@ -15,8 +15,8 @@ from pathlib import Path
 from urllib.parse import urlsplit
 from typing import Any, Sequence
 
-from common.options import (add_bitemporal, add_duration, add_max_rows, add_progress,
-                            format_duration_s)
+from common.options import (add_bitemporal, add_duration, add_ledger, add_max_rows,
+                            add_progress, describe_ledger, format_duration_s, is_ledger_url)
 from schemas.analytes import canonical_name
 from schemas.jsonl import json_safe
 from schemas.times import NS_PER_S, format_time_ns, parse_time_ns
@@ -72,10 +72,11 @@ def _fold_progress(label: str, args: argparse.Namespace) -> Progress:
 
 
 def _open(args: argparse.Namespace, site: str | None = None):
-    """The ledger ``--ledger`` names, or a site's mirror in a head office's (``--site``)."""
+    """The ledger ``--ledger`` names (a file, which must exist, or a ``postgresql://``
+    URL), or a site's mirror in a head office's (``--site``), read-only."""
     path = ledger_for(args.ledger, site or args.site)
-    if not is_database_url(path) and not Path(path).exists():
-        raise ValueError(f"no ledger at {path}")
+    if not is_ledger_url(path) and not Path(path).exists():
+        raise ValueError(f"no ledger at {describe_ledger(path)}")
     return open_ledger(path, read_only=True)
 
 
@@ -216,6 +217,7 @@ def _print_cuts(report, rows: list[dict[str, Any]], with_truth: bool, a: str,
 def cmd_cuts(args: argparse.Namespace) -> int:
     truth = load_truth_cuts(args.truth) if args.truth else None
     with _open(args) as store, _fold_progress("audit cuts", args) as bar:
+        head = store.head().global_seq
         report = audit_cuts(store, args.pile, _known(args),
                             progress=lambda fraction, events: bar.update_to(events,
                                                                             fraction=fraction))
@@ -226,8 +228,8 @@ def cmd_cuts(args: argparse.Namespace) -> int:
     rows = [_cut_row(c, truth, analyte, args.threshold_pp) for c in report.cuts]
     if args.json:
         _dump({"pile_id": report.pile_id, "known_time": format_time_ns(report.known_time_ns),
-               "known_time_ns": report.known_time_ns, "analytes": list(report.analytes),
-               "pile_tonnes_t": report.pile_tonnes_t, "threshold_pp": args.threshold_pp,
+               "known_time_ns": report.known_time_ns, "head_global_seq": head,
+               "analytes": list(report.analytes), "pile_tonnes_t": report.pile_tonnes_t, "threshold_pp": args.threshold_pp,
                "cuts": rows})
         return 0
     _print_cuts(report, rows, truth is not None, analyte, args.threshold_pp)
@@ -239,6 +241,7 @@ def cmd_history(args: argparse.Namespace) -> int:
     start = parse_time_ns(args.start) if args.start else None
     end = parse_time_ns(args.end) if args.end else None
     with _open(args) as store, _fold_progress("audit history", args) as bar:
+        head = store.head().global_seq
         report = audit_history(store, args.pile, every, _known(args), start_ns=start, end_ns=end,
                                progress=lambda fraction, events: bar.update_to(
                                    events, fraction=fraction), max_rows=args.max_rows)
@@ -248,7 +251,8 @@ def cmd_history(args: argparse.Namespace) -> int:
                          f"{', '.join(report.analytes)})")
     if args.json:
         _dump({"pile_id": report.pile_id, "known_time": format_time_ns(report.known_time_ns),
-               "known_time_ns": report.known_time_ns, "every_ns": report.every_ns,
+               "known_time_ns": report.known_time_ns, "head_global_seq": head,
+               "every_ns": report.every_ns,
                "analytes": list(report.analytes),
                "points": [{"valid_time": format_time_ns(p.valid_time_ns),
                            "valid_time_ns": p.valid_time_ns,
@@ -284,17 +288,21 @@ def cmd_assays(args: argparse.Namespace) -> int:
     reports = []
     for site in _sites(args):
         with _open(args, site) as store:
-            reports.append((site, audit_assays(store, _known(args))))
+            reports.append((site, audit_assays(store, _known(args)),
+                            store.head().global_seq))
     many = reports[0][0] is not None   # a head office's sites: a site column in every table
     report = reports[0][1]
-    labs = [row for site, r in reports for row in _with_site(site, [lab.__dict__ for lab in r.labs])]
-    lists = {key: [row for site, r in reports for row in _with_site(site, getattr(r, key))]
+    labs = [row for site, r, _head in reports for row in _with_site(site, [lab.__dict__ for lab in r.labs])]
+    lists = {key: [row for site, r, _head in reports for row in _with_site(site, getattr(r, key))]
              for key in ("superseded", "provisional", "unknown_lots", "lots_without_assays",
                          "signatures")}
-    assays = sum(r.assays for _site, r in reports)
+    assays = sum(r.assays for _site, r, _head in reports)
     if args.json:
         _dump({"known_time": format_time_ns(report.known_time_ns),
-               "known_time_ns": report.known_time_ns, "assays": assays, "labs": labs, **lists})
+               "known_time_ns": report.known_time_ns,
+               "head_global_seq": (reports[0][2] if not many else
+                                   {site: h for site, _r, h in reports}),
+               "assays": assays, "labs": labs, **lists})
         return 0
 
     def cells(row: dict, values: list[str]) -> list[str]:
@@ -381,8 +389,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     sub = p.add_subparsers(dest="audit", metavar="REPORT", required=True, parser_class=type(p))
 
     def common(sp, *, pile: bool, fold: bool) -> None:
-        sp.add_argument("--ledger", required=True, help="ledger file (opened read-only), or a "
-                        "head office's ledgers (every site's for assays, or --site)")
+        add_ledger(sp, help="opened read-only; or a head office's ledgers (every site's "
+                   "for assays, or --site)")
         sp.add_argument("--site", help="the site whose mirror to read in a head office's --ledger")
         if pile:
             sp.add_argument("--pile", required=True, help="pile id")

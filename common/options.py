@@ -19,6 +19,9 @@ functions, so that a concept is spelled the same everywhere:
     events per atomic ledger batch (default :data:`DEFAULT_BATCH_SIZE`).
 ``--accept-loss``
     open a ledger for writing although its head went backwards (``ledger.head_file``).
+``--ledger PATH|URL``
+    a ledger file, or a ``postgresql://`` URL of a PostgreSQL ledger (:func:`add_ledger`);
+    messages name a ledger with :func:`describe_ledger`, which masks a URL's password.
 ``--analytes A,...`` / ``--unknown-analyte quarantine|flag``
     the ledger writer's declared analyte list and what it does with an analyte on no
     list (parsed by ``schemas.analytes.policy_from_args``).
@@ -65,6 +68,14 @@ VALID_TIME_HELP = ("valid time V: ISO-8601 or integer UTC ns (default: the end o
                    "everything)")
 KNOWN_TIME_HELP = ("known time K: ISO-8601 or integer UTC ns (default: everything recorded "
                    "so far)")
+
+#: URL schemes of a PostgreSQL ledger (``--ledger postgresql://...``)
+LEDGER_URL_SCHEMES = ("postgresql", "postgres")
+
+#: how a ledger's password shows in messages
+MASKED_PASSWORD = "***"
+
+_QUERY_PASSWORD = re.compile(r"(?i)([?&]password=)[^&#]*")
 
 _DURATION_RE = re.compile(r"(\d+(?:\.\d*)?|\.\d+)\s*(ms|min|sec|s|m|h|d)")
 
@@ -363,3 +374,38 @@ def check_range_rows(count: int, limit: int = DEFAULT_MAX_ROWS, *, what: str = "
     if count > limit:
         raise ValueError(f"the range is {count:,} {what}, more than the limit of {limit:,}"
                          + (f": {hint}" if hint else ""))
+
+
+# -- ledgers: a file or a PostgreSQL URL ----------------------------------------------------
+
+
+def is_ledger_url(text: str | Any) -> bool:
+    """Whether ``--ledger`` names a PostgreSQL ledger (``postgresql://`` or ``postgres://``)
+    rather than a file.  Such a value must never become a ``Path`` (that collapses
+    ``//``)."""
+    scheme, sep, _rest = str(text).partition("://")
+    return bool(sep) and scheme.lower() in LEDGER_URL_SCHEMES
+
+
+def describe_ledger(text: str | Any) -> str:
+    """A ledger as messages name it: a file path as given; a URL with its password
+    replaced by ``***`` (in the user information and in a ``password=`` parameter).  A
+    password is never printed: when the URL is ambiguous (an ``@`` in its query), more is
+    masked rather than less."""
+    text = str(text)
+    if not is_ledger_url(text):
+        return text
+    scheme, _sep, rest = text.partition("://")
+    at = rest.rfind("@")
+    if at >= 0 and ":" in rest[:at]:
+        rest = rest[:at].split(":", 1)[0] + ":" + MASKED_PASSWORD + rest[at:]
+    rest = _QUERY_PASSWORD.sub(r"\1" + MASKED_PASSWORD, rest)
+    return f"{scheme}://{rest}"
+
+
+def add_ledger(parser: argparse.ArgumentParser | Any, *, help: str = "", required: bool = True,
+               metavar: str = "PATH|URL") -> argparse.Action:
+    """``--ledger PATH|URL``: a ledger file or a ``postgresql://`` URL; ``help`` says what
+    the command does with it (e.g. "opened read-only")."""
+    text = "ledger file or postgresql:// URL" + (f" ({help})" if help else "")
+    return parser.add_argument("--ledger", required=required, metavar=metavar, help=text)

@@ -1,5 +1,10 @@
 """``stockpile ledger ...``: import, export, verify, stats, backup and restore.
 
+``--ledger`` is a ledger file or a ``postgresql://`` URL (a PostgreSQL ledger); import and
+export move a ledger between the two with identical export lines and the same chain.
+Backup and restore are the DuckDB file's: a PostgreSQL ledger is backed up with the
+server's own tools (``pg_basebackup``, ``pg_dump``; docs/deployment.md).
+
 Exit codes: 0 ok, 1 verification failed, 2 bad usage or an error (one line on stderr).
 """
 
@@ -14,7 +19,8 @@ from typing import IO
 from common.progress import Progress, enabled_from_args, progress as progress_bar
 
 from common.options import (DEFAULT_BATCH_SIZE, add_accept_loss, add_analytes, add_batch_size,
-                            add_bitemporal, add_clock, add_out, add_progress, add_types)
+                            add_bitemporal, add_clock, add_ledger, add_out, add_progress,
+                            add_types, describe_ledger, is_ledger_url)
 from schemas.analytes import policy_from_args as analyte_options
 from schemas.events import EVENT_TYPES
 from schemas.jsonl import event_line
@@ -121,7 +127,7 @@ def cmd_import(args: argparse.Namespace) -> int:
               + ", ".join(f"{counts[s]:,} {s}" for s in STATUSES)
               + (f", {counts[TO_REJECT_FILE]:,} to the reject file {rejects_file}"
                  if rejects_file else "")
-              + f" (ledger {args.ledger}, head global_seq {head})")
+              + f" (ledger {describe_ledger(args.ledger)}, head global_seq {head})")
     if rejects_file:
         n = counts[TO_REJECT_FILE]
         print(f"stockpile: error: {n:,} line{'s' if n != 1 else ''} could not be stored even in "
@@ -160,7 +166,9 @@ def cmd_verify(args: argparse.Namespace) -> int:
         report = store.verify()
         head = store.head()
         found = [(label, check_checkpoint(store, cp, ca_pem=ca_pem)) for label, cp in checkpoints]
-        sidecar_ok, sidecar = head_file.compare(store, args.ledger)
+        # a PostgreSQL ledger has no head sidecar: its server keeps the committed head
+        sidecar_ok, sidecar = ((True, "") if is_ledger_url(args.ledger)
+                               else head_file.compare(store, args.ledger))
     ok = report.ok and sidecar_ok
     if report.ok:
         print(f"ok: {report.rows_checked:,} rows verified, head global_seq {head.global_seq}, "
@@ -217,11 +225,23 @@ def cmd_stats(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(stats_to_json(stats), indent=2))
     else:
-        print(format_stats(stats, args.ledger))
+        print(format_stats(stats, describe_ledger(args.ledger)))
     return EXIT_OK
 
 
+def refuse_postgres_backup(ledger: str, what: str) -> None:
+    """Raise NotSupportedError (one line naming the server's tools) when ``ledger`` is a
+    PostgreSQL URL: ``stockpile ledger backup|restore`` copy a DuckDB file."""
+    if is_ledger_url(ledger):
+        raise NotSupportedError(
+            f"stockpile ledger {what} copies a DuckDB file; {describe_ledger(ledger)} is a "
+            "PostgreSQL ledger: back it up with pg_basebackup (the whole server, for a "
+            "standby or point-in-time recovery) or pg_dump --schema (one ledger), and "
+            "restore with the server's tools (docs/deployment.md)")
+
+
 def cmd_backup(args: argparse.Namespace) -> int:
+    refuse_postgres_backup(args.ledger, "backup")
     if not Path(args.ledger).is_file():
         raise FileNotFoundError(f"no ledger at {args.ledger}")
     target = Path(args.to).resolve()
@@ -250,6 +270,7 @@ def cmd_backup(args: argparse.Namespace) -> int:
 
 
 def cmd_restore(args: argparse.Namespace) -> int:
+    refuse_postgres_backup(args.ledger, "restore")
     with progress_bar(unit="bytes", desc="checking the backup",
                       enabled=enabled_from_args(args)) as bar:
         manifest = backup.restore(args.backup, args.ledger, force=args.force, progress=bar)
@@ -262,7 +283,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     """Add ``ledger`` and its subcommands to the ``stockpile`` parser."""
     ledger = subparsers.add_parser(
         "ledger", help="import, export, verify and summarise an event ledger",
-        description="Work with an append-only event ledger (a DuckDB file).")
+        description="Work with an append-only event ledger (a DuckDB file, or a "
+        "PostgreSQL ledger given as a postgresql:// URL).")
     sub = ledger.add_subparsers(dest="ledger_command", metavar="COMMAND", required=True)
 
     p = sub.add_parser("import", help="append canonical JSON lines (creates the ledger if missing)",
@@ -271,7 +293,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                        "the ledger cannot hold even in its quarantine goes to the reject file "
                        "(exit 2).")
     p.add_argument("file", help="JSON lines file, or - for standard input")
-    p.add_argument("--ledger", required=True, help="ledger file (created if missing)")
+    add_ledger(p, help="created if missing")
     add_batch_size(p)
     add_clock(p, help="recorded time from the wall clock or from the file's clock events "
               "(lines with recorded_time_ns keep theirs)")
@@ -286,7 +308,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
     p = sub.add_parser("export", help="print events as canonical JSON lines",
                        description="Print events as canonical JSON lines on standard output.")
-    p.add_argument("--ledger", required=True, help="ledger file")
+    add_ledger(p)
     add_types(p)
     add_bitemporal(p, deprecated=True)
     add_out(p, help="write to PATH instead of standard output", deprecated=("-o", "--output"))
@@ -297,7 +319,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                        "--checkpoint prove the ledger still holds a checkpointed prefix (not "
                        "truncated, not rewritten); compare the file with its head sidecar "
                        "(a lost tail). Exit 1 if a check fails.")
-    p.add_argument("--ledger", required=True, help="ledger file")
+    add_ledger(p)
     p.add_argument("--checkpoint", metavar="FILE|DIR|MCAP",
                    help="a checkpoint file the ledger service wrote, a directory of them "
                    "(the latest is used), or a session the recorder wrote (each is checked)")
@@ -312,7 +334,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p = sub.add_parser("stats", help="counts per type and source, gaps, quarantine, time ranges",
                        description="Summarise a ledger: events per type and per source, "
                        "sequence gaps, quarantined lines and the valid and recorded time ranges.")
-    p.add_argument("--ledger", required=True, help="ledger file")
+    add_ledger(p)
     p.add_argument("--json", action="store_true", help="print as JSON")
     p.set_defaults(func=cmd_stats)
 
@@ -322,7 +344,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                        "database, its head sidecar and a manifest), verify the copy's chain "
                        "and head, and print the head and the file's sha256. While a ledger "
                        "service holds the ledger, the service takes the copy between batches.")
-    p.add_argument("--ledger", required=True, help="ledger file")
+    p.add_argument("--ledger", required=True, help="ledger file (a PostgreSQL ledger: "
+                   "pg_basebackup or pg_dump)")
     p.add_argument("--to", required=True, metavar="DIR", help="backup directory (new or empty)")
     add_accept_loss(p)
     add_progress(p)
@@ -334,7 +357,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                        "sidecar. Refuses to replace an existing ledger without --force, and "
                        "while a process holds it.")
     p.add_argument("backup", metavar="DIR", help="a directory stockpile ledger backup wrote")
-    p.add_argument("--ledger", required=True, help="ledger file to create (or replace)")
+    p.add_argument("--ledger", required=True, help="ledger file to create (or replace; a "
+                   "PostgreSQL ledger: the server's tools)")
     p.add_argument("--force", action="store_true", help="replace an existing ledger")
     add_progress(p)
     p.set_defaults(func=cmd_restore)

@@ -18,10 +18,12 @@ from __future__ import annotations
 import base64
 import json
 import os
+import re
 from pathlib import Path
+from urllib.parse import parse_qs, unquote, urlsplit
 from typing import Callable, Iterable, Iterator
 
-from common.options import DEFAULT_BATCH_SIZE
+from common.options import DEFAULT_BATCH_SIZE, is_ledger_url
 from common.progress import Progress
 from schemas.events import Event, Malformed
 from schemas.jsonl import decode_line, storable_text
@@ -39,9 +41,22 @@ _ERROR_CHARS = 300
 
 def default_rejects_path(ledger: str | os.PathLike[str]) -> Path:
     """Where an import into ``ledger`` writes lines no store would hold:
-    ``<ledger>.rejects.jsonl`` beside it."""
+    ``<ledger>.rejects.jsonl`` beside a ledger file; for a PostgreSQL ledger (a URL)
+    ``<database>[.<schema>].rejects.jsonl`` in the working directory."""
+    if is_ledger_url(ledger):
+        return Path(url_rejects_name(str(ledger)))
     path = Path(ledger)
     return path.with_name(path.name + ".rejects.jsonl")
+
+
+def url_rejects_name(url: str) -> str:
+    """``<database>[.<schema>].rejects.jsonl`` of a ``postgresql://`` URL (no host, user or
+    password in it), each part reduced to letters, digits, ``_``, ``-`` and ``.``."""
+    parts = urlsplit(url)
+    database = unquote(parts.path.lstrip("/")) or "postgres"
+    schema = parse_qs(parts.query).get("schema", [""])[0]
+    stem = ".".join(p for p in (database, schema) if p)
+    return re.sub(r"[^A-Za-z0-9_.-]", "_", stem) + ".rejects.jsonl"
 
 
 class RejectFile:

@@ -19,7 +19,7 @@ import argparse
 import time
 from pathlib import Path
 
-from common.options import PROG, add_accept_loss
+from common.options import PROG, add_accept_loss, add_ledger, describe_ledger
 from schemas.events import Event
 from schemas.jsonl import event_line
 from schemas.times import parse_time_ns
@@ -55,7 +55,7 @@ def _emit(args: argparse.Namespace, event: Event) -> int:
         if outcome.status != "appended":
             print(f"{PROG}: error: the ledger refused it: {outcome.reason}")
             return 1
-        where = f"{args.ledger} as global_seq {outcome.global_seq}"
+        where = f"{describe_ledger(args.ledger)} as global_seq {outcome.global_seq}"
     else:
         with open(args.out, "a", encoding="utf-8") as out:
             out.write(event_line(event) + "\n")
@@ -84,7 +84,7 @@ def _target(p: argparse.ArgumentParser) -> None:
     p.add_argument("--admin", required=True, metavar="ADMIN.sign.key",
                    help="the site admin's private signing key")
     where = p.add_mutually_exclusive_group(required=True)
-    where.add_argument("--ledger", help="append the event to this ledger")
+    add_ledger(where, required=False, help="the event is appended to it")
     where.add_argument("--out", metavar="PATH",
                        help="append the event to this JSON lines file instead")
     add_accept_loss(p)

@@ -10,6 +10,13 @@ DuckDB writes the version of the library that created a file into the file's hea
 when it differs from the running DuckDB a one-line warning says so (the running
 DuckDB still reads the file when its storage format allows; when it does not, the
 error names both versions).
+
+A PostgreSQL ledger (``--ledger postgresql://...[?schema=NAME]``) is queried through
+psycopg with the ledger's schema first on the ``search_path``, each statement (each
+query, or each statement of the prompt) in its own ``REPEATABLE READ, READ ONLY``
+transaction: one snapshot per answer, whole batches only, a write refused by the
+server; the output formats are the same.  The same views hold the same columns there,
+so the SQL of the README runs unchanged (``psql`` with the reader role reads them too).
 """
 
 from __future__ import annotations
@@ -22,10 +29,11 @@ import json
 import sys
 import uuid
 from pathlib import Path
-from typing import Any, Iterable, Sequence, TextIO
+from typing import Any, Callable, Iterable, Sequence, TextIO
 
 import duckdb
 
+from common.options import add_ledger, describe_ledger, is_ledger_url
 from ledger.holder import read_holder
 
 from ledger.errors import InterfaceError
@@ -158,6 +166,8 @@ def _cell(value: Any) -> str:
         return f"{value:.10g}"
     if isinstance(value, (bytes, bytearray, memoryview)):
         return bytes(value).hex()
+    if isinstance(value, (dict, list)):   # PostgreSQL's jsonb and arrays
+        return json.dumps(_json_value(value))
     return str(value).replace("\n", " ")
 
 
@@ -214,12 +224,16 @@ def statements(lines: Iterable[str]) -> Iterable[str]:
         yield rest
 
 
-def interactive(con: duckdb.DuckDBPyConnection, fmt: str, stdin: TextIO, out: TextIO,
-                err: TextIO) -> int:
-    """Run statements read from ``stdin`` until end of input; exit 2 if any failed."""
+Query = Callable[[str], "tuple[list[str], list[tuple]]"]
+
+
+def interactive(run: Query, fmt: str, stdin: TextIO, out: TextIO, err: TextIO, *,
+                engine: str = f"DuckDB v{duckdb.__version__}") -> int:
+    """Run statements read from ``stdin`` through ``run`` until end of input; exit 2 if any
+    failed.  ``engine`` names the database in the prompt's banner."""
     tty = stdin.isatty()
     if tty:
-        print(f"DuckDB v{duckdb.__version__}, read-only. Views and tables: "
+        print(f"{engine}, read-only. Views and tables: "
               f"{', '.join(RELATIONS)}. End each statement with ';', Ctrl-D to quit.",
               file=err)
 
@@ -240,7 +254,7 @@ def interactive(con: duckdb.DuckDBPyConnection, fmt: str, stdin: TextIO, out: Te
     failed = False
     for statement in statements(prompted()):
         try:
-            columns, rows = run_query(con, statement)
+            columns, rows = run(statement)
         except SqlError as exc:
             failed = True
             print(f"stockpile sql: error: {exc}", file=err)
@@ -256,6 +270,8 @@ def cmd_sql(args: argparse.Namespace, *, stdin: TextIO | None = None,
     stdin = stdin or sys.stdin
     out = stdout or sys.stdout
     err = stderr or sys.stderr
+    if is_ledger_url(args.ledger):
+        return _sql_postgres(args, stdin, out, err)
     try:
         con = connect_read_only(args.ledger)
     except (SqlError, OSError) as exc:
@@ -265,17 +281,127 @@ def cmd_sql(args: argparse.Namespace, *, stdin: TextIO | None = None,
         warning = version_warning(args.ledger)
         if warning:
             print(f"stockpile sql: {warning}", file=err)
-        if args.query is None:
-            return interactive(con, args.format, stdin, out, err)
-        try:
-            columns, rows = run_query(con, args.query)
-        except SqlError as exc:
-            print(f"stockpile sql: error: {exc}", file=err)
-            return EXIT_USAGE
-        write_result(columns, rows, args.format, out)
-        return EXIT_OK
+        return _answer(lambda query: run_query(con, query), args, stdin, out, err,
+                       engine=f"DuckDB v{duckdb.__version__}")
     finally:
         con.close()
+
+
+def _answer(run: Query, args: argparse.Namespace, stdin: TextIO, out: TextIO, err: TextIO, *,
+            engine: str) -> int:
+    """The query of ``args`` (or the prompt's statements) through ``run``, printed."""
+    if args.query is None:
+        return interactive(run, args.format, stdin, out, err, engine=engine)
+    try:
+        columns, rows = run(args.query)
+    except SqlError as exc:
+        print(f"stockpile sql: error: {exc}", file=err)
+        return EXIT_USAGE
+    write_result(columns, rows, args.format, out)
+    return EXIT_OK
+
+
+# -- PostgreSQL ---------------------------------------------------------------------------------
+
+
+class PostgresSql:
+    """A read-only SQL session on a PostgreSQL ledger: its schema first on the search path,
+    every statement in a transaction of its own (``REPEATABLE READ, READ ONLY``).
+
+    Raises :class:`SqlError` (one line, the password never in it) when the server cannot
+    be reached, refuses the login, or has no such ledger schema.
+    """
+
+    def __init__(self, url: str) -> None:
+        # deferred: psycopg is in the [ledger] extra, and only a PostgreSQL ledger needs it
+        try:
+            import psycopg
+            from ledger.postgres_sql import split_url
+            from ledger.postgres_store import CONNECT_TIMEOUT_S
+        except ImportError as exc:
+            raise SqlError(f"a PostgreSQL ledger needs psycopg (pip install "
+                           f"'stockpile-ledger[ledger]'): {one_line(exc)}") from None
+        self._psycopg = psycopg
+        self.name = describe_ledger(url)
+        try:
+            conninfo, self.schema = split_url(url)
+        except ValueError as exc:
+            raise SqlError(one_line(exc)) from None
+        try:
+            self.con = psycopg.connect(conninfo, connect_timeout=CONNECT_TIMEOUT_S,
+                                       application_name="stockpile sql")
+        except psycopg.Error as exc:
+            raise SqlError(f"cannot connect to {self.name}: {_pg_line(exc)}") from None
+        try:
+            self._prepare()
+        except BaseException:
+            self.con.close()
+            raise
+
+    def _prepare(self) -> None:
+        psycopg = self._psycopg
+        self.con.isolation_level = psycopg.IsolationLevel.REPEATABLE_READ
+        self.con.read_only = True
+        try:
+            found = self.con.execute("SELECT to_regclass(format('%%I.event_log', %s::text)), "
+                                     "current_setting('server_version')",
+                                     [self.schema]).fetchone()
+            if found[0] is None:
+                raise SqlError(f"no ledger schema {self.schema!r} in {self.name}")
+            self.server_version = found[1]
+            self.con.execute("SELECT set_config('search_path', format('%%I, public', "
+                             "%s::text), false)", [self.schema])
+            self.con.commit()
+        except psycopg.Error as exc:
+            raise SqlError(f"{self.name}: {_pg_line(exc)}") from None
+
+    def run(self, query: str) -> tuple[list[str], list[tuple]]:
+        """Column names and rows of ``query`` (the last statement's, for several), in one
+        read-only snapshot; :class:`SqlError` with the server's words when it refuses."""
+        psycopg = self._psycopg
+        try:
+            columns: list[str] = []
+            rows: list[tuple] = []
+            with self.con.cursor() as cur:
+                cur.execute(query)
+                while True:
+                    if cur.description is not None:
+                        columns, rows = [d.name for d in cur.description], cur.fetchall()
+                    if not cur.nextset():
+                        break
+            return columns, rows
+        except psycopg.Error as exc:
+            raise SqlError(_pg_line(exc)) from None
+        finally:
+            self._end()
+
+    def _end(self) -> None:
+        try:
+            self.con.rollback()   # read-only: nothing to keep; a failed statement's end
+        except self._psycopg.Error:
+            pass
+
+    def close(self) -> None:
+        self.con.close()
+
+
+def _pg_line(exc: BaseException) -> str:
+    """psycopg's message on one line (libpq puts the server's words after a newline)."""
+    text = " ".join(part.strip() for part in str(exc).strip().splitlines() if part.strip())
+    return text or type(exc).__name__
+
+
+def _sql_postgres(args: argparse.Namespace, stdin: TextIO, out: TextIO, err: TextIO) -> int:
+    try:
+        session = PostgresSql(args.ledger)
+    except SqlError as exc:
+        print(f"stockpile sql: error: {exc}", file=err)
+        return EXIT_USAGE
+    try:
+        return _answer(session.run, args, stdin, out, err,
+                       engine=f"PostgreSQL {session.server_version} ({session.name})")
+    finally:
+        session.close()
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -284,9 +410,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "sql", help="query a ledger's SQL views (read-only): one query or a prompt",
         description="Run SQL on a ledger's views (events, assays, reclaim_cuts, stack_passes, "
         "lots) and tables (gaps, quarantine), read-only, with the DuckDB this program runs "
-        "on. With QUERY, print its result; without, read statements ending in ';' from "
+        "on, or on a PostgreSQL ledger's server (one read-only snapshot per statement). "
+        "With QUERY, print its result; without, read statements ending in ';' from "
         "standard input until end of input.")
-    p.add_argument("--ledger", required=True, metavar="PATH", help="ledger file (opened read-only)")
+    add_ledger(p, help="opened read-only")
     p.add_argument("query", nargs="?", metavar="QUERY", help="one SQL query (default: read "
                    "statements from standard input)")
     p.add_argument("--format", choices=FORMATS, default="table",

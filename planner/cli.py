@@ -13,7 +13,7 @@ import math
 import re
 import sys
 
-from common.options import add_bitemporal
+from common.options import add_bitemporal, add_ledger
 from schemas.analytes import canonical_name
 from schemas.events import decode_payload
 from schemas.jsonl import json_safe
@@ -270,7 +270,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "pile as of valid time V as known at K (the largest cutting depth among the valid "
         "landings), then cut the bench cut by cut on a copy of the pile and predict each "
         "cut's slew range, tonnes and grade.  Exit code 1 when no landing is valid.")
-    r.add_argument("--ledger", required=True, help="ledger file (opened read-only)")
+    add_ledger(r, help="opened read-only")
     r.add_argument("--pile", required=True, help="pile id")
     r.add_argument("--machine", required=True, help="bucket-wheel reclaimer id")
     r.add_argument("--bench-height", type=float, metavar="Z",

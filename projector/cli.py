@@ -7,7 +7,7 @@ import json
 import math
 import sys
 
-from common.options import add_bitemporal
+from common.options import add_bitemporal, add_ledger, describe_ledger
 from schemas.times import format_time_ns, parse_time_ns
 
 from ledger import open_ledger
@@ -40,6 +40,7 @@ def cmd_project(args: argparse.Namespace) -> int:
     valid = parse_time_ns(args.valid_time) if args.valid_time else None
     known = parse_time_ns(args.known_time) if args.known_time else None
     with open_ledger(ledger_for(args.ledger, args.site), read_only=True) as store:
+        head = store.head().global_seq   # the head this answer is computed at
         snapshots = SnapshotStore(args.snapshots) if args.snapshots else None
         try:
             state = project(store, args.pile, valid, known, snapshots=snapshots)
@@ -47,9 +48,10 @@ def cmd_project(args: argparse.Namespace) -> int:
             if snapshots is not None:
                 snapshots.close()
     if state.geometry is None:
-        raise ValueError(f"pile {args.pile!r} is not declared in {args.ledger} as of that time")
+        raise ValueError(f"pile {args.pile!r} is not declared in {describe_ledger(args.ledger)} "
+                         "as of that time")
     if args.json:
-        out = state.to_json()
+        out = {**state.to_json(), "head_global_seq": head}
         json.dump(_clean(out), sys.stdout, indent=1, default=_json_default)
         print()
         return 0
@@ -86,8 +88,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "project", help="the pile as of a valid time, as known at a known time",
         description="Rebuild a pile from the ledger: its volume, tonnes and grade, its "
         "deposits and what every reclaim cut delivered, as of valid time V as known at K.")
-    p.add_argument("--ledger", required=True, help="ledger file (opened read-only), or a head "
-                   "office's ledgers with --site")
+    add_ledger(p, help="opened read-only; or a head office's ledgers with --site")
     p.add_argument("--site", help="the site whose mirror to read in a head office's --ledger")
     p.add_argument("--pile", required=True, help="pile id")
     add_bitemporal(p)

@@ -16,8 +16,9 @@ from pathlib import Path
 import zenoh
 
 from common.progress import enabled_from_args, progress
-from common.options import (add_accept_loss, add_batch_size, add_clock, add_deprecated_positional_out, add_out,
-                            add_progress, add_types, out_path)
+from common.options import (add_accept_loss, add_batch_size, add_clock, add_deprecated_positional_out,
+                            add_ledger, add_out, add_progress, add_types, describe_ledger,
+                            out_path)
 from ledger import open_ledger
 from ledger.clock import clock_by_name
 from ledger.signing import add_signing_options, policy_from_args
@@ -114,7 +115,7 @@ def _replay_ledger(args: argparse.Namespace, topics) -> int:
                                   until_s=args.until, batch_size=args.batch_size,
                                   progress=bar)
     c = result.counts
-    print(f"replayed {args.input} into {args.ledger}: {result.events:,} events -> "
+    print(f"replayed {args.input} into {describe_ledger(args.ledger)}: {result.events:,} events -> "
           f"{c['appended']:,} appended, {c['duplicate']:,} duplicate, {c['conflict']:,} conflict, "
           f"{c['rejected']:,} rejected; head global_seq {result.head_global_seq}")
     if result.malformed:
@@ -196,7 +197,7 @@ def cmd_export_mcap(args: argparse.Namespace) -> int:
             progress(desc="export", enabled=enabled_from_args(args)) as bar:
         result = export_ledger(store, output, site=args.site, types=args.types,
                                progress=bar)
-    print(f"exported {result.events:,} events of {args.ledger} (head global_seq "
+    print(f"exported {result.events:,} events of {describe_ledger(args.ledger)} (head global_seq "
           f"{result.head_global_seq}) to {result.path} in {result.wall_s:.2f} s")
     return EXIT_OK
 
@@ -231,7 +232,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("input", metavar="IN.mcap", help="the MCAP file")
     target = p.add_argument_group("target (one of)")
     target.add_argument("--publish", action="store_true", help="publish on Zenoh")
-    target.add_argument("--ledger", metavar="PATH", help="append to this ledger (created if missing)")
+    add_ledger(target, required=False, help="appended to; created if missing")
     sel = p.add_argument_group("selection")
     sel.add_argument("--topics", nargs="+", metavar="EXPR",
                      help="only topics under these key expressions (e.g. 'stockpile/*/@v1/assay/**')")
@@ -266,7 +267,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "export-mcap", help="write a ledger's events as an MCAP file",
         description="Write a ledger's events in global order as MCAP (log_time = recorded "
         "time, publish_time = valid time), readable by the mcap tools, Foxglove and Rerun.")
-    p.add_argument("--ledger", required=True, help="ledger file (opened read-only)")
+    add_ledger(p, help="opened read-only")
     add_out(p, metavar="OUT.mcap", help="the file to write (replaced if it exists; required)")
     add_deprecated_positional_out(p)
     p.add_argument("--site", default=DEFAULT_SITE,

@@ -45,6 +45,9 @@ class BackupRequest:
         """On the writer's thread, between batches: take the copy, then hand verifying
         and replying to a thread of its own.  Never raises: a failure is the reply."""
         try:
+            if store.backend == "postgresql":
+                raise ValueError("this ledger service holds a PostgreSQL ledger: back it up "
+                                 "with pg_basebackup or pg_dump, not through the service")
             if not hasattr(store, "checkpoint"):
                 raise ValueError("this ledger service holds an in-memory ledger: nothing "
                                  "to back up")

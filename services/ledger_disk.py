@@ -69,8 +69,10 @@ class DiskGuard:
     Parameters
     ----------
     ledger_path : str or None
-        The ledger file (None or ``:memory:``: no file system to watch; a full disk is
-        still held and retried).
+        The ledger file (None or ``:memory:``: no file system to watch, as for a
+        PostgreSQL ledger, whose server watches its own disk; a full disk, which the
+        PostgreSQL store reports as :class:`LedgerDiskFull` from SQLSTATE 53100, is still
+        held and retried).
     min_free_mb : float
         The watermark, MiB free on the ledger's file system.
     status : StatusReporter

@@ -54,6 +54,14 @@ Data flow::
   Record chunks are :mod:`ledger.wire` bytes of up to ``chunk_bytes``; each reply's
   attachment is ``u32 chunk index | u8 last | u64 total records`` so a client can
   check it got every chunk.  An error is one ``reply_err`` with a message.
+- **A PostgreSQL ledger** (``--ledger postgresql://...``): the same writer, batches and
+  queryables.  What only a DuckDB file has is left out: no holder file (readers open the
+  URL themselves, read-only, each on one snapshot), no free-space watermark (the server
+  watches its own disk; a full disk, SQLSTATE 53100, still pauses the writer through
+  :class:`~services.ledger_disk.DiskGuard`), no buffer pool cap (``--memory-limit-mb``
+  is refused: the server's memory is its own settings), no ``q/backup`` (a one-line
+  error naming ``pg_basebackup`` / ``pg_dump``), and checkpoints go to ``--checkpoints``
+  only (there is no file to put them beside).  The URL's password is never logged.
 """
 
 from __future__ import annotations
@@ -74,7 +82,7 @@ import zenoh
 import zenoh.ext as zext
 
 from common.options import (add_accept_loss, add_analytes, add_batch_size, add_clock,
-                            add_duration)
+                            add_duration, add_ledger, describe_ledger, is_ledger_url)
 from ledger import clock_by_name, open_ledger
 from ledger.signing import SigningPolicy, add_signing_options, policy_from_args
 from ledger.views import check_declared
@@ -125,7 +133,8 @@ class Config:
     Attributes
     ----------
     ledger_path : str
-        The DuckDB file (created if missing), or ``:memory:``.
+        The DuckDB file (created if missing), a ``postgresql://`` URL (the schema is
+        installed if missing and the user may), or ``:memory:``.
     clock : str
         Recorded time: ``wall`` (a real yard) or ``events`` (the simulated yard's
         ``clock`` events).
@@ -187,11 +196,23 @@ class Config:
             raise ValueError(f"memory limit must be >= 16 MB, got {self.memory_limit_mb}")
         if not self.min_free_mb >= 0:
             raise ValueError(f"--min-free-mb must be >= 0 MiB, got {self.min_free_mb}")
+        if self.postgres and self.memory_limit_mb is not None:
+            raise ValueError("--memory-limit-mb caps a DuckDB file's buffer pool; a PostgreSQL "
+                             "ledger's memory is the server's (shared_buffers, work_mem)")
+
+    @property
+    def postgres(self) -> bool:
+        """Whether the ledger is a PostgreSQL URL (no file: no holder file, no watermark)."""
+        return is_ledger_url(self.ledger_path)
+
+    @property
+    def file_path(self) -> str | None:
+        """The ledger's file, None for a PostgreSQL or an in-memory ledger."""
+        return None if self.postgres or self.ledger_path == ":memory:" else self.ledger_path
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--ledger", required=True, metavar="PATH",
-                        help="the ledger's DuckDB file (created if missing)")
+    add_ledger(parser, help="created if missing")
     add_clock(parser, help="recorded time from the wall clock or the site's clock events "
               "(simulated yard)")
     add_batch_size(parser)
@@ -215,7 +236,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="cap on the database's buffer pool, megabytes (default 256)")
     parser.add_argument("--min-free-mb", type=float, default=DEFAULT_MIN_FREE_MB, metavar="MB",
                         help="warn and raise the low_disk alarm when the ledger's file system "
-                        f"has less free, MiB (default {DEFAULT_MIN_FREE_MB:g})")
+                        f"has less free, MiB (default {DEFAULT_MIN_FREE_MB:g}; a PostgreSQL "
+                        "ledger: the server's disk, not watched here)")
 
 
 def config_from_args(args: argparse.Namespace) -> Config:
@@ -421,8 +443,9 @@ def _opt_int(value: object) -> int | None:
 
 
 def _write_holder(config: Config) -> LedgerHolder | None:
-    """Leave the holder file beside the ledger file (none for an in-memory ledger)."""
-    if config.ledger_path == ":memory:":
+    """Leave the holder file beside the ledger file (none for an in-memory or a PostgreSQL
+    ledger: readers open a PostgreSQL URL themselves)."""
+    if config.file_path is None:
         return None
     holder = LedgerHolder(site=config.site, pid=os.getpid(),
                           endpoints=reader_endpoints(config.zenoh.to_config()),
@@ -446,14 +469,14 @@ def _write_holder(config: Config) -> LedgerHolder | None:
 def main(config: Config, *, stopper: Stopper | None = None) -> int:
     """Run the ledger service until SIGINT/SIGTERM (or ``stopper``); return an exit code."""
     try:
-        if config.ledger_path != ":memory:":
-            Path(config.ledger_path).parent.mkdir(parents=True, exist_ok=True)
+        if config.file_path is not None:
+            Path(config.file_path).parent.mkdir(parents=True, exist_ok=True)
         store = open_ledger(config.ledger_path, clock_by_name(config.clock),
                             signing=config.signing, accept_loss=config.accept_loss,
                             analytes=config.analytes, memory_limit_mb=config.memory_limit_mb)
     except (LedgerError, OSError, ValueError) as exc:
-        log(SERVICE, "cannot open the ledger", level="error", ledger=config.ledger_path,
-            error=str(exc).splitlines()[0])
+        log(SERVICE, "cannot open the ledger", level="error",
+            ledger=describe_ledger(config.ledger_path), error=str(exc).splitlines()[0])
         return 2
     samples: queue.Queue = queue.Queue(maxsize=config.queue_size)
     runtime = ServiceRuntime(SERVICE, config.site, config.zenoh, name="writer",
@@ -480,7 +503,7 @@ def _serve(config: Config, store: LedgerStore, samples: queue.Queue,
         head_publisher.put(json.dumps(head_to_json(store.head())).encode())
 
     status_publisher = publish_status(session, config.site, SERVICE, status)
-    disk = DiskGuard(config.ledger_path, config.min_free_mb, status, runtime.stopper)
+    disk = DiskGuard(config.file_path, config.min_free_mb, status, runtime.stopper)
     disk.check(force=True)
     repair = GapRepair(session, config.site, store, samples, runtime)
     writer = Writer(store, samples, runtime, config, publish_head, on_gaps=repair.check,
@@ -497,6 +520,10 @@ def _serve(config: Config, store: LedgerStore, samples: queue.Queue,
         for what in QUERIES
     ] + [session.declare_queryable(query_key(config.site, "backup"), lambda q: samples.put(
         BackupRequest(q, query_key(config.site, "backup"))))]
+    if config.postgres:
+        runtime.log("PostgreSQL ledger: readers open it themselves (read-only role "
+                    "stockpile_reader); the server watches its own disk; back it up with "
+                    "pg_basebackup or pg_dump", ledger=describe_ledger(config.ledger_path))
 
     def on_sample(sample) -> None:
         attachment = sample.attachment
@@ -513,15 +540,16 @@ def _serve(config: Config, store: LedgerStore, samples: queue.Queue,
                                                   on_sample, history=history, subscriber_detection=True)
     miss_listener = subscriber.sample_miss_listener(on_miss)
     recall = CacheRecall.of_events(session, config.site, on_sample, SERVICE, config.history)
-    runtime.log("serving", ledger=config.ledger_path, head=store.head().global_seq,
+    runtime.log("serving", ledger=describe_ledger(config.ledger_path),
+                head=store.head().global_seq,
                 subscribe=f"stockpile/{config.site}/@v1/**",
                 queries=query_key(config.site, "*"), head_key=head_key(config.site))
     publish_head()
     holder = _write_holder(config)
     checkpoints = Checkpointer(
         store, session, config.site, config.zenoh.certificate,
-        config.checkpoint_dir or (None if config.ledger_path == ":memory:"
-                                  else config.ledger_path + ".checkpoints"))
+        config.checkpoint_dir or (None if config.file_path is None
+                                  else config.file_path + ".checkpoints"))
     runtime.announce()
     try:
         while not runtime.stopper.wait(config.checkpoint_every_s):

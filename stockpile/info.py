@@ -1,7 +1,8 @@
 """``stockpile info FILE``: what an MCAP session or a ledger holds (as ``mcap info`` does).
 
 The kind of file is told by its content: the MCAP magic bytes make it a recording or
-an export, a DuckDB header makes it a ledger (opened read-only).  For both: path,
+an export, a DuckDB header makes it a ledger (opened read-only); a ``postgresql://`` URL
+is a PostgreSQL ledger (shown with its password masked, without a size).  For both: path,
 size, time span (valid time first..last; a ledger's recorded times, an MCAP file's
 log times), events per type and per source, gaps.  A ledger adds its quarantine and
 flags; an MCAP file adds its schemas and channels (topic, schema name, messages),
@@ -22,6 +23,7 @@ from collections import Counter, defaultdict
 from pathlib import Path
 from typing import Any, TextIO
 
+from common.options import describe_ledger, is_ledger_url
 from ledger import open_ledger
 from ledger.wire import stats_to_json
 from ledger.errors import LedgerError
@@ -42,7 +44,10 @@ class InfoError(ValueError):
 
 
 def file_kind(path: str | Path) -> str:
-    """``"mcap"`` or ``"ledger"`` by the file's first bytes; :class:`InfoError` otherwise."""
+    """``"mcap"`` or ``"ledger"`` by the file's first bytes (a ``postgresql://`` URL is a
+    ledger); :class:`InfoError` otherwise."""
+    if is_ledger_url(path):
+        return "ledger"
     path = Path(path)
     if not path.exists():
         raise InfoError(f"no such file: {path}")
@@ -69,21 +74,25 @@ def _span(lo_hi: tuple[int, int] | None) -> dict[str, Any] | None:
 
 
 def ledger_info(path: str | Path) -> dict[str, Any]:
-    """A ledger's summary as a JSON-ready dict (``kind`` = ``"ledger"``)."""
-    path = Path(path)
+    """A ledger's summary as a JSON-ready dict (``kind`` = ``"ledger"``; ``backend``
+    ``duckdb`` with the file's size and DuckDB version, or ``postgresql`` without)."""
+    url = is_ledger_url(path)
+    where = str(path) if url else Path(path)
     try:
-        with open_ledger(path, read_only=True) as store:
+        with open_ledger(where, read_only=True) as store:
             stats = store.stats()
             gaps = store.gaps()
     except LedgerError as exc:
-        raise InfoError(f"{path} is not a readable ledger: {one_line(exc)}") from None
+        raise InfoError(f"{describe_ledger(path)} is not a readable ledger: "
+                        f"{one_line(exc)}") from None
     data = stats_to_json(stats)
     open_gaps = [g for g in gaps if g.closed_recorded_ns is None]
     return {
         "kind": "ledger",
-        "path": str(path),
-        "size_bytes": path.stat().st_size,
-        "duckdb_created_by": created_by_version(path),
+        "backend": "postgresql" if url else "duckdb",
+        "path": describe_ledger(path) if url else str(where),
+        "size_bytes": None if url else where.stat().st_size,
+        "duckdb_created_by": None if url else created_by_version(where),
         "events": stats.events,
         "head": data["head"],
         "valid_time": _span(stats.valid_time_range_ns),
@@ -212,14 +221,18 @@ def _span_text(span: dict[str, Any] | None) -> str:
 
 def format_info(info: dict[str, Any]) -> str:
     """The human-readable ``stockpile info`` text for :func:`ledger_info`/:func:`mcap_info`."""
-    size_mib = info["size_bytes"] / (1 << 20)
-    lines = [f"path:         {info['path']}",
-             f"kind:         {'ledger (DuckDB)' if info['kind'] == 'ledger' else 'MCAP'}",
-             f"size:         {info['size_bytes']:,} bytes ({size_mib:.2f} MiB)"]
+    postgres = info.get("backend") == "postgresql"
+    kind = ("ledger (PostgreSQL)" if postgres else "ledger (DuckDB)") \
+        if info["kind"] == "ledger" else "MCAP"
+    lines = [f"path:         {info['path']}", f"kind:         {kind}"]
+    if info["size_bytes"] is not None:
+        size_mib = info["size_bytes"] / (1 << 20)
+        lines.append(f"size:         {info['size_bytes']:,} bytes ({size_mib:.2f} MiB)")
     if info["kind"] == "ledger":
         head = info["head"]
-        lines += [f"created by:   DuckDB {info['duckdb_created_by'] or '?'}",
-                  f"events:       {info['events']:,} (head global_seq {head['global_seq']})",
+        if not postgres:
+            lines.append(f"created by:   DuckDB {info['duckdb_created_by'] or '?'}")
+        lines += [f"events:       {info['events']:,} (head global_seq {head['global_seq']})",
                   f"valid time:   {_span_text(info['valid_time'])}",
                   f"recorded:     {_span_text(info['recorded_time'])}"]
     else:
@@ -291,6 +304,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description="Describe an MCAP file or a ledger (told apart by content): size, time "
         "span, events per type and source, gaps; a ledger's quarantine; an MCAP file's "
         "schemas, channels and what a damaged file lost.")
-    p.add_argument("file", metavar="FILE", help="an MCAP file or a ledger (DuckDB) file")
+    p.add_argument("file", metavar="FILE", help="an MCAP file, a ledger (DuckDB) file or a "
+                   "PostgreSQL ledger's postgresql:// URL")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=cmd_info)

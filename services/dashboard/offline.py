@@ -17,7 +17,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
-from common.options import add_duration, add_progress
+from common.options import (add_duration, add_ledger, add_progress, describe_ledger,
+                            is_ledger_url)
 from common.progress import Progress, enabled_from_args, progress as progress_bar
 from ledger import open_ledger
 from planner.cli import make_plan, plan_args
@@ -104,16 +105,16 @@ def render_ledger(path: str, pile_id: str | None, config: Config, *,
 
     Raises ValueError for a missing ledger or an unknown pile.
     """
-    if not Path(path).exists():
+    if not is_ledger_url(path) and not Path(path).exists():
         raise ValueError(f"no ledger at {path}")
     with open_ledger(path, read_only=True) as store:
         head = store.head()
         if head.global_seq < 0:
-            raise ValueError(f"the ledger {path} is empty")
+            raise ValueError(f"the ledger {describe_ledger(path)} is empty")
         pile_id = pile_id or single_pile(store)
         piles = _pile_boxes(store)
         if pile_id not in piles:
-            raise ValueError(f"pile {pile_id!r} is not declared in {path}")
+            raise ValueError(f"pile {pile_id!r} is not declared in {describe_ledger(path)}")
         analytes = _analytes(store)
         rec, uri = make_recording(config, analytes, recording_id=recording_id,
                                   pile=piles[pile_id])
@@ -245,7 +246,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "dashboard", help="render a ledger to a Rerun dashboard (.rrd and/or the web viewer)",
         description="Render a finished ledger offline to the operators' Rerun dashboard: the "
         "same entities, timelines and blueprint as `stockpile service dashboard`.")
-    p.add_argument("--ledger", required=True, help="ledger file (opened read-only)")
+    add_ledger(p, help="opened read-only")
     p.add_argument("--pile", help="pile id (default: the only pile the ledger declares)")
     add_common_arguments(p)
     add_duration(p, "--every", default=DEFAULT_EVERY_S,
