@@ -93,6 +93,8 @@ def map_postgres_error(exc: BaseException) -> LedgerError:
     if isinstance(exc, pg_errors.DiskFull):
         return LedgerDiskFull(f"the ledger's disk is full: {message}",
                               os_error=disk_full_text(exc) or "No space left on device")
+    if isinstance(exc, pg_errors.ReadOnlySqlTransaction):   # 25006: a standby, or read-only
+        return OperationalError(f"the PostgreSQL ledger is read-only here: {message}")
     if isinstance(exc, psycopg.Error) and _lost_connection(exc):
         return OperationalError(f"the connection to the PostgreSQL ledger was lost: {message}")
     for theirs, ours in ((psycopg.IntegrityError, IntegrityError),
@@ -259,6 +261,9 @@ class PostgresStore(LedgerStore):
         if oid is None:
             oid = self._install_missing()
         if not self.read_only:
+            if self._con.execute("SELECT pg_is_in_recovery()").fetchone()[0]:
+                raise OperationalError(f"{self.name} is a hot standby (in recovery, "
+                                       "read-only): write to the primary")
             self._take_lock(oid)
         self._check_schema()
         self._state = self._load_state()

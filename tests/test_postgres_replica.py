@@ -136,12 +136,6 @@ def test_writing_to_a_standby_fails_in_one_line_and_changes_nothing(pg_server, p
         "lot_id\nLOT-R\nLOT-S\n"
 
 
-@pytest.mark.xfail(strict=True, reason="PostgresStore opens a hot standby for writing; the "
-                   "first append then fails with SQLSTATE 25006 (read-only transaction), "
-                   "mapped to InternalError, so ledger import takes it for the line's fault "
-                   "and writes the line to the reject file. Fix in ledger/postgres_store.py: "
-                   "refuse a writer when pg_is_in_recovery() (or map 25006 to "
-                   "OperationalError)")
 def test_writing_to_a_standby_is_refused_as_a_standby(pg_server, pg_url, standby, tmp_path):
     done, rejects, _more, _replica = _write_to_standby(pg_server, pg_url, standby, tmp_path)
     lines = done.stderr.strip().splitlines()
