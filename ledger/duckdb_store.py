@@ -40,10 +40,9 @@ import duckdb
 import pyarrow as pa
 
 from schemas.analytes import AnalyteOptions, AnalytePolicy
-from schemas.events import decode_payload
-from schemas.jsonl import body_json
 
 from ledger import views
+from ledger.bodies import body_problem
 from ledger.chain import GENESIS
 from ledger.clock import SiteClock
 from ledger.errors import InterfaceError, OperationalError, ProgrammingError, backend_errors
@@ -162,21 +161,6 @@ _SELECT_QUARANTINE = ("SELECT quarantine_id, recorded_time_ns, type, source, epo
                       "chain_sha256 FROM quarantine ORDER BY quarantine_id")
 _SELECT_LAST_QUARANTINE_LINK = ("SELECT after_global_seq, chain_sha256 FROM quarantine "
                                 "ORDER BY quarantine_id DESC LIMIT 1")
-
-def _body_problem(type_name: str, payload: bytes, body: str | None) -> str | None:
-    """Whether a stored ``body`` is the JSON of its payload (None when it is)."""
-    if type_name not in BODY_TYPES:
-        return "a body stored for a type that has none"
-    if body is None:
-        return "the body is missing"
-    try:
-        expected = json.loads(body_json(decode_payload(type_name, payload)))
-    except Exception:  # noqa: BLE001 - a stored payload always decoded; say so if not
-        return "payload does not decode"
-    if json.loads(body) != expected:
-        return "stored body does not match the payload (what the SQL views read was edited)"
-    return None
-
 
 # one writer per file per process: a second DuckDBStore on the same file would hold a
 # stale copy of the writer state
@@ -459,7 +443,7 @@ class DuckDBStore(LedgerStore):
                                  ).to_arrow_reader(_FETCH_ROWS)
                 for batch in reader:
                     for g, type_name, payload, body in zip(*(c.to_pylist() for c in batch.columns)):
-                        problem = _body_problem(type_name, payload, body)
+                        problem = body_problem(type_name, payload, body, BODY_TYPES)
                         if problem:
                             return VerifyReport(False, report.rows_checked, g, problem)
         return report

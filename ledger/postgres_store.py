@@ -36,11 +36,10 @@ from psycopg import errors as pg_errors
 from psycopg.types.json import Jsonb
 
 from schemas.analytes import AnalyteOptions, AnalytePolicy
-from schemas.events import decode_payload
-from schemas.jsonl import body_json
 
 from ledger import postgres_sql as ddl
 from ledger.postgres_sql import describe_url, split_url
+from ledger.bodies import body_problem
 from ledger.chain import GENESIS
 from ledger.clock import SiteClock
 from ledger.errors import (DatabaseError, DataError, IntegrityError, InterfaceError,
@@ -157,34 +156,6 @@ def install(admin_conninfo: str, schema: str | None = None) -> None:
     conninfo, url_schema = split_url(admin_conninfo)
     with _connect(conninfo, "install", autocommit=True) as con, postgres_errors():
         ddl.install_on(con, ddl.check_schema_name(schema or url_schema))
-
-
-def _same_json(a: object, b: object) -> bool:
-    """JSON values equal, numbers compared as doubles (jsonb keeps decimals, not doubles)."""
-    if isinstance(a, dict) and isinstance(b, dict):
-        return a.keys() == b.keys() and all(_same_json(a[k], b[k]) for k in a)
-    if isinstance(a, list) and isinstance(b, list):
-        return len(a) == len(b) and all(_same_json(x, y) for x, y in zip(a, b))
-    numbers = (int, float)
-    if isinstance(a, numbers) and isinstance(b, numbers) and not isinstance(a, bool) \
-            and not isinstance(b, bool):
-        return float(a) == float(b)
-    return a == b
-
-
-def _body_problem(type_name: str, payload: bytes, body: object) -> str | None:
-    """Whether a stored ``body`` is the JSON of its payload (None when it is)."""
-    if type_name not in BODY_TYPES:
-        return "a body stored for a type that has none"
-    if body is None:
-        return "the body is missing"
-    try:
-        expected = json.loads(body_json(decode_payload(type_name, payload)))
-    except Exception:  # noqa: BLE001 - a stored payload always decoded; say so if not
-        return "payload does not decode"
-    if not _same_json(body, expected):
-        return "stored body does not match the payload (what the SQL views read was edited)"
-    return None
 
 
 def _raw_json(text: str) -> str:
@@ -548,7 +519,7 @@ class PostgresStore(LedgerStore):
         while start < stop:
             rows = self._page(sql, [start, types, stop])
             for g, type_name, payload, body in rows:
-                problem = _body_problem(type_name, payload, body)
+                problem = body_problem(type_name, payload, body, BODY_TYPES)
                 if problem:
                     return VerifyReport(False, report.rows_checked, g, problem)
             if len(rows) < PAGE_ROWS:
