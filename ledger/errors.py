@@ -24,7 +24,7 @@ from __future__ import annotations
 import contextlib
 import errno
 import re
-from typing import Iterator
+from typing import Iterator, Sequence
 
 
 class LedgerError(Exception):
@@ -110,6 +110,23 @@ def _duckdb_mapping() -> list[tuple[type[BaseException], type[LedgerError]]]:
 _MAPPING: list[tuple[type[BaseException], type[LedgerError]]] | None = None
 
 
+def first_line(exc: BaseException) -> str:
+    """A backend exception's message as one line (its class name when it has none)."""
+    text = str(exc).strip()
+    return text.splitlines()[0].strip() if text else type(exc).__name__
+
+
+def class_for(exc: BaseException, mapping: Sequence[tuple[type[BaseException],
+                                                          type[LedgerError]]]
+              ) -> type[LedgerError] | None:
+    """The :class:`LedgerError` subclass of the first ``(backend class, ours)`` pair of
+    ``mapping`` that ``exc`` is an instance of (None when none is)."""
+    for backend_cls, ours in mapping:
+        if isinstance(exc, backend_cls):
+            return ours
+    return None
+
+
 def map_backend_error(exc: BaseException) -> LedgerError:
     """The :class:`LedgerError` for a backend exception (DuckDB or OS)."""
     global _MAPPING
@@ -117,22 +134,20 @@ def map_backend_error(exc: BaseException) -> LedgerError:
         return exc
     if _MAPPING is None:
         _MAPPING = _duckdb_mapping()
-    message = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+    message = first_line(exc)
     os_error = disk_full_text(exc)
     if os_error is not None:
         return LedgerDiskFull(f"the ledger's disk is full: {message}", os_error=os_error)
     if isinstance(exc, OSError):
         return OperationalError(message)
-    for backend_cls, ours in _MAPPING:
-        if isinstance(exc, backend_cls):
-            if ours is OperationalError and "lock" in message.lower():
-                pid = re.search(r"\(PID (\d+)\)", message)
-                return LedgerLocked(
-                    "the ledger is open for writing by another process "
-                    f"(one writer or many readers, never both): {message}",
-                    int(pid.group(1)) if pid else None)
-            return ours(message)
-    return InternalError(f"{type(exc).__name__}: {message}")
+    ours = class_for(exc, _MAPPING)
+    if ours is OperationalError and "lock" in message.lower():
+        pid = re.search(r"\(PID (\d+)\)", message)
+        return LedgerLocked(
+            "the ledger is open for writing by another process "
+            f"(one writer or many readers, never both): {message}",
+            int(pid.group(1)) if pid else None)
+    return ours(message) if ours else InternalError(f"{type(exc).__name__}: {message}")
 
 
 @contextlib.contextmanager

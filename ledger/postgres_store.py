@@ -45,7 +45,7 @@ from ledger.clock import SiteClock
 from ledger.errors import (DatabaseError, DataError, IntegrityError, InterfaceError,
                            InternalError, LedgerDiskFull, LedgerError, LedgerLocked,
                            NotSupportedError, OperationalError, ProgrammingError,
-                           disk_full_text)
+                           class_for, disk_full_text, first_line)
 from ledger.records import Gap, LedgerStats, QuarantineEntry, RecordedEvent, VerifyReport
 from ledger.signing import SigningPolicy, registry_from_rows
 from ledger.store import BODY_TYPES, BatchPlan, Key, LedgerStore, StreamState, WriterState
@@ -73,22 +73,26 @@ _INT64_MIN = -(2**63)
 
 # -- errors: the one place psycopg's exceptions become the ledger's ------------------------------
 
-def _first_line(exc: BaseException) -> str:
-    text = str(exc).strip()
-    return text.splitlines()[0].strip() if text else type(exc).__name__
-
-
 def _lost_connection(exc: psycopg.Error) -> bool:
     state = exc.sqlstate or ""
     return isinstance(exc, psycopg.OperationalError) and (
         not state or state.startswith(("08", "57P")))
 
 
+#: psycopg's exception classes -> ours, the first that matches wins
+_PG_MAPPING: tuple[tuple[type[BaseException], type[LedgerError]], ...] = (
+    (psycopg.IntegrityError, IntegrityError), (psycopg.DataError, DataError),
+    (psycopg.OperationalError, OperationalError), (psycopg.ProgrammingError, ProgrammingError),
+    (psycopg.NotSupportedError, NotSupportedError), (psycopg.InternalError, InternalError),
+    (psycopg.InterfaceError, InterfaceError), (OSError, OperationalError),
+    (psycopg.Error, DatabaseError))
+
+
 def map_postgres_error(exc: BaseException) -> LedgerError:
     """The :class:`LedgerError` for a psycopg (or OS) exception, with a one-line message."""
     if isinstance(exc, LedgerError):
         return exc
-    message = _first_line(exc)
+    message = first_line(exc)
     if isinstance(exc, pg_errors.DiskFull):
         return LedgerDiskFull(f"the ledger's disk is full: {message}",
                               os_error=disk_full_text(exc) or "No space left on device")
@@ -96,18 +100,8 @@ def map_postgres_error(exc: BaseException) -> LedgerError:
         return OperationalError(f"the PostgreSQL ledger is read-only here: {message}")
     if isinstance(exc, psycopg.Error) and _lost_connection(exc):
         return OperationalError(f"the connection to the PostgreSQL ledger was lost: {message}")
-    for theirs, ours in ((psycopg.IntegrityError, IntegrityError),
-                         (psycopg.DataError, DataError),
-                         (psycopg.OperationalError, OperationalError),
-                         (psycopg.ProgrammingError, ProgrammingError),
-                         (psycopg.NotSupportedError, NotSupportedError),
-                         (psycopg.InternalError, InternalError),
-                         (psycopg.InterfaceError, InterfaceError),
-                         (OSError, OperationalError),
-                         (psycopg.Error, DatabaseError)):
-        if isinstance(exc, theirs):
-            return ours(message)
-    return InternalError(f"{type(exc).__name__}: {message}")
+    ours = class_for(exc, _PG_MAPPING)
+    return ours(message) if ours else InternalError(f"{type(exc).__name__}: {message}")
 
 
 @contextlib.contextmanager

@@ -150,13 +150,10 @@ UPLINK_GRANTS = [
     Grant(("put",), ("ingress",), (LEDGER_HEAD,)),
 ]
 #: at a site router, the head-office router's link: reads of the ledger, nothing else
-HEAD_OFFICE_GRANTS = [
-    Grant(("declare_queryable",), ("egress",), READ_QUERIES),
-    Grant(("query",), ("ingress",), READ_QUERIES),
-    Grant(("reply",), ("egress",), READ_QUERIES),
-    Grant(("declare_subscriber",), ("ingress",), (LEDGER_HEAD,)),
-    Grant(("put",), ("egress",), (LEDGER_HEAD,)),
-]
+#: (the uplink's grants seen from the other end of the same link: every flow reversed)
+_REVERSED = {"ingress": "egress", "egress": "ingress"}
+HEAD_OFFICE_GRANTS = [Grant(g.messages, tuple(_REVERSED[f] for f in g.flows), g.keys)
+                      for g in UPLINK_GRANTS]
 ANY_SITE_READS = tuple(q.replace("{site}", "*") for q in READ_QUERIES)
 ANY_SITE_HEAD = "stockpile/*/@ledger/head"
 HQ_STATUS = "stockpile/{site}/@hq/status"
