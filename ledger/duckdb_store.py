@@ -140,8 +140,15 @@ _NEW_EVENTS = "new_events"
 _INSERT_NEW_EVENTS = f"INSERT INTO event_log SELECT * FROM {_NEW_EVENTS}"
 _FLAG_SEPARATOR = ","
 _INSERT_QUARANTINE = "INSERT INTO quarantine VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)"
-_CLOSE_GAP = "UPDATE gaps SET closed_recorded_ns = ? WHERE gap_id = ?"
-_INSERT_GAP = "INSERT INTO gaps VALUES (?, ?, ?, ?, ?, ?, ?)"
+_GAP_SCHEMA = pa.schema([
+    ("gap_id", pa.int64()), ("source", pa.string()), ("epoch", pa.int64()),
+    ("first_seq", pa.int64()), ("last_seq", pa.int64()),
+    ("opened_recorded_ns", pa.int64()), ("closed_recorded_ns", pa.int64()),
+])
+_GAP_CHANGES = "gap_changes"
+_INSERT_GAPS = f"INSERT INTO gaps SELECT * FROM {_GAP_CHANGES}"
+_CLOSE_GAPS = (f"UPDATE gaps SET closed_recorded_ns = c.closed_recorded_ns "
+               f"FROM {_GAP_CHANGES} c WHERE gaps.gap_id = c.gap_id")
 _WHERE_TYPE_IN = "list_contains(?, type)"
 _WHERE_SOURCE_IN = "list_contains(?, source)"
 _WHERE_SEQ_FROM = "global_seq >= ?"
@@ -399,15 +406,24 @@ class DuckDBStore(LedgerStore):
                   q.valid_time_ns, q.code, q.detail, q.raw, q.existing_global_seq,
                   q.after_global_seq, q.chain_sha256]
                  for q in plan.quarantine])
-        for gap in plan.closed_gaps:
-            con.execute(_CLOSE_GAP, [gap.closed_recorded_ns, gap.gap_id])
-        if plan.opened_gaps:
-            con.executemany(
-                _INSERT_GAP,
-                [[g.gap_id, g.source, g.epoch, g.first_seq, g.last_seq,
-                  g.opened_recorded_ns, g.closed_recorded_ns] for g in plan.opened_gaps])
+        for gaps, statement in ((plan.closed_gaps, _CLOSE_GAPS), (plan.opened_gaps, _INSERT_GAPS)):
+            if gaps:
+                self._with_gaps(gaps, statement)
         if new_analytes:
             views.create_views(con, self.analytes.declared, self._analytes | new_analytes)
+
+    def _with_gaps(self, gaps: list[Gap], statement: str) -> None:
+        """Run ``statement`` on ``gaps`` registered as the table ``gap_changes`` (one
+        statement for a batch's gaps, however many: a backlog filled in order opens and
+        closes one per event)."""
+        table = pa.Table.from_arrays(
+            [pa.array([getattr(g, name) for g in gaps], type=_GAP_SCHEMA.field(name).type)
+             for name in _GAP_SCHEMA.names], schema=_GAP_SCHEMA)
+        self._con.register(_GAP_CHANGES, table)
+        try:
+            self._con.execute(statement)
+        finally:
+            self._con.unregister(_GAP_CHANGES)
 
     def _new_analytes(self, plan: BatchPlan) -> set[str]:
         found: set[str] = set()

@@ -9,8 +9,9 @@ password (:func:`describe_url`).
 One writer per ledger: the writer holds a session advisory lock keyed on the schema; a
 second writer gets :class:`~ledger.errors.LedgerLocked` naming the holder (pid,
 application name, client address, start).  Each batch is one transaction: its event
-rows go in by binary ``COPY``, its quarantine entries and gap changes by executemany;
-the global sequence is assigned by the writer (:mod:`ledger.store`).
+rows go in by binary ``COPY``, its quarantine entries by executemany, its gap changes by
+one ``COPY`` and one ``UPDATE``; the global sequence is assigned by the writer
+(:mod:`ledger.store`).
 
 A read-only store holds one ``REPEATABLE READ, READ ONLY`` transaction for its whole life:
 everything it reads (its head, streams, rows, gaps) comes from one snapshot, which shows
@@ -407,16 +408,20 @@ class PostgresStore(LedgerStore):
                     [(q.quarantine_id, q.recorded_time_ns, q.type, q.source, q.epoch, q.seq,
                       q.valid_time_ns, q.code, q.detail, q.raw, q.existing_global_seq,
                       q.after_global_seq, q.chain_sha256) for q in plan.quarantine])
+            # one statement each, however many gaps: a backlog filled in order opens and
+            # closes one per event
             if plan.closed_gaps:
-                cur.executemany(
-                    f"UPDATE {self._s}.gaps SET closed_recorded_ns = %s WHERE gap_id = %s",
-                    [(g.closed_recorded_ns, g.gap_id) for g in plan.closed_gaps])
+                cur.execute(
+                    f"UPDATE {self._s}.gaps g SET closed_recorded_ns = c.closed FROM "
+                    "unnest(%s::bigint[], %s::bigint[]) AS c(gap_id, closed) "
+                    "WHERE g.gap_id = c.gap_id",
+                    [[g.gap_id for g in plan.closed_gaps],
+                     [g.closed_recorded_ns for g in plan.closed_gaps]])
             if plan.opened_gaps:
-                cur.executemany(
-                    f"INSERT INTO {self._s}.gaps ({_GAP_COLUMNS}) VALUES "
-                    "(%s, %s, %s, %s, %s, %s, %s)",
-                    [(g.gap_id, g.source, g.epoch, g.first_seq, g.last_seq,
-                      g.opened_recorded_ns, g.closed_recorded_ns) for g in plan.opened_gaps])
+                with cur.copy(f"COPY {self._s}.gaps ({_GAP_COLUMNS}) FROM STDIN") as copy:
+                    for g in plan.opened_gaps:
+                        copy.write_row((g.gap_id, g.source, g.epoch, g.first_seq, g.last_seq,
+                                        g.opened_recorded_ns, g.closed_recorded_ns))
 
     # -- reading ---------------------------------------------------------------------------
 

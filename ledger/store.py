@@ -142,6 +142,7 @@ class _BatchPlanner:
         self._lots_copied = False
         self._keys_copied = False
         self.plan = BatchPlan()
+        self._opened_at: dict[int, int] = {}  # gap id -> its index in plan.opened_gaps
 
     # -- state helpers --------------------------------------------------------------
 
@@ -203,6 +204,12 @@ class _BatchPlanner:
         status = "conflict" if code == "conflict" else "rejected"
         self.plan.outcomes.append(AppendOutcome(status, existing, code, detail))
 
+    def _open_in_plan(self, gap: Gap) -> None:
+        """Add ``gap`` to the plan's opened gaps, indexed by id (a fill in the same batch
+        stores it closed instead)."""
+        self._opened_at[gap.gap_id] = len(self.plan.opened_gaps)
+        self.plan.opened_gaps.append(gap)
+
     def _track_sequence(self, source: str, epoch: int, seq: int, recorded_ns: int) -> None:
         stream = self._stream(source, epoch)
         if seq == stream.max_seq + 1:  # the common case: the next one in order
@@ -214,7 +221,7 @@ class _BatchPlanner:
                 gap = Gap(s.next_gap_id, source, epoch, stream.max_seq + 1, seq - 1, recorded_ns)
                 s.next_gap_id += 1
                 stream.open_gaps.append(gap)
-                self.plan.opened_gaps.append(gap)
+                self._open_in_plan(gap)
             stream.max_seq = seq
             return
         index = stream.gap_containing(seq)
@@ -224,9 +231,9 @@ class _BatchPlanner:
                      gap.opened_recorded_ns, recorded_ns)
         # a gap opened earlier in this same batch is stored closed (every gap is kept, so
         # the gap table is the same whatever the batches were)
-        opened_here = [i for i, g in enumerate(self.plan.opened_gaps) if g.gap_id == gap.gap_id]
-        if opened_here:
-            self.plan.opened_gaps[opened_here[0]] = closed
+        opened_here = self._opened_at.get(gap.gap_id)
+        if opened_here is not None:
+            self.plan.opened_gaps[opened_here] = closed
         else:
             self.plan.closed_gaps.append(closed)
         remainders = []
@@ -235,7 +242,7 @@ class _BatchPlanner:
                 new = Gap(s.next_gap_id, source, epoch, first, last, gap.opened_recorded_ns)
                 s.next_gap_id += 1
                 remainders.append(new)
-                self.plan.opened_gaps.append(new)
+                self._open_in_plan(new)
         stream.open_gaps[index:index] = remainders
 
     # -- the batch --------------------------------------------------------------------

@@ -53,6 +53,7 @@ from pathlib import Path
 from urllib.parse import urlsplit, urlunsplit
 
 import numpy as np
+import psutil
 import psycopg
 import pytest
 from google.protobuf import json_format
@@ -223,12 +224,64 @@ class Reader:
             stop(self.process, READER_TIMEOUT_S + 30)
 
 
+class CpuMeter:
+    """CPU spent over a window: the whole machine's busy fraction (``/proc/stat``) and the
+    CPU seconds of named process trees (the PostgreSQL server, the ledger service, the
+    readers), so a phase's latencies can be read beside the load that made them."""
+
+    def __init__(self, trees: dict[str, int]) -> None:
+        self.trees = trees
+        self.start = self._sample()
+
+    @staticmethod
+    def _machine() -> tuple[float, float]:
+        fields = [float(v) for v in Path("/proc/stat").read_text().split("\n")[0].split()[1:]]
+        idle = fields[3] + fields[4]   # idle + iowait, jiffies
+        return sum(fields) - idle, sum(fields)
+
+    def _tree_cpu_s(self, pid: int) -> float:
+        try:
+            root = psutil.Process(pid)
+            procs = [root] + root.children(recursive=True)
+        except psutil.NoSuchProcess:
+            return 0.0
+        total = 0.0
+        for proc in procs:
+            try:
+                t = proc.cpu_times()
+                total += t.user + t.system + t.children_user + t.children_system
+            except psutil.Error:
+                continue
+        return total
+
+    def _sample(self) -> dict[str, float]:
+        busy, total = self._machine()
+        return {"busy": busy, "total": total,
+                **{name: self._tree_cpu_s(pid) for name, pid in self.trees.items()}}
+
+    def stop(self, extra_cpu_s: dict[str, float] | None = None) -> dict[str, float]:
+        """Busy fraction of the machine and CPU seconds per tree since construction."""
+        end = self._sample()
+        out = {"machine_busy": (end["busy"] - self.start["busy"])
+               / max(1.0, end["total"] - self.start["total"])}
+        out.update({f"{name}_cpu_s": end[name] - self.start[name] for name in self.trees})
+        out.update(extra_cpu_s or {})
+        return out
+
+
+def postmaster_pid(server) -> int:
+    """The PostgreSQL server's postmaster pid (first line of ``postmaster.pid``)."""
+    return int((server.data / "postmaster.pid").read_text().split()[0])
+
+
 @dataclass
 class Phase:
-    """What one phase published (the loadgens' reports) and its commit latencies, ms."""
+    """What one phase published (the loadgens' reports), its commit latencies, ms, and the
+    CPU it took (:class:`CpuMeter`)."""
 
     reports: list[dict]
     latencies_ms: np.ndarray
+    cpu: dict[str, float]
 
     @property
     def p99_ms(self) -> float:
@@ -354,9 +407,11 @@ def latencies_ms(reports: list[dict], watch: HeadWatch, rows: dict) -> np.ndarra
 
 
 def run_phase(yard: Yard, plc: CutPlc, names: list[str], readers: list[Reader],
-              admin_url: str, schema: str) -> Phase:
+              admin_url: str, schema: str, pg_pid: int) -> Phase:
     """Publish with ``names`` (and the PLC's cuts) for ``PHASE_S``, readers running
-    meanwhile; wait until the ledger holds everything; the phase's reports and latencies."""
+    meanwhile; wait until the ledger holds everything; the phase's reports, latencies and
+    the CPU taken while the publishers ran."""
+    meter = CpuMeter({"postgres": pg_pid, "ledger_service": yard.ledger.pid})
     started = [yard.loadgen(name) for name in names]
     plc.start()
     for reader in readers:
@@ -364,6 +419,8 @@ def run_phase(yard: Yard, plc: CutPlc, names: list[str], readers: list[Reader],
     try:
         wait_until(lambda: all(r.exists() for _, r in started), PHASE_S * 4 + 60,
                    "the publishers' reports")
+        cpu = meter.stop({f"reader_{r.name}_cpu_s": CpuMeter({})._tree_cpu_s(r.process.pid)
+                          for r in readers})
         wait_until(lambda: all(len(r.answers) >= MIN_ANSWERS for r in readers),
                    READER_TIMEOUT_S * MIN_ANSWERS, f"{MIN_ANSWERS} answers of every reader")
     finally:
@@ -385,7 +442,7 @@ def run_phase(yard: Yard, plc: CutPlc, names: list[str], readers: list[Reader],
                30, "the head notification of the phase's last batch")
     for process, _ in started:
         stop(process, 60)
-    return Phase(reports, latencies_ms(reports, yard.watch, rows))
+    return Phase(reports, latencies_ms(reports, yard.watch, rows), cpu)
 
 
 def check_answers(readers: dict[str, Reader], admin_url: str, schema: str) -> None:
@@ -458,14 +515,19 @@ def test_three_readers_while_the_ledger_service_appends(small_yard_sim, tmp_path
         yard.sessions.append(plc_session)
         plc = CutPlc(plc_session, cut_line["body"],
                      cut_line["valid_time_ns"] + 3600 * NS_PER_S)
-        quiet = run_phase(yard, plc, ["load0", "load1"], [], admin, schema)
-        busy = run_phase(yard, plc, ["load2", "load3"], list(readers.values()), admin, schema)
+        pg_pid = postmaster_pid(pg_server)
+        quiet = run_phase(yard, plc, ["load0", "load1"], [], admin, schema, pg_pid)
+        busy = run_phase(yard, plc, ["load2", "load3"], list(readers.values()), admin, schema,
+                         pg_pid)
         published_cuts = plc.publisher.count
         plc.publisher.close()
     for name, phase in (("without readers", quiet), ("with readers", busy)):
         pct = np.percentile(phase.latencies_ms, [50, 90, 99, 99.9, 100])
         print(f"commit latency {name}: p50/p90/p99/p99.9/max " + " / ".join(
             f"{v:.1f}" for v in pct) + " ms")
+        print(f"CPU while publishing {name}: " + ", ".join(
+            f"{k} {v:.0%}" if k == "machine_busy" else f"{k} {v:.1f}"
+            for k, v in phase.cpu.items()))
     print(f"commit latency p99 without readers {quiet.p99_ms:.1f} ms "
           f"({quiet.rate_hz:,.0f} events/s), with three readers {busy.p99_ms:.1f} ms "
           f"({busy.rate_hz:,.0f} events/s); p50 {np.percentile(quiet.latencies_ms, 50):.1f} / "
