@@ -37,7 +37,11 @@ or a dashboard polling the ledger would: a new Python process per answer spends 
 1.7 s of CPU starting up, and on this 2-core machine three of them a second take the CPU
 the writer and the publishers need, which measures the machine, not whether a reader
 blocks the writer.  The reader processes run at the idle CPU priority (``SCHED_IDLE``);
-their queries run in the server's backends at the normal priority.
+with the kernel's autogroup scheduling (on by default: each session one scheduling group,
+sharing the CPU equally with every other group, whatever its processes' priorities) each
+reader is a session of its own whose group has the lowest weight (``/proc/self/autogroup``
+nice 19), as a site runs its BI tools and auditors' jobs below the yard's services
+(docs/deployment.md); their queries run in the server's backends at the normal priority.
 """
 
 from __future__ import annotations
@@ -156,6 +160,11 @@ READER_DRIVER = r"""
 import contextlib, io, json, os, signal, subprocess, sys, threading, time
 out, period_s, timeout_s, argv = sys.argv[1], float(sys.argv[2]), float(sys.argv[3]), sys.argv[4:]
 os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
+try:   # its own session's scheduling group (autogroup) at the lowest weight too
+    with open("/proc/self/autogroup", "w") as group:
+        group.write("19")
+except OSError:
+    pass   # no autogroup on this kernel: SCHED_IDLE alone orders the CPU
 stop = threading.Event()
 signal.signal(signal.SIGTERM, lambda *_: stop.set())
 in_process = argv[0] == "--stockpile"
@@ -209,7 +218,8 @@ class Reader:
         self.process = subprocess.Popen(
             [PYTHON, "-c", READER_DRIVER, str(self.out), str(READER_PERIOD_S),
              str(READER_TIMEOUT_S), *self.argv],
-            stdout=subprocess.DEVNULL, stderr=open(self.out.with_suffix(".log"), "w"))
+            stdout=subprocess.DEVNULL, stderr=open(self.out.with_suffix(".log"), "w"),
+            start_new_session=True)
 
     @property
     def answers(self) -> list[Answer]:
