@@ -28,7 +28,8 @@ from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
 from security.files import write_private, write_public
 
-__all__ = ["DEFAULT_DAYS", "RSA_BITS", "make_application_certificate", "application_uri_of"]
+__all__ = ["DEFAULT_DAYS", "RSA_BITS", "make_application_certificate", "application_uri_of",
+           "file_format"]
 
 #: validity of a new application certificate, days
 DEFAULT_DAYS = 825
@@ -125,3 +126,9 @@ def application_uri_of(path: str | Path) -> str:
     if not uris:
         raise ValueError(f"{path}: the certificate names no application URI (subjectAltName URI)")
     return uris[0]
+
+
+def file_format(path: str | Path) -> str:
+    """``"pem"`` or ``"der"``: how a certificate or key file is encoded, from its content
+    (OPC UA libraries guess it from the file name, and ``NAME.key`` is PEM here)."""
+    return "pem" if Path(path).read_bytes().lstrip().startswith(b"-----") else "der"

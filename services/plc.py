@@ -26,7 +26,8 @@ restart of the service is a new epoch.
 Security: by default the server must offer ``Basic256Sha256`` with ``SignAndEncrypt``; the
 service presents ``--cert`` / ``--key`` (an application-instance certificate, see
 :mod:`security.opcua_certs`) and refuses a server whose certificate is not the one
-``--server-cert`` names.  ``--insecure`` connects without security (anonymous, None).
+``--server-cert`` names.  ``--opcua-insecure`` connects without security (anonymous,
+SecurityPolicy None); the shared ``--insecure`` is Zenoh's (plain TCP beyond loopback).
 
 Status counters (the periodic ``status`` line and the final ``stopped`` line):
 
@@ -63,12 +64,13 @@ from typing import Any
 
 from asyncua import Client, ua
 from asyncua.crypto.security_policies import SecurityPolicyBasic256Sha256
+from asyncua.crypto.uacrypto import CertProperties
 from cryptography import x509
 from cryptography.hazmat.primitives import serialization
 
 from devices.opcua_tags import MapError, MachineTracker, Note, PlcMap, load_map
 from security.event_keys import SigningKey, load_signing_key
-from security.opcua_certs import application_uri_of
+from security.opcua_certs import application_uri_of, file_format
 from services.service import (
     DEFAULT_SITE, DEFAULT_STATUS_PERIOD_S, ServiceRuntime, Stopper, ZenohOptions, log)
 
@@ -90,7 +92,9 @@ PROBE_PERIOD_S = 0.5
 REQUEST_TIMEOUT_S = 4.0
 #: waits between reconnection attempts, s (the last one repeats)
 RECONNECT_DELAYS_S = (0.2, 0.5, 1.0, 2.0, 5.0)
-#: the adapter's application URI when it presents no certificate (--insecure)
+#: how long the server keeps a session whose client went silent, ms
+SESSION_TIMEOUT_MS = 30_000
+#: the adapter's application URI when it presents no certificate (--opcua-insecure)
 DEFAULT_APPLICATION_URI = "urn:stockpile:plc-adapter"
 ERROR_KEYS = ("bad_samples", "unmapped_states", "missing_ids")
 _EPOCH = datetime(1970, 1, 1, tzinfo=timezone.utc)
@@ -145,7 +149,7 @@ class Config:
                                             ("--server-cert", self.server_cert)) if not value]
         if not self.insecure and missing:
             raise ValueError(f"Basic256Sha256 SignAndEncrypt needs {', '.join(missing)} "
-                             "(--insecure connects without security)")
+                             "(--opcua-insecure connects without security)")
         if not isinstance(self.queue_size, int) or self.queue_size < 1:
             raise ValueError(f"queue size must be a positive integer, got {self.queue_size!r}")
         if not self.settle_ms > 0:
@@ -163,7 +167,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--key", metavar="FILE", help="its private key (PEM)")
     parser.add_argument("--server-cert", metavar="FILE",
                         help="the server's certificate: connect only to the server holding it")
-    parser.add_argument("--insecure", action="store_true",
+    parser.add_argument("--opcua-insecure", action="store_true",
                         help="connect without security (anonymous, SecurityPolicy None)")
     parser.add_argument("--signing-key", metavar="FILE",
                         help="sign every published event with this Ed25519 key")
@@ -178,7 +182,7 @@ def config_from_args(args: argparse.Namespace) -> Config:
     """A :class:`Config` from parsed arguments (raises ValueError on bad values)."""
     return Config(endpoint=args.endpoint, map_path=args.map_path, site=args.site,
                   zenoh=ZenohOptions.from_args(args), status_period_s=args.status_period,
-                  insecure=args.insecure, cert=args.cert, key=args.key,
+                  insecure=args.opcua_insecure, cert=args.cert, key=args.key,
                   server_cert=args.server_cert, signing_key=args.signing_key,
                   queue_size=args.queue_size, settle_ms=args.settle_ms)
 
@@ -259,7 +263,9 @@ class _Adapter:
         self._last_arrival[machine] = time.monotonic()
 
     def status_change_notification(self, status) -> None:
-        self.runtime.log("subscription status", level="warning", status=str(status))
+        code = getattr(status, "Status", None)
+        self.runtime.log("subscription status", level="warning",
+                         status=getattr(code, "name", None) or str(status))
 
     def _emit(self, outputs: list, machine: str) -> None:
         for out in outputs:
@@ -302,6 +308,8 @@ class _Adapter:
         client = Client(config.endpoint, timeout=REQUEST_TIMEOUT_S)
         client.application_uri = self.application_uri
         client.name = client.description = "stockpile PLC adapter"
+        # a session left behind by a cut connection is dropped by the server soon after
+        client.session_timeout = SESSION_TIMEOUT_MS
         if not config.insecure:
             endpoints = await asyncio.wait_for(client.connect_and_get_server_endpoints(),
                                                REQUEST_TIMEOUT_S)
@@ -310,13 +318,14 @@ class _Adapter:
                       and e.SecurityMode == ua.MessageSecurityMode.SignAndEncrypt]
             if not secure:
                 raise _Fatal("the server does not offer Basic256Sha256 SignAndEncrypt "
-                             "(--insecure connects without security)")
+                             "(--opcua-insecure connects without security)")
             if not bytes(secure[0].ServerCertificate or b"").startswith(self.server_der):
                 raise _Fatal(f"the server's certificate is not the one {config.server_cert} holds")
-            await client.set_security(SecurityPolicyBasic256Sha256, certificate=config.cert,
-                                      private_key=config.key,
-                                      server_certificate=config.server_cert,
-                                      mode=ua.MessageSecurityMode.SignAndEncrypt)
+            files = {name: CertProperties(path, extension=file_format(path)) for name, path in (
+                ("certificate", config.cert), ("private_key", config.key),
+                ("server_certificate", config.server_cert))}
+            await client.set_security(SecurityPolicyBasic256Sha256,
+                                      mode=ua.MessageSecurityMode.SignAndEncrypt, **files)
         await asyncio.wait_for(client.connect(), REQUEST_TIMEOUT_S)
         return client
 

@@ -56,6 +56,7 @@ from typing import Any
 from asyncua import Server, ua
 
 from devices.opcua_tags import MapError, MachineMap, NodeRef, PlcMap, load_map
+from security.opcua_certs import file_format
 
 __all__ = ["APPLICATION_URI", "STATUS", "PlcServer", "node_id", "site_datetime", "main"]
 
@@ -201,8 +202,10 @@ class PlcServer:
         await server.set_application_uri(APPLICATION_URI)
         policies = []
         if self.certificate is not None:
-            await server.load_certificate(str(self.certificate))
-            await server.load_private_key(str(self.private_key))
+            await server.load_certificate(str(self.certificate),
+                                          format=file_format(self.certificate))
+            await server.load_private_key(str(self.private_key),
+                                          format=file_format(self.private_key))
             policies.append(ua.SecurityPolicyType.Basic256Sha256_SignAndEncrypt)
         if self.certificate is None or self.allow_none:
             policies.append(ua.SecurityPolicyType.NoSecurity)

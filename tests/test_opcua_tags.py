@@ -245,7 +245,7 @@ def test_a_totaliser_reset_to_zero_is_logged_and_counts_on_from_zero():
                          (t + 3 * S, "totaliser", 300), (t + 3 * S, "state", 0)])
     (ended,) = _published(out, "StackEnded")
     assert ended.tonnes == pytest.approx((2_000 + 300) * 0.1)
-    (note,) = [o for o in out if isinstance(o, Note)]
+    (note,) = [o for o in out if isinstance(o, Note) and o.msg.startswith("totaliser")]
     assert note.msg == "totaliser reset" and note.fields["from_raw"] == 12_000
     assert tracker.counters["totaliser_reset"] == 1 and "totaliser_wrapped" not in tracker.counters
 

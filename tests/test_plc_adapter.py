@@ -141,11 +141,12 @@ class Yard:
         wait_until(arrived, TIMEOUT_S, f"{per_source} in the ledger", interval_s=0.2)
 
     def close(self) -> list[int]:
-        """Stop everything (once); the adapter's and the ledger's exit codes."""
-        self.plc.kill()
+        """Stop everything (once, the adapter first); the adapter's and the ledger's exit
+        codes."""
         try:
             return stop_all(self.adapter, self.ledger)
         finally:
+            self.plc.kill()
             self.adapter = self.ledger = None
             self.router.close()
 
@@ -294,7 +295,7 @@ def test_a_server_restart_mid_pass_loses_and_doubles_nothing_over_sign_and_encry
 
 
 def test_bad_status_is_counted_not_published_and_a_totaliser_wrap_gives_the_tonnes(tmp_path):
-    """Insecure (``--insecure``) on loopback, events signed with ``--signing-key``.  Bad
+    """Insecure (``--opcua-insecure``) on loopback, events signed with ``--signing-key``.  Bad
     and uncertain encoder samples during a cut are counted and not published, and flag the
     cut; five passes through a 2,000 t totaliser that wraps twice give each pass the tonnes
     put on the belt."""
@@ -306,7 +307,7 @@ def test_bad_status_is_counted_not_published_and_a_totaliser_wrap_gives_the_tonn
     assert load_map(map_path).machines["stk1"].totaliser.rollover == 2_000_000
     rng = np.random.default_rng(SEED + 1)
     model = _encoders("bad status")
-    with Yard(tmp_path, map_path, (), ("--insecure", "--signing-key",
+    with Yard(tmp_path, map_path, (), ("--opcua-insecure", "--signing-key",
                                        str(tmp_path / "keys" / "plc.sign.key"))) as yard:
         plc = yard.plc
         (subscribed,) = yard.lines("subscribed")
