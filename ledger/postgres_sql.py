@@ -302,7 +302,8 @@ _FIXED_VIEWS = {
         {_float("body->>'luff_rad'")} AS luff_rad,
         {_float("body->>'slew_start_rad'")} AS slew_start_rad,
         {_float("body->>'slew_end_rad'")} AS slew_end_rad,
-        {_float("body->>'tonnes'")} AS belt_tonnes
+        {_float("body->>'tonnes'")} AS belt_tonnes,
+        {_float("body->>'bad_samples'")}::bigint AS bad_samples
     FROM {{s}}.event_log WHERE type = 'reclaim_cut'""",
     "stack_passes": f"""CREATE OR REPLACE VIEW {{s}}.stack_passes AS
     WITH s AS (SELECT * FROM {{s}}.event_log WHERE type = 'stack_started'),
@@ -315,7 +316,8 @@ _FIXED_VIEWS = {
         {{s}}.ns_timestamp(s.valid_time_ns) AS started,
         {{s}}.ns_timestamp(e.valid_time_ns) AS ended,
         {_float("e.body->>'tonnes'")} AS belt_tonnes,
-        s.global_seq AS started_global_seq, e.global_seq AS ended_global_seq
+        s.global_seq AS started_global_seq, e.global_seq AS ended_global_seq,
+        {_float("e.body->>'bad_samples'")}::bigint AS bad_samples
     FROM s LEFT JOIN e ON s.body->>'pile_id' = e.body->>'pile_id'
                       AND s.body->>'pass_id' = e.body->>'pass_id'""",
     "lots": f"""CREATE OR REPLACE VIEW {{s}}.lots AS

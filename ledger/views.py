@@ -11,8 +11,10 @@ view                one row per
 ``assays``          assay, one DOUBLE column per declared analyte (``"Fe"``, ``"SiO2"``
                     ...), the undeclared names it gives (``unrecognised_analytes``, JSON),
                     lateness in hours, whether it was superseded
-``reclaim_cuts``    reclaim cut (travel, luff, slew range, belt-scale tonnes)
-``stack_passes``    stacking pass (start joined with its end, when it has one)
+``reclaim_cuts``    reclaim cut (travel, luff, slew range, belt-scale tonnes, PLC samples
+                    with bad or uncertain status during it)
+``stack_passes``    stacking pass (start joined with its end, when it has one; the end's
+                    bad-status sample count)
 ``lots``            declared lot (planned tonnes, planned grade as JSON)
 ==================  =====================================================================
 
@@ -164,7 +166,8 @@ def view_statements(declared: Iterable[str], stored: Iterable[str] = ()) -> list
         coalesce(TRY_CAST(body->>'luff_rad' AS DOUBLE), 0) AS luff_rad,
         coalesce(TRY_CAST(body->>'slew_start_rad' AS DOUBLE), 0) AS slew_start_rad,
         coalesce(TRY_CAST(body->>'slew_end_rad' AS DOUBLE), 0) AS slew_end_rad,
-        coalesce(TRY_CAST(body->>'tonnes' AS DOUBLE), 0) AS belt_tonnes
+        coalesce(TRY_CAST(body->>'tonnes' AS DOUBLE), 0) AS belt_tonnes,
+        coalesce(TRY_CAST(body->>'bad_samples' AS BIGINT), 0) AS bad_samples
     FROM event_log WHERE type = 'reclaim_cut'""",
         """CREATE OR REPLACE VIEW stack_passes AS
     WITH s AS (SELECT * FROM event_log WHERE type = 'stack_started'),
@@ -177,7 +180,8 @@ def view_statements(declared: Iterable[str], stored: Iterable[str] = ()) -> list
         make_timestamp_ns(s.valid_time_ns) AS started,
         make_timestamp_ns(e.valid_time_ns) AS ended,
         coalesce(TRY_CAST(e.body->>'tonnes' AS DOUBLE), 0) AS belt_tonnes,
-        s.global_seq AS started_global_seq, e.global_seq AS ended_global_seq
+        s.global_seq AS started_global_seq, e.global_seq AS ended_global_seq,
+        coalesce(TRY_CAST(e.body->>'bad_samples' AS BIGINT), 0) AS bad_samples
     FROM s LEFT JOIN e ON s.body->>'pile_id' = e.body->>'pile_id'
                       AND s.body->>'pass_id' = e.body->>'pass_id'""",
         """CREATE OR REPLACE VIEW lots AS

@@ -39,12 +39,13 @@ BASE_IMPORTS = frozenset({"google", "foxglove_schemas_protobuf", "numpy", "duckd
 #: extra -> the top-level import names of the third-party packages it adds to the base
 #: install (pyproject.toml's optional-dependencies install them)
 EXTRA_IMPORTS: dict[str, frozenset[str]] = {
-    "edge": frozenset({"zenoh", "serial", "filterpy", "scipy", "pymap3d"}),
+    "edge": frozenset({"zenoh", "serial", "filterpy", "scipy", "pymap3d", "asyncua"}),
     "ledger": frozenset({"zenoh"}),
     "projector": frozenset({"zenoh", "scipy"}),
     "dashboard": frozenset({"zenoh", "scipy", "rerun", "rerun_cli"}),
-    # sim.runner emulates the scanner with services.scanner, which imports serial
-    "sim": frozenset({"zenoh", "scipy", "pymap3d", "serial"}),
+    # sim.runner emulates the scanner with services.scanner, which imports serial;
+    # sim.opcua_server serves the machine PLCs with asyncua
+    "sim": frozenset({"zenoh", "scipy", "pymap3d", "serial", "asyncua"}),
 }
 
 

@@ -46,6 +46,11 @@ def _services_gnss() -> ModuleType:
     return gnss
 
 
+def _services_plc() -> ModuleType:
+    from services import plc  # deferred: its extra may be missing
+    return plc
+
+
 def _services_localizer() -> ModuleType:
     from services import localizer  # deferred: its extra may be missing
     return localizer
@@ -89,6 +94,9 @@ SERVICE_MODULES: dict[str, Service] = {
                        "read LMS200 telegrams from a serial port, publish scans"),
     "gnss": Service(_services_gnss, "edge",
                     "read NMEA GGA from a serial port, publish location fixes"),
+    "plc": Service(_services_plc, "edge",
+                   "subscribe to the machines' PLC tags over OPC UA, publish joint readings, "
+                   "passes and cuts"),
     "localizer": Service(_services_localizer, "edge",
                          "fuse joint readings and GNSS fixes (UKF), publish joint estimates "
                          "and poses"),

@@ -221,19 +221,21 @@ class StackStarted(_message.Message):
     def __init__(self, time: _Optional[_Union[datetime.datetime, _timestamp_pb2.Timestamp, _Mapping]] = ..., pile_id: _Optional[str] = ..., pass_id: _Optional[str] = ..., lot_id: _Optional[str] = ..., machine_id: _Optional[str] = ..., pattern: _Optional[_Union[StackPattern, str]] = ..., start_y_m: _Optional[float] = ..., end_y_m: _Optional[float] = ...) -> None: ...
 
 class StackEnded(_message.Message):
-    __slots__ = ("time", "pile_id", "pass_id", "tonnes")
+    __slots__ = ("time", "pile_id", "pass_id", "tonnes", "bad_samples")
     TIME_FIELD_NUMBER: _ClassVar[int]
     PILE_ID_FIELD_NUMBER: _ClassVar[int]
     PASS_ID_FIELD_NUMBER: _ClassVar[int]
     TONNES_FIELD_NUMBER: _ClassVar[int]
+    BAD_SAMPLES_FIELD_NUMBER: _ClassVar[int]
     time: _timestamp_pb2.Timestamp
     pile_id: str
     pass_id: str
     tonnes: float
-    def __init__(self, time: _Optional[_Union[datetime.datetime, _timestamp_pb2.Timestamp, _Mapping]] = ..., pile_id: _Optional[str] = ..., pass_id: _Optional[str] = ..., tonnes: _Optional[float] = ...) -> None: ...
+    bad_samples: int
+    def __init__(self, time: _Optional[_Union[datetime.datetime, _timestamp_pb2.Timestamp, _Mapping]] = ..., pile_id: _Optional[str] = ..., pass_id: _Optional[str] = ..., tonnes: _Optional[float] = ..., bad_samples: _Optional[int] = ...) -> None: ...
 
 class ReclaimCut(_message.Message):
-    __slots__ = ("pile_id", "cut_id", "bench_id", "machine_id", "start_time", "end_time", "travel_m", "luff_rad", "slew_start_rad", "slew_end_rad", "tonnes")
+    __slots__ = ("pile_id", "cut_id", "bench_id", "machine_id", "start_time", "end_time", "travel_m", "luff_rad", "slew_start_rad", "slew_end_rad", "tonnes", "bad_samples")
     PILE_ID_FIELD_NUMBER: _ClassVar[int]
     CUT_ID_FIELD_NUMBER: _ClassVar[int]
     BENCH_ID_FIELD_NUMBER: _ClassVar[int]
@@ -245,6 +247,7 @@ class ReclaimCut(_message.Message):
     SLEW_START_RAD_FIELD_NUMBER: _ClassVar[int]
     SLEW_END_RAD_FIELD_NUMBER: _ClassVar[int]
     TONNES_FIELD_NUMBER: _ClassVar[int]
+    BAD_SAMPLES_FIELD_NUMBER: _ClassVar[int]
     pile_id: str
     cut_id: str
     bench_id: str
@@ -256,7 +259,8 @@ class ReclaimCut(_message.Message):
     slew_start_rad: float
     slew_end_rad: float
     tonnes: float
-    def __init__(self, pile_id: _Optional[str] = ..., cut_id: _Optional[str] = ..., bench_id: _Optional[str] = ..., machine_id: _Optional[str] = ..., start_time: _Optional[_Union[datetime.datetime, _timestamp_pb2.Timestamp, _Mapping]] = ..., end_time: _Optional[_Union[datetime.datetime, _timestamp_pb2.Timestamp, _Mapping]] = ..., travel_m: _Optional[float] = ..., luff_rad: _Optional[float] = ..., slew_start_rad: _Optional[float] = ..., slew_end_rad: _Optional[float] = ..., tonnes: _Optional[float] = ...) -> None: ...
+    bad_samples: int
+    def __init__(self, pile_id: _Optional[str] = ..., cut_id: _Optional[str] = ..., bench_id: _Optional[str] = ..., machine_id: _Optional[str] = ..., start_time: _Optional[_Union[datetime.datetime, _timestamp_pb2.Timestamp, _Mapping]] = ..., end_time: _Optional[_Union[datetime.datetime, _timestamp_pb2.Timestamp, _Mapping]] = ..., travel_m: _Optional[float] = ..., luff_rad: _Optional[float] = ..., slew_start_rad: _Optional[float] = ..., slew_end_rad: _Optional[float] = ..., tonnes: _Optional[float] = ..., bad_samples: _Optional[int] = ...) -> None: ...
 
 class Assay(_message.Message):
     __slots__ = ("assay_id", "lot_id", "window_start", "window_end", "analytes", "moisture_pct", "bulk_density_t_m3", "status", "supersedes", "lab_id", "reported_time")
