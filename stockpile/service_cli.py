@@ -46,6 +46,11 @@ def _services_gnss() -> ModuleType:
     return gnss
 
 
+def _services_lab() -> ModuleType:
+    from services import lab  # deferred: its extra may be missing
+    return lab
+
+
 def _services_localizer() -> ModuleType:
     from services import localizer  # deferred: its extra may be missing
     return localizer
@@ -89,6 +94,8 @@ SERVICE_MODULES: dict[str, Service] = {
                        "read LMS200 telegrams from a serial port, publish scans"),
     "gnss": Service(_services_gnss, "edge",
                     "read NMEA GGA from a serial port, publish location fixes"),
+    "lab": Service(_services_lab, "edge",
+                   "watch a LIMS drop folder, publish each result row as an assay, exactly once"),
     "localizer": Service(_services_localizer, "edge",
                          "fuse joint readings and GNSS fixes (UKF), publish joint estimates "
                          "and poses"),
