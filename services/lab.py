@@ -30,11 +30,14 @@ the journal holds is a duplicate: moved to ``DIR/archive/duplicates/`` and logge
 ``--resend`` publishes every journaled assay again (after a ledger outage that outlived
 the adapter's publisher cache).
 
+A row whose assay (the same id and values) an earlier file published is not published
+again (a cumulative export): it is listed with the refused rows as ``already published``.
 Processed files go to ``DIR/archive/<name>`` (``<stem>.<hash12><suffix>`` when that name is
 taken); the rows refused are listed in ``DIR/archive/<name>.refused.csv`` (``line,reason``).
 
 Status counters (the ``status`` and ``stopped`` lines): ``files``, ``published``,
-``refused_rows`` (error), ``duplicates``, ``republished``, ``unreadable`` (error).
+``refused_rows`` (error), ``repeated_rows``, ``duplicates``, ``republished``,
+``unreadable`` (error).
 The service exits 0 on SIGINT/SIGTERM and 2 with one line for a bad folder, journal,
 key or Zenoh session.  For tests only, the environment variable :data:`HALT_ENV` set to
 one of :data:`HALT_POINTS` makes it log ``halting`` at that step and wait there to be
@@ -59,7 +62,7 @@ from typing import Any
 
 from schemas import pb
 from security.event_keys import SigningKey, load_signing_key
-from services.lims_map import LimsMap, RefusedRow, parse_map, rows_to_assays
+from services.lims_map import LimsMap, RefusedRow, RowAssay, parse_map, rows_to_assays
 from services.service import (
     DEFAULT_SITE,
     DEFAULT_STATUS_PERIOD_S,
@@ -202,12 +205,22 @@ class Journal:
         self.path = path
         self.files: dict[str, FileEntry] = {}
         self.epoch: int | None = None
+        self._origins: dict[bytes, str] = {}  # sha256 of a published payload -> file name
         path.parent.mkdir(parents=True, exist_ok=True)
         if path.exists():
             self._load(source)
         if self.epoch is None:
             self.epoch = time.time_ns()
             self._write({"kind": "stream", "source": source, "epoch": self.epoch})
+
+    def origin_of(self, payload: bytes) -> str | None:
+        """The name of the file an identical assay payload was published from, or None."""
+        return self._origins.get(hashlib.sha256(payload).digest())
+
+    def _add(self, entry: FileEntry) -> None:
+        self.files[entry.sha256] = entry
+        for payload in entry.payloads:
+            self._origins.setdefault(hashlib.sha256(payload).digest(), entry.name)
 
     @property
     def next_seq(self) -> int:
@@ -241,10 +254,10 @@ class Journal:
                                       f"not {source!r}")
             self.epoch = int(record["epoch"])
         elif kind == "begun":
-            self.files[record["sha256"]] = FileEntry(
+            self._add(FileEntry(
                 record["sha256"], record["name"], int(record["first_seq"]),
                 [base64.b64decode(p) for p in record["payloads"]],
-                [RefusedRow(int(line), str(reason)) for line, reason in record["refused"]])
+                [RefusedRow(int(line), str(reason)) for line, reason in record["refused"]]))
         elif kind == "published":
             entry = self.files[record["sha256"]]
             entry.published, entry.archive = True, record["archive"]
@@ -269,7 +282,7 @@ class Journal:
                      "first_seq": entry.first_seq,
                      "payloads": [base64.b64encode(p).decode() for p in entry.payloads],
                      "refused": [[r.line, r.reason] for r in entry.refused]})
-        self.files[entry.sha256] = entry
+        self._add(entry)
 
     def mark_published(self, entry: FileEntry, archive: str) -> None:
         self._write({"kind": "published", "sha256": entry.sha256, "archive": archive})
@@ -410,8 +423,9 @@ class LabAdapter:
             self._duplicate(path, digest, known)
             return
         assays, refused = rows_to_assays(data, self.config.lims)
-        payloads = [row.assay.SerializeToString(deterministic=True) for row in assays]
-        entry = FileEntry(digest, path.name, self.journal.next_seq, payloads, refused)
+        payloads, repeated = self._fresh(assays)
+        entry = FileEntry(digest, path.name, self.journal.next_seq, payloads,
+                          sorted(refused + repeated, key=lambda r: r.line))
         self.journal.begin(entry)
         _halt(self.runtime, "begun")
         self._publish(entry, again=False)
@@ -420,9 +434,25 @@ class LabAdapter:
         self.status.add("files")
         if refused:
             self.status.add("refused_rows", len(refused))
+        if repeated:
+            self.status.add("repeated_rows", len(repeated))
         self.runtime.log("file done", file=path.name, sha256=digest[:16], assays=len(payloads),
-                         refused=len(refused), first_seq=entry.first_seq,
-                         archive=entry.archive)
+                         refused=len(refused), repeated=len(repeated),
+                         first_seq=entry.first_seq, archive=entry.archive)
+
+    def _fresh(self, assays: list[RowAssay]) -> tuple[list[bytes], list[RefusedRow]]:
+        """The payloads of the assays no earlier file published, and a row for each one an
+        earlier file did (a cumulative export repeats the results it already gave)."""
+        payloads, repeated = [], []
+        for row in assays:
+            payload = row.assay.SerializeToString(deterministic=True)
+            origin = self.journal.origin_of(payload)
+            if origin is None:
+                payloads.append(payload)
+            else:
+                repeated.append(RefusedRow(row.line, f"already published from {origin} "
+                                           "(the same result)"))
+        return payloads, repeated
 
     def _publish(self, entry: FileEntry, *, again: bool) -> None:
         """Publish a file's assays with their journaled sequence numbers."""

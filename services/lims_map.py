@@ -5,41 +5,14 @@ Everything here is pure: :func:`parse_map` reads the map's TOML text, :func:`row
 turns the bytes of one export file into assays and refused rows.  ``services.lab`` does the
 I/O (the drop folder, the journal, publishing).
 
-The map (``docs/lims.example.toml`` is a complete, commented example)::
-
-    [file]
-    format = "csv"            # "csv", or "json" (a list of objects, keys as the columns)
-    encoding = "utf-8"        # any Python codec name
-    delimiter = ";"           # csv: one character
-    decimal = ","             # csv: "." or ","
-    header_row = 1            # csv: the line of the header; the lines above it are skipped
-
-    [time]
-    format = "iso8601"        # or a strptime format, e.g. "%d/%m/%Y %H:%M"
-    timezone = "Australia/Perth"   # for times written without an offset
-
-    [columns]
-    sample_id = "SampleID"    # -> assay_id (see assay_id_for)
-    lot = "Lot"
-    window_start = "SampledFrom"
-    window_end = "SampledTo"
-    status = "Status"
-    reported_time = "Authorised"
-    revision = "Rev"          # optional; or supersedes = "Replaces"
-    moisture = "H2O"          # optional, mass %
-    bulk_density = { column = "BD", unit = "t/m3" }   # optional; t/m3, g/cm3 or kg/m3
-    lab_id = "Lab"            # optional; else [lab] id
-
-    [lab]
-    id = "lab1"
-
-    [status]                  # the LIMS's codes -> PROVISIONAL or FINAL
-    P = "PROVISIONAL"
-    F = "FINAL"
-
-    [analytes]                # analyte = { column, unit }: unit "%", "ppm" or "g/t"
-    Fe = { column = "Fe_pct", unit = "%" }
-    P = { column = "P_ppm", unit = "ppm" }
+The map's sections (``docs/lims.example.toml`` is a complete map with every key explained;
+``docs/integration.md`` how to write one): ``[file]`` (``format`` csv or json, ``encoding``,
+and for CSV ``delimiter``, ``decimal`` mark and ``header_row``), ``[time]`` (``format``:
+``iso8601`` or a strptime format; the ``timezone`` of times without an offset),
+``[columns]`` (``sample_id``, ``lot``, ``window_start``, ``window_end``, ``status``,
+``reported_time``; optional ``revision``, ``supersedes``, ``moisture``, ``bulk_density``
+with its unit, ``lab_id``), ``[lab] id``, ``[status]`` (LIMS code -> PROVISIONAL or
+FINAL) and ``[analytes]`` (analyte -> ``{ column, unit }``, unit %, ppm or g/t).
 
 The assay id of a result (:func:`assay_id_for`) is the sample id for revision 0 and
 ``<sample>-r<N>`` for revision N > 0; revision N supersedes revision N - 1 (``<sample>`` for
@@ -66,11 +39,9 @@ from schemas.events import make_event, set_timestamp_ns
 from schemas.times import MAX_TIME_NS, MIN_TIME_NS, NS_PER_S
 from schemas.validate import InvalidEvent, check_event
 
-__all__ = [
-    "FORMATS", "ANALYTE_UNITS", "DENSITY_UNITS", "STATUSES", "ISO8601", "AnalyteColumn",
-    "LimsMap", "RowAssay", "RefusedRow", "parse_map", "assay_id_for", "superseded_id",
-    "parse_time_ns", "parse_number", "rows_to_assays",
-]
+__all__ = ["FORMATS", "ANALYTE_UNITS", "DENSITY_UNITS", "STATUSES", "ISO8601", "AnalyteColumn",
+           "LimsMap", "RowAssay", "RefusedRow", "parse_map", "assay_id_for", "superseded_id",
+           "parse_time_ns", "parse_number", "row_assay", "rows_to_assays"]
 
 #: File formats a map may name.
 FORMATS = ("csv", "json")
@@ -94,7 +65,7 @@ _ISO_RE = re.compile(
     r"\s*(Z|[+-]\d{2}(?::?\d{2})?)?", re.IGNORECASE)
 _NUMBER_RE = {".": re.compile(r"[+-]?(\d+(\.\d*)?|\.\d+)([eE][+-]?\d+)?"),
               ",": re.compile(r"[+-]?(\d+(,\d*)?|,\d+)([eE][+-]?\d+)?")}
-_EPOCH = datetime(1970, 1, 1, tzinfo=timezone.utc)
+_SPACE_RE = re.compile(r"\s*")
 
 
 # -- the map ------------------------------------------------------------------------------
@@ -111,21 +82,10 @@ class AnalyteColumn:
 
 @dataclass(frozen=True)
 class LimsMap:
-    """A parsed ``lims.toml`` (see the module docstring for the keys).
-
-    Attributes
-    ----------
-    columns : dict
-        Field (``sample_id``, ``lot``, ``window_start``, ...) -> column name; the optional
-        fields only when mapped.
-    analytes : tuple of AnalyteColumn
-    status_codes : dict
-        LIMS code, stripped and case-folded -> ``PROVISIONAL`` or ``FINAL``.
-    lab_id : str
-        The lab id when no ``lab_id`` column is mapped.
-    density_unit : str
-        Unit of the ``bulk_density`` column (:data:`DENSITY_UNITS`).
-    """
+    """A parsed ``lims.toml``: ``columns`` maps a field (``sample_id``, ``lot``, ...; the
+    optional ones only when mapped) to its column; ``status_codes`` a LIMS code (stripped,
+    case-folded) to ``PROVISIONAL`` or ``FINAL``; ``lab_id`` is the lab when no ``lab_id``
+    column is mapped; ``tz`` the zone of ``timezone``; the rest as the TOML keys."""
 
     columns: dict[str, str]
     analytes: tuple[AnalyteColumn, ...]
@@ -446,10 +406,16 @@ def _time(row: dict, column: str, lims: LimsMap) -> int:
         raise _RowError(f"{column}: {exc}") from None
 
 
+def _optional(row: dict, lims: LimsMap, name: str) -> bool:
+    """Whether the map names a column for ``name`` and the row has a value in it."""
+    column = lims.column(name)
+    return column is not None and _cell(row, column, required=False) not in (None, "")
+
+
 def _revision(row: dict, lims: LimsMap) -> int:
-    column = lims.column("revision")
-    if column is None or _cell(row, column, required=False) in (None, ""):
+    if not _optional(row, lims, "revision"):
         return 0
+    column = lims.columns["revision"]
     value = _cell(row, column)
     text = str(value)
     if isinstance(value, bool) or not re.fullmatch(r"\d{1,6}", text):
@@ -492,18 +458,16 @@ def row_assay(row: dict, lims: LimsMap) -> tuple[tuple[str, int], Any]:
         raise _RowError(f"{col['window_end']}: the sampling window ends before it starts")
     if reported_ns < end_ns:
         raise _RowError(f"{col['reported_time']}: reported before the sampling window ends")
-    supersedes = superseded_id(sample, revision)
-    if lims.column("supersedes") and _cell(row, col["supersedes"], required=False):
-        supersedes = _text_cell(row, col["supersedes"])
+    supersedes = (_text_cell(row, col["supersedes"]) if _optional(row, lims, "supersedes")
+                  else superseded_id(sample, revision))
     msg = pb.Assay(assay_id=assay_id_for(sample, revision), lot_id=_text_cell(row, col["lot"]),
                    status=getattr(pb, _status(row, lims)), supersedes=supersedes,
                    lab_id=(_text_cell(row, col["lab_id"]) if lims.column("lab_id")
                            else lims.lab_id))
     msg.analytes.update(_analytes(row, lims))
-    if lims.column("moisture") and _cell(row, col["moisture"], required=False) not in (None, ""):
+    if _optional(row, lims, "moisture"):
         msg.moisture_pct = float(_number(row, col["moisture"], lims.decimal))
-    if lims.column("bulk_density") and _cell(row, col["bulk_density"],
-                                             required=False) not in (None, ""):
+    if _optional(row, lims, "bulk_density"):
         density = _number(row, col["bulk_density"], lims.decimal)
         msg.bulk_density_t_m3 = float(density * DENSITY_UNITS[lims.density_unit])
     set_timestamp_ns(msg.window_start, start_ns)
@@ -554,17 +518,17 @@ def _mapped_columns(lims: LimsMap) -> list[str]:
 def _json_rows(text: str) -> tuple[list[tuple[int, dict]], list[RefusedRow]]:
     """(line of the object's start, object) of each item of a JSON list export."""
     decoder = json.JSONDecoder(parse_float=Decimal)
-    pos = len(text) - len(text.lstrip())
+    lines = _LineCounter(text)
+    pos = _SPACE_RE.match(text).end()
     if not text.startswith("[", pos):
-        return [], [RefusedRow(text.count("\n", 0, pos) + 1, "not a JSON list of objects")]
+        return [], [RefusedRow(lines.at(pos), "not a JSON list of objects")]
     rows: list[tuple[int, dict]] = []
     refused: list[RefusedRow] = []
-    pos += 1
+    pos = _SPACE_RE.match(text, pos + 1).end()
+    if text.startswith("]", pos):
+        return rows, refused
     while True:
-        pos += len(text[pos:]) - len(text[pos:].lstrip())
-        if text.startswith("]", pos):
-            return rows, refused
-        line = text.count("\n", 0, pos) + 1
+        line = lines.at(pos)
         try:
             item, pos = decoder.raw_decode(text, pos)
         except json.JSONDecodeError as exc:
@@ -574,13 +538,27 @@ def _json_rows(text: str) -> tuple[list[tuple[int, dict]], list[RefusedRow]]:
             rows.append((line, item))
         else:
             refused.append(RefusedRow(line, "an item that is not an object"))
-        pos += len(text[pos:]) - len(text[pos:].lstrip())
-        if text.startswith(",", pos):
-            pos += 1
-        elif not text.startswith("]", pos):
-            refused.append(RefusedRow(text.count("\n", 0, pos) + 1,
+        pos = _SPACE_RE.match(text, pos).end()
+        if text.startswith("]", pos):
+            return rows, refused
+        if not text.startswith(",", pos):
+            refused.append(RefusedRow(lines.at(pos),
                                       "the rest of the file is not JSON: expected ',' or ']'"))
             return rows, refused
+        pos = _SPACE_RE.match(text, pos + 1).end()
+
+
+class _LineCounter:
+    """Line numbers of increasing positions in a text, counted once."""
+
+    def __init__(self, text: str) -> None:
+        self.text, self.pos, self.line = text, 0, 1
+
+    def at(self, pos: int) -> int:
+        """The 1-based line of ``pos`` (positions must not decrease)."""
+        self.line += self.text.count("\n", self.pos, pos)
+        self.pos = pos
+        return self.line
 
 
 def rows_to_assays(data: bytes, lims: LimsMap) -> tuple[list[RowAssay], list[RefusedRow]]:

@@ -220,17 +220,21 @@ def test_the_same_file_twice_also_under_another_name_goes_in_once(yard, tmp_path
     stopped = _lines(log, "stopped")[-1]
     assert (stopped["files"], stopped["published"], stopped["duplicates"]) == ("1", "3", "2")
 
-    # a restart: the finished file is not published again, the stream goes on
+    # a restart: the finished file is not published again, the stream goes on; a
+    # cumulative export repeating S2 adds only its new result
     process = _start_lab(yard, source, folder, log)
     try:
-        _drop(folder, "batch2.csv", "\n".join([HEADER, _row("S4", 4)]).encode())
-        _wait_log(log, "file done", 1, process)
+        _drop(folder, "batch2.csv", "\n".join([HEADER, _row("S2", 2), _row("S4", 4)]).encode())
+        (done,) = _wait_log(log, "file done", 1, process)
         yard.wait_count(source, 4)
     finally:
         epoch2, count2 = _stop_and_published(process, log)
     assert (epoch2, count2) == (epoch, 4)
+    assert (done["assays"], done["repeated"], done["refused"]) == ("1", "1", "0")
     assert _lines(log, "republished") == []
     _check_stream(yard, source, ["S1", "S2", "S3", "S4"], epoch)
+    repeated = (archive / "batch2.csv.refused.csv").read_text().splitlines()
+    assert repeated[1:] == ["2,already published from batch1.csv (the same result)"]
 
 
 def test_bad_rows_are_refused_beside_the_file_and_the_good_rows_go_in(yard, tmp_path):
