@@ -10,6 +10,7 @@ drawn from the run's seed (``--seed N`` or ``STOCKPILE_TEST_SEED=N``; it is prin
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import subprocess
 from dataclasses import dataclass
@@ -44,7 +45,7 @@ from seeding import session_seed
 
 SEED = session_seed()
 SITE = "labtest"
-TIMEOUT_S = 60.0
+TIMEOUT_S = 120.0  # generous: a loaded machine starts a process in tens of seconds
 T0_NS = utc("2026-11-20T00:00:00Z")
 NS_PER_H = 3600 * 10**9
 SOURCES = ("lab-dup", "lab-bad", "lab-sim", *(f"lab-{p}" for p in LAB.HALT_POINTS))
@@ -313,6 +314,23 @@ def test_the_simulators_lims_files_go_in_as_its_assays_revisions_superseding(yar
                            for m in revised)
     assert {m.assay_id for m in msgs} >= {m.supersedes for m in revised}
     assert len(list((folder / "archive").glob("*.csv"))) == len(batches)
+
+    # --resend publishes every journaled assay again with its identity: nothing doubles
+    # (the file after them arrives after them: one publisher, one key, in order)
+    process = _start_lab(yard, source, folder, log, "--resend", map_path=map_path)
+    try:
+        again = _lines(log, "republished")
+        assert [int(line["count"]) for line in again] == [len(b) for b in batches]
+        last = results[-1]
+        extra = [dataclasses.replace(last, assay_id="AS-EXTRA", supersedes="")]
+        writer.write(last.reported_ns, extra)
+        _wait_log(log, "file done", 1, process)
+        yard.wait_count(source, len(results) + 1)
+    finally:
+        assert _stop_and_published(process, log) == (epoch, len(results) + 1)
+    assert _lines(log, "stopped")[-1]["republished"] == str(len(results))
+    _check_stream(yard, source, [*(writer.assay_ids[r.assay_id] for r in results),
+                                 "AS-EXTRA"], epoch)
 
 
 # -- a crash between reading and archiving -----------------------------------------------
