@@ -341,13 +341,15 @@ def refused_csv(refused: list[RefusedRow]) -> str:
 class _Folder:
     """The files of the drop folder that are ready: matching names, settled."""
 
-    def __init__(self, directory: Path, suffix: str, settle_s: float) -> None:
+    def __init__(self, directory: Path, suffix: str, settle_s: float,
+                 clock=time.monotonic) -> None:
         self.directory, self.suffix, self.settle_s = directory, suffix, settle_s
+        self.clock = clock  # seconds, monotonic
         self._seen: dict[str, tuple[tuple[int, int], float]] = {}
 
     def ready(self) -> list[Path]:
         """Names in name order whose size and mtime are unchanged for ``settle_s``."""
-        now = time.monotonic()
+        now = self.clock()
         out, seen = [], {}
         for entry in sorted(os.scandir(self.directory), key=lambda e: e.name):
             if entry.name.startswith(".") or not entry.name.lower().endswith(self.suffix):

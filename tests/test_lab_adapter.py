@@ -434,3 +434,23 @@ def test_bad_options_are_one_line_and_exit_2(tmp_path):
     assert out.returncode == 2
     (line,) = [ln for ln in out.stderr.splitlines() if ln.startswith("ts=")]
     assert "cannot start" in line and "no such folder" in line
+
+
+def test_the_folder_takes_matching_names_once_they_have_settled(tmp_path):
+    for name in ("a.csv", "B.CSV", ".hidden.csv", "c.csv.part", "d.json"):
+        (tmp_path / name).write_text("x")
+    (tmp_path / "sub.csv").mkdir()
+    at_once = LAB._Folder(tmp_path, ".csv", 0.0)  # noqa: SLF001 - the rule itself
+    assert [p.name for p in at_once.ready()] == ["B.CSV", "a.csv"]
+    now = [100.0]  # a clock the test moves, seconds
+    folder = LAB._Folder(tmp_path, ".csv", 5.0, clock=lambda: now[0])  # noqa: SLF001
+    assert folder.ready() == []                   # first sight starts each file's clock
+    now[0] = 104.9
+    assert folder.ready() == []
+    os.utime(tmp_path / "a.csv", ns=(1, 2))       # a.csv changes: its clock restarts
+    now[0] = 105.0
+    assert [p.name for p in folder.ready()] == ["B.CSV"]
+    now[0] = 109.9
+    assert [p.name for p in folder.ready()] == ["B.CSV"]
+    now[0] = 110.0
+    assert [p.name for p in folder.ready()] == ["B.CSV", "a.csv"]
