@@ -51,6 +51,11 @@ def _services_plc() -> ModuleType:
     return plc
 
 
+def _services_lab() -> ModuleType:
+    from services import lab  # deferred: its extra may be missing
+    return lab
+
+
 def _services_localizer() -> ModuleType:
     from services import localizer  # deferred: its extra may be missing
     return localizer
@@ -91,12 +96,14 @@ SERVICE_MODULES: dict[str, Service] = {
     "router": Service(_services_router, "ledger",
                       "the site's Zenoh router: mutual TLS only, access control by role"),
     "scanner": Service(_services_scanner, "edge",
-                       "read LMS200 telegrams from a serial port, publish scans"),
+                       "read LMS200 telegrams from a serial port or LMS1xx/5xx/TiM over TCP, publish scans"),
     "gnss": Service(_services_gnss, "edge",
                     "read NMEA GGA from a serial port, publish location fixes"),
     "plc": Service(_services_plc, "edge",
                    "subscribe to the machines' PLC tags over OPC UA, publish joint readings, "
                    "passes and cuts"),
+    "lab": Service(_services_lab, "edge",
+                   "watch a LIMS drop folder, publish each result row as an assay, exactly once"),
     "localizer": Service(_services_localizer, "edge",
                          "fuse joint readings and GNSS fixes (UKF), publish joint estimates "
                          "and poses"),
