@@ -173,10 +173,11 @@ class ScanGaps:
     microsecond counter (32 bits).
 
     The counter's gap is the count, modulo 2**16.  When the device time says more scans
-    passed than half the counter's range (a long cut: over 5 min at 100 Hz), the time
-    gives the count instead (``elapsed * frequency - 1``).  A counter that repeats (a
-    polled scan sent again) loses nothing; a device time that went back (the device
-    restarted) is counted in :attr:`restarts` and loses nothing it can tell.
+    passed than half the counter's range (a long cut: over 5.5 min at 100 Hz), the time
+    gives the count instead (``elapsed * frequency - 1``), up to half the microsecond
+    counter's range (35 min).  A counter that repeats (a polled scan sent again) loses
+    nothing; a device time that went back, or on by more than 35 min (the device
+    restarted), is counted in :attr:`restarts` and loses nothing it can tell.
     """
 
     def __init__(self) -> None:
@@ -208,6 +209,7 @@ class _Scan:
     intensities: np.ndarray | None
     latency_ns: int
     arrived_s: float
+    arrived_ns: int | None      # the wall clock's reading of the arrival (wall mode)
 
 
 class _TcpScanPipeline(DevicePipeline):
@@ -242,8 +244,10 @@ class _TcpScanPipeline(DevicePipeline):
         self.sync_counters(self.reader, "checksum_errors", "broken_frames", "garbage_bytes")
         if payloads:
             self.status.add("telegrams", len(payloads))
+        # the wall clock is read once a read: telegrams that arrived together share it
+        arrived_ns = self.site_time.at(arrived_s) if self.site_time.mode == "wall" else None
         for payload in payloads:
-            self._telegram(payload, arrived_s)
+            self._telegram(payload, arrived_s, arrived_ns)
         self._release()
 
     def idle(self) -> None:
@@ -253,7 +257,7 @@ class _TcpScanPipeline(DevicePipeline):
     def finish(self) -> None:
         self._release(final=True)
 
-    def _telegram(self, payload: bytes, arrived_s: float) -> None:
+    def _telegram(self, payload: bytes, arrived_s: float, arrived_ns: int | None) -> None:
         kind, name = cola.command_of(payload)
         if name == "LMDscandata" and kind == "sEA":
             self._log_once("sEA", "scan data output on", answer=payload.decode("latin-1")
@@ -285,7 +289,7 @@ class _TcpScanPipeline(DevicePipeline):
         self.log_clock_when_ready()
         geometry = ScanField(start, start + step * (n - 1), n)
         self._waiting.append(_Scan(ranges, geometry, self._intensities(scan, n),
-                                   self._latency_ns(scan), arrived_s))
+                                   self._latency_ns(scan), arrived_s, arrived_ns))
 
     def _latency_ns(self, scan: cola.ScanTelegram) -> int:
         if scan.latency_us <= MAX_LATENCY_US:
@@ -307,7 +311,9 @@ class _TcpScanPipeline(DevicePipeline):
         now_s = time.monotonic()
         while self._waiting:
             scan = self._waiting[0]
-            arrived_ns = self.site_time.interpolate(scan.arrived_s)
+            arrived_ns = scan.arrived_ns
+            if arrived_ns is None:
+                arrived_ns = self.site_time.interpolate(scan.arrived_s)
             if arrived_ns is None:
                 if not (final or now_s - scan.arrived_s > MAX_TICK_WAIT_S):
                     return

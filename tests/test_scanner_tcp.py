@@ -229,12 +229,14 @@ def test_scan_gaps_count_the_missing_counters_across_the_wrap():
     assert gaps.seen(65_531, 1_000_000 + period_us, 25.0) == 0
     assert gaps.seen(2, 1_000_000 + 8 * period_us, 25.0) == 6        # 65532..1 lost
     assert gaps.seen(2, 1_000_000 + 8 * period_us, 25.0) == 0        # a repeat (sRA)
-    # a long cut: 70 000 scans later, the 16-bit counter alone would say 4463
-    t = 1_000_000 + 8 * period_us + 70_001 * period_us
-    assert gaps.seen((2 + 70_001) % 65_536, t % 2**32, 25.0) == 70_000
     # the device restarted: its clock went back; nothing it can tell is lost
     assert gaps.seen(0, 5_000, 25.0) == 0 and gaps.restarts == 1
     assert gaps.seen(3, 5_000 + 3 * period_us, 25.0) == 2
+    # a long cut at 100 Hz (12 min): 70 000 scans, the 16-bit counter alone says 4464
+    fast = ScanGaps()
+    assert fast.seen(10, 2**32 - 1_000_000, 100.0) == 0
+    later_us = (2**32 - 1_000_000 + 70_001 * 10_000) % 2**32      # the us counter wrapped
+    assert fast.seen((10 + 70_001) % 65_536, later_us, 100.0) == 70_000
 
 
 @pytest.mark.parametrize("text, expected", [
