@@ -65,9 +65,10 @@ REASON_CODES: dict[str, str] = {
 #: Analytes may sum to 100 % plus this rounding allowance (mass %, absolute).
 ANALYTE_SUM_TOLERANCE_PCT = 0.1
 
-#: LMS200 field / step combinations (degrees) a scan's angles must match.
-LMS200_STEPS_DEG: tuple[float, ...] = (0.25, 0.5, 1.0)
-_STEP_TOLERANCE_RAD = 1e-6
+#: widest field of view a scan may cover, degrees (one turn), and the allowance on it for
+#: the rounding of the angles, radians
+MAX_SCAN_FIELD_DEG = 360.0
+_FIELD_TOLERANCE_RAD = 1e-9
 
 # Times are stored as signed 64-bit UTC nanoseconds: MIN_TIME_NS .. MAX_TIME_NS (schemas.times).
 
@@ -439,23 +440,29 @@ _LASER_SCAN_RANGES = 6
 _LASER_SCAN_INTENSITIES = 7
 
 
-_STEPS_RAD = tuple(math.radians(step) for step in LMS200_STEPS_DEG)
+_MAX_FIELD_RAD = math.radians(MAX_SCAN_FIELD_DEG)
 
 
 def _check_scan(m, payload: bytes) -> None:
+    """A scan's geometry (any scanner: the step is what its angles and count make it) and
+    its ranges.  A ``LaserScan`` carries no step of its own: beam ``k`` lies at
+    ``start_angle + k * step`` with ``step = (end_angle - start_angle) / (n - 1)``, so the
+    count matches the angles when that step is finite and > 0 and the field
+    ``end_angle - start_angle`` is > 0 and at most one turn (360 deg)."""
     n = len(m.ranges)
     span = m.end_angle - m.start_angle
     if n < 2:
         raise InvalidEvent("ranges_angles_mismatch", f"a scan needs at least 2 ranges, got {n}")
     if not span > 0:
         raise InvalidEvent("ranges_angles_mismatch", "end_angle must be greater than start_angle")
+    if not span <= _MAX_FIELD_RAD + _FIELD_TOLERANCE_RAD:
+        raise InvalidEvent("ranges_angles_mismatch",
+                           f"{n} ranges over {math.degrees(span):.3f} deg: a field wider than "
+                           f"{MAX_SCAN_FIELD_DEG:g} deg")
     step = span / (n - 1)
-    if all(abs(step - allowed) > _STEP_TOLERANCE_RAD for allowed in _STEPS_RAD):
-        raise InvalidEvent(
-            "ranges_angles_mismatch",
-            f"{n} ranges over {math.degrees(span):.3f} deg give a {math.degrees(step):.5f} deg "
-            f"step, not one of {LMS200_STEPS_DEG}",
-        )
+    if not (math.isfinite(step) and step > 0):
+        raise InvalidEvent("ranges_angles_mismatch",
+                           f"{n} ranges over {span!r} rad give a step of {step!r} rad")
     n_intensities = len(m.intensities)
     if n_intensities not in (0, n):
         raise InvalidEvent("ranges_angles_mismatch", f"{n_intensities} intensities for {n} ranges")

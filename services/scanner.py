@@ -1,5 +1,9 @@
 """``stockpile service scanner``: read a SICK LMS200 from a serial port, publish scans.
 
+With ``--tcp HOST:PORT --protocol cola-a|cola-b`` instead of ``--device`` it reads a SICK
+LMS1xx, LMS5xx or TiM on Ethernet: :mod:`services.scanner_tcp`.  This module parses both
+command lines and runs the serial path.
+
 The service opens the scanner's serial port with pyserial (a real RS-232/RS-422 line, or the
 simulator's pseudo-terminal), feeds every byte into the resynchronising
 :class:`devices.lms200.TelegramReader` and publishes each intact 0xB0 (measured
@@ -85,7 +89,7 @@ from dataclasses import dataclass, field
 import serial
 
 from common.options import add_clock
-from devices import lms200
+from devices import cola, lms200
 from schemas.events import is_valid_source
 from services.lms200_scans import (
     BITS_PER_BYTE,
@@ -96,6 +100,7 @@ from services.lms200_scans import (
     telegram_end_offsets,
     transfer_time_ns,
 )
+from services import scanner_tcp
 from services.serial_device import DevicePipeline, run_serial_service
 from services.service import (
     DEFAULT_SITE,
@@ -213,8 +218,17 @@ class Config:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Add the scanner's own options (the shared ones come from ``service_cli``)."""
-    parser.add_argument("--device", required=True, metavar="PATH",
-                        help="serial port of the LMS200, e.g. /dev/ttyUSB0 or a simulator pty")
+    where = parser.add_mutually_exclusive_group(required=True)
+    where.add_argument("--device", metavar="PATH",
+                       help="serial port of the LMS200, e.g. /dev/ttyUSB0 or a simulator pty")
+    where.add_argument("--tcp", metavar="HOST:PORT",
+                       help="a SICK LMS1xx/LMS5xx/TiM on Ethernet: its CoLa port, e.g. "
+                       "192.168.0.1:2112 ([v6]:PORT for IPv6)")
+    parser.add_argument("--protocol", choices=cola.PROTOCOLS, default=None,
+                        help="with --tcp: the port's framing, CoLa-A (ASCII) or CoLa-B "
+                        "(binary) (default cola-b)")
+    parser.add_argument("--intensities", action="store_true",
+                        help="with --tcp: publish RSSI1 as the scans' intensities")
     parser.add_argument("--baud", type=int, default=DEFAULT_BAUD,
                         help=f"line rate, baud (default {DEFAULT_BAUD})")
     parser.add_argument("--source", default=DEFAULT_SOURCE,
@@ -235,8 +249,26 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
               help="site time: the machine's UTC clock (wall) or the simulator's clock events")
 
 
-def config_from_args(args: argparse.Namespace) -> Config:
-    """A :class:`Config` from parsed arguments (raises ValueError on bad values)."""
+def config_from_args(args: argparse.Namespace) -> Config | scanner_tcp.TcpConfig:
+    """A :class:`Config` (``--device``) or a :class:`services.scanner_tcp.TcpConfig`
+    (``--tcp``) from parsed arguments (raises ValueError on bad values, and on options of
+    the other path)."""
+    if args.tcp:
+        serial_only = [name for name, given in (
+            ("--fov-deg", args.fov_deg is not None),
+            ("--resolution-deg", args.resolution_deg is not None),
+            ("--send-start", args.send_start), ("--baud", args.baud != DEFAULT_BAUD)) if given]
+        if serial_only:
+            raise ValueError(f"{', '.join(serial_only)}: for --device only (a scanner on "
+                             "Ethernet states its field in each telegram)")
+        host, port = scanner_tcp.parse_endpoint(args.tcp)
+        return scanner_tcp.TcpConfig(
+            host=host, port=port, protocol=args.protocol or "cola-b", site=args.site,
+            zenoh=ZenohOptions.from_args(args), status_period_s=args.status_period,
+            source=args.source, frame_id=args.frame_id, clock=args.clock,
+            intensities=args.intensities)
+    if args.protocol is not None or args.intensities:
+        raise ValueError("--protocol and --intensities are for --tcp only")
     return Config(device=args.device, site=args.site, zenoh=ZenohOptions.from_args(args),
                   status_period_s=args.status_period, baud=args.baud, source=args.source,
                   frame_id=args.frame_id, fov_deg=args.fov_deg,
@@ -399,8 +431,9 @@ def _send_start(port: serial.Serial, runtime: ServiceRuntime) -> None:
     runtime.log("sent start continuous output", command=lms200.START_CONTINUOUS.hex())
 
 
-def main(config: Config, *, stopper: Stopper | None = None) -> int:
-    """Run the scanner service until the device ends or SIGINT/SIGTERM.
+def main(config: Config | scanner_tcp.TcpConfig, *, stopper: Stopper | None = None) -> int:
+    """Run the scanner service until the device ends or SIGINT/SIGTERM (a
+    :class:`~services.scanner_tcp.TcpConfig`: :func:`services.scanner_tcp.main`).
 
     Returns
     -------
@@ -408,6 +441,8 @@ def main(config: Config, *, stopper: Stopper | None = None) -> int:
         0 on a clean stop (signal or device closed), 2 if the device cannot be opened or
         the Zenoh session cannot start.
     """
+    if isinstance(config, scanner_tcp.TcpConfig):
+        return scanner_tcp.main(config, stopper=stopper)
     return run_serial_service(SERVICE, config, error_keys=ERROR_KEYS, stopper=stopper,
                               make_pipeline=lambda runtime, site_time:
                               _ScanPipeline(config, runtime, site_time))

@@ -20,6 +20,8 @@ x-z plane), the first beam (-fov/2) toward -x.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from sim.raycast import raycast_heightmap
@@ -43,15 +45,22 @@ BEAM_ERROR_CODE = 3  # the scanner sent an error code (top of the 13-bit scale):
 BEAM_MIXED = 4       # a range, but a mixed pixel (phantom) between two surfaces (truth only)
 
 
-def scan_count(fov_deg: float, step_deg: float) -> int:
+def scan_count(fov_deg: float, step_deg: float, *, any_step: bool = False) -> int:
     """Values per LMS200 scan: 100/0.25 -> 401, 100/0.5 -> 201, 100/1 -> 101, 180/0.5 -> 361,
-    180/1 -> 181.
+    180/1 -> 181.  With ``any_step`` (another scanner: an LMS1xx/5xx, TiM), any step > 0
+    and field in (0, 360] deg: the whole steps that fit the field, ``floor(fov / step) + 1``
+    values (the last beam at or just before +fov/2).
 
     Raises
     ------
     ValueError
         For any other combination (180 deg at 0.25 deg is not an LMS200 mode).
     """
+    if any_step:
+        if not (math.isfinite(step_deg) and step_deg > 0 and 0 < fov_deg <= 360):
+            raise ValueError(f"need a step > 0 and a field in (0, 360] deg, got fov "
+                             f"{fov_deg} deg, step {step_deg} deg")
+        return int(math.floor(fov_deg / step_deg + 1e-9)) + 1
     try:
         return _SCAN_MODES[(float(fov_deg), float(step_deg))]
     except KeyError:
@@ -59,13 +68,14 @@ def scan_count(fov_deg: float, step_deg: float) -> int:
                          "choose one of " + ", ".join(f"{f:g}/{s:g}" for f, s in _SCAN_MODES)) from None
 
 
-def beam_angles_rad(fov_deg: float, step_deg: float) -> np.ndarray:
+def beam_angles_rad(fov_deg: float, step_deg: float, *, any_step: bool = False) -> np.ndarray:
     """Beam bearings ``a_k = -fov/2 + k * step`` (rad), k = 0 .. scan_count - 1, shape (n,)."""
-    count = scan_count(fov_deg, step_deg)
+    count = scan_count(fov_deg, step_deg, any_step=any_step)
     return np.radians(-0.5 * fov_deg + step_deg * np.arange(count))
 
 
-def beam_directions_scanner_frame(fov_deg: float, step_deg: float) -> np.ndarray:
+def beam_directions_scanner_frame(fov_deg: float, step_deg: float, *,
+                                  any_step: bool = False) -> np.ndarray:
     """Unit beam directions in the scanner frame, shape (n, 3).
 
     The single definition of the scan geometry (Foxglove ``LaserScan`` / ROS convention):
@@ -74,7 +84,7 @@ def beam_directions_scanner_frame(fov_deg: float, step_deg: float) -> np.ndarray
     ``(cos a, sin a, 0)``.  A point is ``position + R @ (range * direction)`` in the site
     frame for a pose (position, R).
     """
-    a = beam_angles_rad(fov_deg, step_deg)
+    a = beam_angles_rad(fov_deg, step_deg, any_step=any_step)
     return np.stack([np.cos(a), np.sin(a), np.zeros_like(a)], axis=1)
 
 
@@ -125,7 +135,7 @@ class ScannerModel:
     Parameters
     ----------
     fov_deg, step_deg : float
-        An LMS200 mode (see :func:`scan_count`).
+        An LMS200 mode (see :func:`scan_count`), or with ``any_step`` any step and field.
     range_noise_m : float
         Constant part of the range noise sd (14.5 mm measured on a flat table).
     range_noise_frac : float
@@ -140,6 +150,8 @@ class ScannerModel:
         Per-beam probabilities.
     rng : numpy.random.Generator
         Required.
+    any_step : bool
+        Cast any step and field (:func:`scan_count`), not only the LMS200's modes.
     """
 
     MM_MODE_MAX_RANGE_M = 8.18
@@ -149,9 +161,9 @@ class ScannerModel:
                  max_range_m: float = 80.0, unit_mm: bool = False,
                  mixed_pixel_prob: float = 0.5, mixed_pixel_jump_m: float = 0.3,
                  dropout_prob: float = 0.002, error_code_prob: float = 0.0005,
-                 rng: np.random.Generator) -> None:
+                 rng: np.random.Generator, any_step: bool = False) -> None:
         self.fov_deg, self.step_deg = float(fov_deg), float(step_deg)
-        self.n_beams = scan_count(fov_deg, step_deg)
+        self.n_beams = scan_count(fov_deg, step_deg, any_step=any_step)
         for name, p in (("mixed_pixel_prob", mixed_pixel_prob), ("dropout_prob", dropout_prob),
                         ("error_code_prob", error_code_prob)):
             if not 0.0 <= p <= 1.0:
@@ -169,8 +181,8 @@ class ScannerModel:
         self.dropout_prob = float(dropout_prob)
         self.error_code_prob = float(error_code_prob)
         self.rng = check_rng(rng)
-        self.angles_rad = beam_angles_rad(fov_deg, step_deg)
-        self.directions = beam_directions_scanner_frame(fov_deg, step_deg)
+        self.angles_rad = beam_angles_rad(fov_deg, step_deg, any_step=any_step)
+        self.directions = beam_directions_scanner_frame(fov_deg, step_deg, any_step=any_step)
 
     def beam_directions_site(self, rotation) -> np.ndarray:
         """Beam directions (n, 3) in the site frame for a scanner rotation (see pose)."""

@@ -173,11 +173,12 @@ REJECTED = [
                  "non_finite", "intensities", id="inf-scan-intensity"),
     pytest.param(lambda: bad(with_nan(scan(V0, scan_ranges()), "start_angle", math.nan)),
                  "non_finite", "start_angle", id="nan-scan-angle"),
-    # scan geometry
-    pytest.param(lambda: bad(scan(V0, scan_ranges(400), start=0.0, end=math.radians(100.0))),
-                 "ranges_angles_mismatch", "400 ranges", id="400-ranges-over-100-deg"),
-    pytest.param(lambda: bad(scan(V0, scan_ranges(180))), "ranges_angles_mismatch",
-                 "180 ranges", id="180-ranges-over-180-deg"),
+    # scan geometry: any step the count and the angles make, over at most one turn
+    pytest.param(lambda: bad(scan(V0, scan_ranges(400), start=-math.pi,
+                                  end=math.pi + math.radians(0.5))),
+                 "ranges_angles_mismatch", "400 ranges over 360.500 deg", id="field-over-360-deg"),
+    pytest.param(lambda: bad(scan(V0, scan_ranges(3), start=0.0, end=5e-324)),
+                 "ranges_angles_mismatch", "give a step of 0.0", id="step-underflows-to-0"),
     pytest.param(lambda: bad(scan(V0, [5.0])), "ranges_angles_mismatch", "at least 2",
                  id="single-range"),
     pytest.param(lambda: bad(scan(V0, scan_ranges(), start=math.pi / 2, end=-math.pi / 2)),
@@ -307,7 +308,7 @@ def test_batch_of_only_bad_input_stores_nothing(backend):
         bad(stack_ended(V0, tonnes=-3.0), seq=2),
         bad(assay(V0, analytes={"Fe": 80.0, "SiO2": 30.0}), seq=3),
         bad(machine(V0, kind=99), seq=4),
-        bad(scan(V0, scan_ranges(400), start=0.0, end=math.radians(100.0)), seq=5),
+        bad(scan(V0, scan_ranges(400), start=-math.pi, end=3 * math.pi), seq=5),
     ]
     codes = ["malformed", "unknown_type", "non_finite", "negative_tonnes", "analyte_sum",
              "unknown_enum", "ranges_angles_mismatch"]
@@ -352,7 +353,7 @@ def test_mixed_batches_survive_reopening(backend):
          "non_finite", "travel_m"),
         (make_event(scan(V0, [math.inf] + scan_ranges(180)), source="bwr1.scanner", epoch=1,
                     seq=1), "non_finite", "ranges"),
-        (make_event(scan(V0, scan_ranges(400), start=0.0, end=math.radians(100.0)),
+        (make_event(scan(V0, scan_ranges(400), start=-math.pi, end=3 * math.pi),
                     source="bwr1.scanner", epoch=1, seq=2), "ranges_angles_mismatch", "400"),
         (make_event(stack_ended(V0, tonnes=-1.0), source="belt", epoch=1, seq=0),
          "negative_tonnes", "tonnes"),

@@ -51,6 +51,33 @@ def run_accept_case(backend: Backend, item: Event, flags: tuple[str, ...] = ()) 
     assert_rows(store, [(before, ()), (item, flags), (after, ())])
 
 
+def _any_scanner(step_deg: float, count: int, start_deg: float):
+    """A scan of ``count`` ranges from ``start_deg`` at ``step_deg`` steps (any scanner)."""
+    end = math.radians(start_deg + (count - 1) * step_deg)
+    return bad(scan(V0, scan_ranges(count), start=math.radians(start_deg), end=end))
+
+
+@pytest.mark.parametrize(
+    "make_item",
+    [
+        pytest.param(lambda: _any_scanner(0.1667, 1141, -95.0), id="lms5xx-0.1667-deg"),
+        pytest.param(lambda: _any_scanner(0.3333, 811, -135.0), id="tim-0.3333-deg-270"),
+        pytest.param(lambda: _any_scanner(0.25, 1441, -180.0), id="full-turn-0.25-deg"),
+        pytest.param(lambda: _any_scanner(100.0 / 399, 400, 0.0), id="400-ranges-over-100-deg"),
+        pytest.param(lambda: _any_scanner(180.0 / 179, 180, -90.0), id="180-ranges-over-180-deg"),
+    ],
+)
+def test_any_consistent_step_and_field_is_accepted(backend, make_item):
+    """The ledger takes any scanner's scan whose count and angles make a step > 0 over a
+    field of at most 360 deg, not only the LMS200's 0.25 / 0.5 / 1 deg."""
+    item = make_item()
+    run_accept_case(backend, item)
+    stored = LaserScan.FromString(next(backend.store.read(1, 2)).payload)
+    sent = LaserScan.FromString(item.payload)
+    assert (stored.start_angle, stored.end_angle, len(stored.ranges)) == (
+        sent.start_angle, sent.end_angle, len(sent.ranges))
+
+
 @pytest.mark.parametrize(
     "make_item",
     [
