@@ -13,7 +13,10 @@ carries it to the microsecond); an instant is handled once a later sample arrive
 ``--settle-ms`` after its last sample.  What the trackers return is published through
 :class:`~services.service.EventPublisher`: ``joint_reading`` under ``<machine>.encoders``,
 ``stack_started`` / ``stack_ended`` / ``reclaim_cut`` under ``<machine>.plc`` (the
-simulator's sources), signed with ``--signing-key`` when given.
+simulator's sources), signed with ``--signing-key`` when given.  ``--source NAME`` (one of
+those sources) makes the service publish that source alone and subscribe to its machine's
+tags alone: where each source has its own certificate (the router lets a certificate
+publish under its own name only), one service runs per source.
 
 Reconnection: a lost connection (a server restart, a network cut; found by a read of the
 server's state every ``PROBE_PERIOD_S``) is logged (``connection lost``), the pending
@@ -57,7 +60,7 @@ import argparse
 import asyncio
 import logging
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
@@ -75,7 +78,7 @@ from services.service import (
     DEFAULT_SITE, DEFAULT_STATUS_PERIOD_S, ServiceRuntime, Stopper, ZenohOptions, log)
 
 __all__ = ["SERVICE", "ERROR_KEYS", "DEFAULT_QUEUE_SIZE", "Config", "add_arguments",
-           "config_from_args", "main", "source_time_ns"]
+           "config_from_args", "main", "only_source", "source_time_ns"]
 
 SERVICE = "plc"
 #: samples each monitored item queues on the server between two publish cycles
@@ -127,6 +130,9 @@ class Config:
         Queue of each monitored item on the server, samples.
     settle_ms : float
         How long an instant waits for more samples of its time, ms.
+    source : str or None
+        Publish only this source (``<machine>.plc`` or ``<machine>.encoders``) and subscribe
+        only to its machine's tags; None: every source of every machine in the map.
     """
 
     endpoint: str
@@ -141,6 +147,7 @@ class Config:
     signing_key: str | None = None
     queue_size: int = DEFAULT_QUEUE_SIZE
     settle_ms: float = DEFAULT_SETTLE_MS
+    source: str | None = None
 
     def __post_init__(self) -> None:
         if not self.endpoint.startswith("opc.tcp://"):
@@ -176,6 +183,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--settle-ms", type=float, default=DEFAULT_SETTLE_MS, metavar="MS",
                         help="wait for more samples of one time this long, ms (default "
                         f"{DEFAULT_SETTLE_MS:g})")
+    parser.add_argument("--source", metavar="NAME",
+                        help="publish only this source, MACHINE.plc or MACHINE.encoders, and "
+                        "subscribe only to that machine's tags (default: every source)")
 
 
 def config_from_args(args: argparse.Namespace) -> Config:
@@ -184,7 +194,7 @@ def config_from_args(args: argparse.Namespace) -> Config:
                   zenoh=ZenohOptions.from_args(args), status_period_s=args.status_period,
                   insecure=args.opcua_insecure, cert=args.cert, key=args.key,
                   server_cert=args.server_cert, signing_key=args.signing_key,
-                  queue_size=args.queue_size, settle_ms=args.settle_ms)
+                  queue_size=args.queue_size, settle_ms=args.settle_ms, source=args.source)
 
 
 def source_time_ns(stamp: datetime) -> int:
@@ -227,11 +237,12 @@ class _Adapter:
         self.trackers = {mid: MachineTracker(m) for mid, m in plc_map.machines.items()}
         self.publishers = {}
         for mid, m in plc_map.machines.items():
-            plc = runtime.publisher(f"{mid}.plc", signing_key=signing_key)
-            plc.declare(*(("stack_started", "stack_ended") if m.kind == "stacker"
-                          else ("reclaim_cut",)))
-            self.publishers[(mid, "plc")] = plc
-            if m.encoders:
+            if config.source in (None, f"{mid}.plc"):
+                plc = runtime.publisher(f"{mid}.plc", signing_key=signing_key)
+                plc.declare(*(("stack_started", "stack_ended") if m.kind == "stacker"
+                              else ("reclaim_cut",)))
+                self.publishers[(mid, "plc")] = plc
+            if m.encoders and config.source in (None, f"{mid}.encoders"):
                 encoders = runtime.publisher(f"{mid}.encoders", signing_key=signing_key)
                 encoders.declare("joint_reading")
                 self.publishers[(mid, "encoders")] = encoders
@@ -272,8 +283,10 @@ class _Adapter:
             if isinstance(out, Note):
                 self.runtime.log(out.msg, level=out.level, **out.fields)
                 continue
-            self.publishers[(machine, out.stream)].publish(out.message)
-            self.status.add("published")
+            publisher = self.publishers.get((machine, out.stream))
+            if publisher is not None:   # None: a source this service does not publish
+                publisher.publish(out.message)
+                self.status.add("published")
 
     def _sync_counters(self) -> None:
         totals: dict[str, int] = {}
@@ -433,10 +446,25 @@ async def _disconnect(client: Client) -> None:
         pass
 
 
+def only_source(plc_map: PlcMap, source: str | None) -> PlcMap:
+    """The map reduced to the machine of ``source`` (``<machine>.plc`` or
+    ``<machine>.encoders``; None: the whole map); ValueError when the map has no such
+    source."""
+    if source is None:
+        return plc_map
+    machine, _, stream = source.rpartition(".")
+    m = plc_map.machines.get(machine)
+    if m is None or stream not in ("plc", "encoders") or (stream == "encoders"
+                                                          and not m.encoders):
+        raise ValueError(f"--source {source}: the map has no such source (MACHINE.plc, or "
+                         "MACHINE.encoders of a machine with encoders)")
+    return replace(plc_map, machines={machine: m})
+
+
 def _prepare(config: Config) -> tuple[PlcMap, SigningKey | None, str, bytes | None]:
     """The map, the signing key, this adapter's application URI and the pinned server
     certificate (DER); MapError / ValueError / OSError with one line when one is bad."""
-    plc_map = load_map(config.map_path)
+    plc_map = only_source(load_map(config.map_path), config.source)
     signing_key = load_signing_key(config.signing_key) if config.signing_key else None
     if config.insecure:
         return plc_map, signing_key, DEFAULT_APPLICATION_URI, None
@@ -456,7 +484,7 @@ def main(config: Config, *, stopper: Stopper | None = None) -> int:
     except (MapError, ValueError, OSError) as exc:
         log(SERVICE, "cannot start", level="error", error=_first_line(exc))
         return 2
-    runtime = ServiceRuntime(SERVICE, config.site, config.zenoh, name=SERVICE,
+    runtime = ServiceRuntime(SERVICE, config.site, config.zenoh, name=config.source or SERVICE,
                              status_period_s=config.status_period_s, stopper=stopper)
     try:
         runtime.open(error_keys=ERROR_KEYS, announce=False)

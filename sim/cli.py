@@ -16,6 +16,7 @@ import zenoh
 from security.event_keys import load_signing_key
 from services.service import Stopper, log
 from services.zenoh_config import DEFAULT_LISTEN, add_zenoh_arguments, config_from_args
+from sim.adapters import ADAPTER_MODES, RealDevices
 from sim.publish import ZenohSink
 from sim.pty import PtyDevice
 from sim.runner import Simulation
@@ -50,9 +51,11 @@ def run_sim(args: argparse.Namespace) -> int:
     sinks: list = []
     ptys: dict[str, object] = {}
     session = None
+    devices = _open_devices(args, scenario, out)
     if args.pty:
-        ptys = {"scanner": PtyDevice(), "gnss": PtyDevice()}
-        print(f"LMS200 scanner on {ptys['scanner'].path}", flush=True)
+        ptys = {"gnss": PtyDevice()} if devices else {"scanner": PtyDevice(), "gnss": PtyDevice()}
+        if "scanner" in ptys:
+            print(f"LMS200 scanner on {ptys['scanner'].path}", flush=True)
         print(f"GNSS receiver  on {ptys['gnss'].path}", flush=True)
     if args.zenoh:
         session = zenoh.open(config_from_args(args))
@@ -70,6 +73,11 @@ def run_sim(args: argparse.Namespace) -> int:
             print(f"waiting up to {args.wait_live_timeout:g} s for {key} ...", flush=True)
             if not _wait_liveliness(session, key, args.wait_live_timeout):
                 raise OSError(f"no liveliness token {key} appeared in time")
+    if devices is not None and args.wait_lms511 > 0:
+        print(f"waiting up to {args.wait_lms511:g} s for a client to turn the LMS511's "
+              "output on ...", flush=True)
+        if not devices.lms.wait_streaming(args.wait_lms511):
+            raise OSError("no client turned the LMS511's scan output on in time")
     noise = "" if args.noise_seed is None else f", sensor noise seed {args.noise_seed}"
     print(f"simulating scenario {scenario.name!r}, seed {args.seed}{noise} -> {out}", flush=True)
     try:
@@ -77,17 +85,21 @@ def run_sim(args: argparse.Namespace) -> int:
         sim = Simulation(scenario, args.seed, out, sinks=sinks, scanner_pty=ptys.get("scanner"),
                          gnss_pty=ptys.get("gnss"), scan_events=args.scan_events,
                          cut_surfaces=args.truth_cut_surfaces, noise_seed=args.noise_seed,
-                         signing_keys=keys,
+                         signing_keys=keys, adapters=args.adapters, devices=devices,
                          progress=lambda line: print(f"  {line}", file=sys.stderr, flush=True))
         duration_h = None if args.duration is None else args.duration / 3600.0
         stats = sim.run(duration_h=duration_h, speed=args.speed, idle_speed=args.idle_speed)
         for pty in ptys.values():  # the devices go quiet: their readers see the end
             pty.close()
         if session is not None:
-            for producer in sim.producers.values():  # logged before the done line
+            for name, producer in sim.producers.items():  # logged before the done line
+                if name in sim.record_only:   # the devices' facts: the adapters publish them
+                    continue
                 log("sim", "published", source=producer.source, epoch=producer.epoch,
                     count=producer.seq)
         _print_summary(stats, out)
+        if devices is not None:
+            print(f"  {devices.summary()}", flush=True)
         if session is not None:
             if args.linger > 0:
                 # keep the publishers' caches up until told to stop, so a ledger that
@@ -96,9 +108,34 @@ def run_sim(args: argparse.Namespace) -> int:
     finally:
         for pty in ptys.values():
             pty.close()
+        if devices is not None:   # after the linger: the adapters have read everything
+            devices.close()
         if session is not None:
             session.close()
     return 0
+
+
+def _open_devices(args: argparse.Namespace, scenario, out: Path) -> RealDevices | None:
+    """With ``--adapters real``: start the OPC UA PLC server and the LMS511, make the LIMS
+    drop folder, and print where they are (the demo reads these lines); else None."""
+    if args.adapters != "real":
+        for flag, given in (("--plc-port", args.plc_port), ("--lms511-port", args.lms511_port),
+                            ("--lims-dir", args.lims_dir), ("--opcua-cert", args.opcua_cert),
+                            ("--opcua-key", args.opcua_key), ("--wait-lms511", args.wait_lms511)):
+            if given:
+                raise ValueError(f"{flag} is for --adapters real")
+        return None
+    if args.scan_events != "off":
+        raise ValueError("--adapters real sends the scans to the LMS511: no --scan-events")
+    devices = RealDevices(scenario, out, plc_port=args.plc_port, lms_port=args.lms511_port,
+                          lims_dir=Path(args.lims_dir) if args.lims_dir else None,
+                          certificate=args.opcua_cert, private_key=args.opcua_key).start()
+    security = "Basic256Sha256 SignAndEncrypt" if args.opcua_cert else "no security"
+    print(f"OPC UA server on {devices.plc.endpoint} ({security}; map {devices.plc_map_path})",
+          flush=True)
+    print(f"LIMS drop folder {devices.lims_dir} (map {devices.lims_map_path})", flush=True)
+    print(f"LMS511 on tcp 127.0.0.1:{devices.lms.port} (cola-b)", flush=True)
+    return devices
 
 
 def _print_summary(stats, out: Path) -> None:
@@ -160,6 +197,27 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    "scan time, so a ledger needs no scanner or localizer service: truth = the "
                    "true scanner pose, encoders = forward kinematics of the latest encoder "
                    "reading; default off (no such events)")
+    p.add_argument("--adapters", choices=ADAPTER_MODES, default="sim",
+                   help="sim (default): publish every event; real: serve the machines' PLCs "
+                   "over OPC UA, write the lab's results as LIMS files and send the scans "
+                   "to an emulated LMS511 on TCP, for stockpile service plc, lab and "
+                   "scanner --tcp (the lots, declarations and clock are still published; "
+                   "with --pty only the GNSS pty)")
+    p.add_argument("--plc-port", type=int, default=0, metavar="PORT",
+                   help="with --adapters real: the OPC UA server's loopback port (default: a "
+                   "free one)")
+    p.add_argument("--lms511-port", type=int, default=0, metavar="PORT",
+                   help="with --adapters real: the LMS511's loopback port (default: a free one)")
+    p.add_argument("--lims-dir", metavar="DIR",
+                   help="with --adapters real: the LIMS drop folder (default OUT/lims-drop)")
+    p.add_argument("--opcua-cert", metavar="FILE",
+                   help="with --adapters real: the OPC UA server's application certificate "
+                   "(with --opcua-key: Basic256Sha256 SignAndEncrypt only; default: no "
+                   "security, loopback)")
+    p.add_argument("--opcua-key", metavar="FILE", help="its private key (PEM)")
+    p.add_argument("--wait-lms511", type=float, default=0.0, metavar="SECONDS",
+                   help="with --adapters real: start only once a client turned the LMS511's "
+                   "output on (give up after SECONDS)")
     p.add_argument("--truth-cut-surfaces", action="store_true",
                    help="also keep the true surface at each cut's start in truth.npz "
                    "(cut_surface_z) and the parcels as stacked at the first cut's start "

@@ -55,6 +55,9 @@ transform first); no random numbers are drawn for them, so the other streams do 
 change.  Do not combine them with a scanner service or localizer on the same yard: the
 ledger would get both versions (the localizer's transforms have source
 ``<machine>.localizer``; a scanner service's scans the same source, another epoch).
+
+Adapters (``adapters``, CLI ``--adapters``): ``"sim"`` (default) publishes as above; ``"real"``
+hands the machines', lab's and scanner's facts to a real yard's devices (:mod:`sim.adapters`).
 """
 
 from __future__ import annotations
@@ -74,6 +77,7 @@ from services.scanner import default_frame_id, scan_field, scan_message
 from sim import messages
 from sim.encoders import EncoderModel
 from sim.gnss import GnssModel
+from sim.adapters import LMS511_FIELD_DEG, RealDevices, check_adapters
 from sim.grades import ANALYTES, LabResult
 from sim.motion import (
     Motion, bench_luff, landing_travel, move_speed_m_s, patrol_legs, patrol_pose, scanner_pose,
@@ -151,12 +155,19 @@ class Simulation:
     noise_seed: int | None = None
     #: source -> the key its events are signed with (sources not named: unsigned)
     signing_keys: dict[str, SigningKey] = field(default_factory=dict)
+    #: "sim" or "real": who carries the machines', the lab's and the scanner's facts (see
+    #: the module docstring); ``devices``: the real devices (made when not given)
+    adapters: str = "sim"
+    devices: RealDevices | None = None
 
     def __post_init__(self) -> None:
         sc = self.scenario
         if self.scan_events not in SCAN_EVENTS:
             raise ValueError(f"scan_events must be one of {', '.join(SCAN_EVENTS)}, "
                              f"got {self.scan_events!r}")
+        self.real = check_adapters(self.adapters, self.scan_events, self.scanner_pty)
+        if self.real and self.devices is None:
+            self.devices = RealDevices(sc, self.out_dir).start()
         self.out_dir = Path(self.out_dir)
         self.out_dir.mkdir(parents=True, exist_ok=True)
         self.jsonl = JsonlSink(self.out_dir / "events.jsonl")
@@ -176,8 +187,10 @@ class Simulation:
         self.encoders = EncoderModel(rng=named_rng(self.noise_seed, "encoders"))
         self.gnss = GnssModel(sc.datum_lat_deg, sc.datum_lon_deg, sc.datum_alt_m,
                               rng=named_rng(self.noise_seed, "gnss"))
-        self.unit_mm = sc.pile_width_m < 5.0  # mm mode reaches 8 m: the laboratory pile
-        self.scanner = ScannerModel(fov_deg=sc.scan_fov_deg, step_deg=sc.scan_step_deg,
+        # mm mode reaches 8 m: the laboratory pile (an LMS200's; an LMS511 sends mm always)
+        self.unit_mm = sc.pile_width_m < 5.0 and not self.real
+        fov, step = LMS511_FIELD_DEG if self.real else (sc.scan_fov_deg, sc.scan_step_deg)
+        self.scanner = ScannerModel(fov_deg=fov, step_deg=step, any_step=self.real,
                                     max_range_m=8.0 if self.unit_mm else 80.0,
                                     unit_mm=self.unit_mm, rng=named_rng(self.noise_seed, "scanner"))
         if self.scan_events != "off":
@@ -209,7 +222,10 @@ class Simulation:
         all_sinks = [self.jsonl, *self.sinks]
         epoch = sc.start_ns // NS_PER_S
         keys = self.signing_keys
-        producers = {name: Producer(source, epoch, all_sinks, keys.get(source)) for name, source in (
+        self.record_only = ("encoders", "stacker", "reclaimer", "lab") if self.real else ()
+        producers = {name: Producer(source, epoch,
+                                    [self.jsonl] if name in self.record_only else all_sinks,
+                                    keys.get(source)) for name, source in (
             ("config", "yard.config"), ("clock", "sim.clock"),
             ("encoders", f"{sc.machine_id}.encoders"), ("stacker", f"{sc.stacker_id}.plc"),
             ("reclaimer", f"{sc.machine_id}.plc"), ("lims", "lims"), ("lab", "lab1"))}
@@ -296,8 +312,8 @@ class Simulation:
             if t > end_ns:
                 # telegrams of scans taken before the end are still on the wire: send them
                 for t_late, _o, kind_late, data in sorted(queue.items + [(t, _, kind, payload)]):
-                    if kind_late == "telegram":
-                        self._on_telegram(t_late, data, queue.at)
+                    if kind_late in ("telegram", "lms511"):
+                        getattr(self, f"_on_{kind_late}")(t_late, data, queue.at)
                 break
             if self.progress is not None and time.monotonic() >= next_report:
                 next_report = time.monotonic() + 10.0
@@ -365,6 +381,8 @@ class Simulation:
         msg = messages.joint_reading(self.scenario.machine_id, travel, slew, luff, t)
         self.producers["encoders"].emit(msg)
         self.last_reading = (t, msg.travel_m, msg.slew_rad, msg.luff_rad)
+        if self.real:
+            self.devices.encoder_sample(*self.last_reading)
         at(t + self._period_ns(t, self.scenario.encoder_hz), "encoder", None)
 
     def _on_gnss(self, t: int, period: int, at) -> None:
@@ -390,20 +408,28 @@ class Simulation:
                                                        g.origin_y_m, g.cell_m, position, rotation)
         if self.record_scans:
             self.cast_scans.append((ranges.copy(), status.copy()))
-        values = lms200.ranges_to_values(ranges, unit_mm=self.unit_mm)
-        values[status == BEAM_ERROR_CODE] = lms200.DAZZLE
-        data = lms200.encode_measurement(values, unit_mm=self.unit_mm)
-        # the telegram's last byte leaves the scanner its serial transfer time later
-        transfer_ns = len(data) * 10 * NS_PER_S // sc.scanner_baud
-        at(t + transfer_ns, "telegram", data)
+        if self.real:
+            at(t + self.devices.lms.latency_ns, "lms511", (t, ranges))
+        else:
+            data = self._lms200_telegram(t, ranges, status, at)
         self.truth_scans.append((t, *position, *rotation.ravel()))
         self.stats.scans += 1
-        self.stats.lms200_bytes += len(data)
         if self.scan_events != "off":
             # queued at this very time: handled after everything already due now (the
             # encoders read at t among them), and nothing else moves in the queue
             at(t, "scan_events", (data, position, rotation))
         at(t + self._period_ns(t, sc.scan_hz), "scan", None)
+
+    def _lms200_telegram(self, t: int, ranges: np.ndarray, status: np.ndarray, at) -> bytes:
+        """The scan's LMS200 telegram, queued to leave its serial transfer time after ``t``."""
+        values = lms200.ranges_to_values(ranges, unit_mm=self.unit_mm)
+        values[status == BEAM_ERROR_CODE] = lms200.DAZZLE
+        data = lms200.encode_measurement(values, unit_mm=self.unit_mm)
+        # the telegram's last byte leaves the scanner its serial transfer time later
+        transfer_ns = len(data) * 10 * NS_PER_S // self.scenario.scanner_baud
+        at(t + transfer_ns, "telegram", data)
+        self.stats.lms200_bytes += len(data)
+        return data
 
     def _on_scan_events(self, t: int, payload, at) -> None:
         """The ``frame_transform`` and ``scan`` events of the scan taken at ``t``."""
@@ -425,11 +451,19 @@ class Simulation:
             self._tick(t)
         self._write(self.lms_file, self.scanner_pty, data)
 
+    def _on_lms511(self, t: int, payload, at) -> None:
+        """Send the scan taken at ``payload[0]`` to the LMS511 (a tick first, as for a telegram)."""
+        if self._busy(t):
+            self._tick(t)
+        self.devices.scan(*payload, self.scanner.angles_rad)
+
     def _on_lot(self, t: int, lot, at) -> None:
         self.producers["lims"].emit(messages.lot_declared(self.scenario, lot, t))
 
     def _on_pass_start(self, t: int, p: dict, at) -> None:
         self.producers["stacker"].emit(messages.stack_started(self.scenario, p, t))
+        if self.real:
+            self.devices.pass_started(t, p)
         # the reclaimer's scanner trails the stacker (sim.motion.patrol_legs)
         lag, run_on, start_end, far_end = patrol_legs(self.scenario, self.move_m_s, p)
         self.motion = Motion(t, t + lag, self.motion.at(t), self._patrol_pose(start_end))
@@ -463,6 +497,8 @@ class Simulation:
         sc = self.scenario
         belt_tonnes = sc.tonnes_per_pass * (1.0 + self.rng_belt.normal(0.0, sc.belt_scale_error_frac))
         self.producers["stacker"].emit(messages.stack_ended(sc, p["pass_id"], belt_tonnes, t))
+        if self.real:
+            self.devices.pass_ended(t, belt_tonnes)
         self.passes.append({"pass_id": p["pass_id"], "lot_id": p["lot"].lot_id, "t0_ns": p["t0"],
                             "t1_ns": p["t1"], "true_tonnes": sc.tonnes_per_pass,
                             "belt_tonnes": belt_tonnes, "deposit": p["deposit"]})
@@ -470,6 +506,8 @@ class Simulation:
 
     def _on_assay(self, t: int, r: LabResult, at) -> None:
         self.producers["lab"].emit(messages.assay(r))
+        if self.real:
+            self.devices.assay(t, r)
         self.stats.assays += 1
 
     # -- reclaiming -----------------------------------------------------------------------------
@@ -511,6 +549,8 @@ class Simulation:
             self.truth_cut_surfaces.append(self.world.surface_z().astype(np.float32))
         self.motion = Motion(c["t0"], c["t1"], (c["travel"], c["slew_start"], c["luff"]),
                              (c["travel"], c["slew_end"], c["luff"]))
+        if self.real:
+            self.devices.cut_started(t, c, f"B{c['bench'] + 1}-C{c['cut'] + 1:02d}")
         for k in range(CUT_SUBSWEEPS):
             at(c["t0"] + (c["t1"] - c["t0"]) * (k + 1) // CUT_SUBSWEEPS, "cut_part", (c, k))
 
@@ -533,6 +573,8 @@ class Simulation:
         belt = tonnes * (1.0 + self.rng_belt.normal(0.0, sc.belt_scale_error_frac)) if tonnes > 0 else 0.0
         cut_id = f"B{c['bench'] + 1}-C{c['cut'] + 1:02d}"
         self.producers["reclaimer"].emit(messages.reclaim_cut(sc, c, cut_id, belt))
+        if self.real:
+            self.devices.cut_ended(t, belt)
         self.cuts.append(cut_record(c, cut_id, totals, belt))
         self.stats.cuts += 1
         at(t + int(30 * NS_PER_S), "reclaim", (c["bench"], c["cut"] + 1, c["travel"]))

@@ -176,7 +176,7 @@ DEFAULT_IDLE_SPEED = 2000.0
 
 #: options that only the process demo reads (dest -> spelling)
 _PROCESS_ONLY = {"speed": "--speed", "idle_speed": "--idle-speed", "record": "--record",
-                 "insecure": "--insecure"}
+                 "insecure": "--insecure", "adapters": "--adapters"}
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
@@ -196,7 +196,7 @@ def cmd_demo(args: argparse.Namespace) -> int:
                          idle_speed=DEFAULT_IDLE_SPEED if args.idle_speed is None else args.idle_speed,
                          duration_h=None if args.duration is None else args.duration / 3600.0,
                          record=Path(args.record) if args.record else None,
-                         insecure=bool(args.insecure))
+                         insecure=bool(args.insecure), adapters=args.adapters or "sim")
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -220,6 +220,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--insecure", action="store_true", default=None,
                    help="process demo only: plain TCP on loopback instead of mutual TLS with "
                    "access control by role (a throw-away PKI in OUT/pki)")
+    p.add_argument("--adapters", choices=("sim", "real"), default=None,
+                   help="process demo only: sim (default) takes the machines', lab's and "
+                   "scanner's events from the simulator; real runs them through the PLC "
+                   "adapter over OPC UA, the lab adapter on LIMS files and the scanner on an "
+                   "emulated LMS511 over TCP")
     p.add_argument("--in-process", action="store_true",
                    help="simulate and import the events file, without the services")
     p.add_argument("--sample", action="store_true",

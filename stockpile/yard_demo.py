@@ -9,6 +9,10 @@
       <- scanner             stockpile service scanner --device <sim's LMS200 pty>
       <- gnss                stockpile service gnss --device <sim's GNSS pty>
 
+(``adapters="real"``: the simulator serves its PLCs over OPC UA, the lab's LIMS files and
+an LMS511 on TCP, and the PLC, lab and TCP scanner adapters carry them in instead:
+:mod:`stockpile.demo_adapters`)
+
 runs the scenario to its end, stops the producers, waits until the ledger holds
 every event they say they published, stops the ledger, and checks the result
 (:func:`check_exactly_once`, :func:`localizer_rmse`); then folds the ledger into the
@@ -36,6 +40,9 @@ from projector.query import project
 from services.ledger_client import LedgerClient
 from sim.kinematics import Machine, wheel_centre
 from sim.scenario import scenario_by_name
+from stockpile.demo_adapters import (
+    adapter_members, expected_counts, opcua_certificates, sim_options, start_adapters,
+    wait_delivered)
 from stockpile.demo_signing import money_sources, prepare_signing
 from stockpile.orchestrate import Supervisor, fresh_ledger_path
 
@@ -334,22 +341,27 @@ def _start_services(yard: Supervisor, ledger_path: Path, site: str, record: Path
 
 def _start_sim_and_sensors(yard: Supervisor, sim_dir: Path, *, site: str,
                            scenario: str, seed: int, speed: float, idle_speed: float,
-                           duration_h: float | None, signing: list[str]):
-    """Start the simulator on pseudo-terminals and the scanner and GNSS services on its ports."""
+                           duration_h: float | None, signing: list[str],
+                           real: list[str] | None = None):
+    """Start the simulator on pseudo-terminals and the scanner and GNSS services on its ports
+    (``real``: the simulator's options of the real devices; then no serial scanner)."""
     live = f"stockpile/{site}/@live"
     sim_args = ["sim", "--scenario", scenario, "--seed", str(seed), "--out", str(sim_dir),
                 "--pty", "--zenoh", "--speed", str(speed), "--idle-speed", str(idle_speed),
                 "--wait-subscriber", "60", "--linger", "600",
                 "--wait-live", f"{live}/scanner/**", "--wait-live", f"{live}/gnss/**",
-                "--wait-live", f"{live}/localizer/**", *signing, *yard.client_args_for("sim")]
+                "--wait-live", f"{live}/localizer/**", *signing, *yard.client_args_for("sim"),
+                *(real or [])]
     if duration_h is not None:
         sim_args += ["--duration", f"{duration_h * 3600:g}s"]
     sim = yard.start("sim", sim_args)
-    scanner_path = sim.wait_stdout(lambda l: l.startswith("LMS200 scanner on"), 60).split()[-1]
+    scanner_path = "LMS511 (TCP)"
+    if real is None:
+        scanner_path = sim.wait_stdout(lambda l: l.startswith("LMS200 scanner on"), 60).split()[-1]
+        yard.start("scanner", ["service", "scanner", "--device", scanner_path, "--clock",
+                               "events", "--source", f"{MACHINE}.scanner",
+                               *_common(yard, site, f"{MACHINE}.scanner")])
     gnss_path = sim.wait_stdout(lambda l: l.startswith("GNSS receiver"), 60).split()[-1]
-    yard.start("scanner", ["service", "scanner", "--device", scanner_path, "--clock", "events",
-                           "--source", f"{MACHINE}.scanner",
-                           *_common(yard, site, f"{MACHINE}.scanner")])
     yard.start("gnss", ["service", "gnss", "--device", gnss_path, "--clock", "events",
                         "--source", f"{MACHINE}.gnss", *_common(yard, site, f"{MACHINE}.gnss")])
     _say(f"   scanner on {scanner_path}, GNSS on {gnss_path}; simulating at {speed:g}x "
@@ -370,22 +382,30 @@ def _wait_sim_end(sim) -> tuple[str, float]:
     return pacing, float(lag.group(1)) if lag else 0.0
 
 
-def _drain_and_stop(yard: Supervisor, site: str, record: Path | None, declared: int = 0
+def _drain_and_stop(yard: Supervisor, site: str, record: Path | None, declared: int = 0,
+                    adapters: tuple[str, ...] = (), expected: dict[str, int] | None = None
                     ) -> tuple[dict[str, tuple[int, int]], dict[str, int | None]]:
     """Stop the producers, wait until the ledger holds all they published, stop the ledger.
     The recorder holds what went over Zenoh: all but the ``declared`` events written into
-    the ledger before the services started.
+    the ledger before the services started.  The ``adapters`` (children) are stopped once
+    the ledger holds the ``expected`` events per source, or after a minute.
 
     Returns what each source says it published ``{source: (epoch, count)}`` and each
     process's exit code.
     """
     for name in ("scanner", "gnss"):  # their ports went quiet: they end on their own
-        if yard.wait_exit(name, 30) is None:
+        if name not in adapters and yard.wait_exit(name, 30) is None:
+            yard.stop(name)
+    client = LedgerClient(yard.session, site, timeout_s=60)
+    if adapters:
+        short = wait_delivered(client, expected or {}, 60)
+        _say(f"   the ledger lacks events the devices handed out: {short}" if short else
+             "   the ledger holds every event the devices handed out")
+        for name in adapters:
             yard.stop(name)
     published: dict[str, tuple[int, int]] = {}
-    for name in ("sim", "scanner", "gnss"):
+    for name in dict.fromkeys(("sim", "scanner", "gnss", *adapters)):
         published.update(yard.children[name].published())
-    client = LedgerClient(yard.session, site, timeout_s=60)
     wait_ledgered(client, published, 300)
     rc_localizer = yard.stop("localizer")
     published.update(yard.children["localizer"].published())
@@ -396,7 +416,7 @@ def _drain_and_stop(yard: Supervisor, site: str, record: Path | None, declared: 
     rc = {"localizer": rc_localizer, "sim": yard.stop("sim"), "ledger": yard.stop("ledger")}
     if record is not None:
         rc["recorder"] = rc_recorder
-    rc.update({n: yard.children[n].process.returncode for n in ("scanner", "gnss")})
+    rc.update({n: yard.children[n].process.returncode for n in ("scanner", "gnss", *adapters)})
     return published, rc
 
 
@@ -478,8 +498,9 @@ def _say_localizer(rmse: dict[str, float], timing: dict[str, float], speed: floa
 def run_yard_demo(out_dir: Path, *, seed: int = 1, speed: float = 40.0, idle_speed: float = 2000.0,
                   duration_h: float | None = None, scenario: str = "demo",
                   site: str = SITE_OF_SCENARIO, record: Path | None = None,
-                  insecure: bool = False) -> int:
+                  insecure: bool = False, adapters: str = "sim") -> int:
     """Run the yard end to end; print the summary; return 0 when every check holds.
+    ``adapters="real"``: through the PLC, lab and TCP scanner adapters (module docstring).
 
     The links are mutual TLS with the access control of each child's role, on a
     throw-away PKI in ``<out>/pki`` (plain TCP on loopback with ``insecure``).
@@ -494,8 +515,11 @@ def run_yard_demo(out_dir: Path, *, seed: int = 1, speed: float = 40.0, idle_spe
 
     ledger_path = fresh_ledger_path(out_dir / "ledger.duckdb")
     sim_dir = out_dir / "sim"
-    members = {} if insecure else DEMO_MEMBERS
     sc = scenario_by_name(scenario)
+    real = adapters == "real"
+    members = {} if insecure else {**DEMO_MEMBERS, **(adapter_members(
+        sc.machine_id, sc.stacker_id) if real else {})}
+    sim_opcua, adapter_opcua = opcua_certificates(out_dir) if real else ([], [])
     signing = prepare_signing(out_dir, ledger_path, money_sources(sc.machine_id, sc.stacker_id),
                               sc.start_ns)
     with Supervisor(out_dir, site=site, members=members) as yard:
@@ -507,10 +531,16 @@ def run_yard_demo(out_dir: Path, *, seed: int = 1, speed: float = 40.0, idle_spe
         _start_services(yard, ledger_path, site, record, signing.ledger_args)
         sim = _start_sim_and_sensors(yard, sim_dir, site=site, scenario=scenario,
                                      seed=seed, speed=speed, idle_speed=idle_speed,
-                                     duration_h=duration_h, signing=signing.sim_args)
+                                     duration_h=duration_h, signing=signing.sim_args,
+                                     real=sim_options(site, sc.machine_id, sc.stacker_id,
+                                                      sim_opcua) if real else None)
+        names = start_adapters(yard, sim, machine=sc.machine_id, stacker=sc.stacker_id,
+                               keys=out_dir / "keys" / "sources", opcua=adapter_opcua,
+                               common=lambda name: _common(yard, site, name)) if real else []
         pacing, sim_max_lag_s = _wait_sim_end(sim)
+        expected = expected_counts(sim, sc.machine_id, sc.stacker_id) if real else None
         declared = sum(n for _epoch, n in signing.published.values())
-        published, rc = _drain_and_stop(yard, site, record, declared)
+        published, rc = _drain_and_stop(yard, site, record, declared, tuple(names), expected)
         published.update(signing.published)
 
     c = _check_ledger(ledger_path, published, sim_dir)
