@@ -5,8 +5,8 @@ laboratory's facts itself; it hands them to the devices a real yard has, and the
 product's adapters carry them into the yard:
 
 * the reclaimer's joint encoders, the stacker's passes and the reclaimer's cuts go to an
-  OPC UA server (:class:`sim.opcua_server.PlcServer`, tags of ``docs/plc.example.toml``;
-  read by ``stockpile service plc``);
+  OPC UA server (:class:`sim.opcua_server.PlcServer`, the tags of ``sim/plc_map.toml``,
+  the map ``docs/plc.example.toml`` shows; read by ``stockpile service plc``);
 * the laboratory's results go as LIMS CSV exports into a drop folder
   (:class:`sim.lims.LimsDropWriter`, map :data:`sim.lims.MAP_TOML`; read by
   ``stockpile service lab``);
@@ -44,7 +44,7 @@ __all__ = ["ADAPTER_MODES", "PLC_MAP", "LMS511_FIELD_DEG", "LMS511_SCAN_HZ", "Re
 #: values of ``Simulation.adapters`` / ``--adapters``
 ADAPTER_MODES = ("sim", "real")
 #: the PLC tag map the simulated PLCs serve (its machines are the scenarios' bwr1, stk1)
-PLC_MAP = Path(__file__).resolve().parents[1] / "docs" / "plc.example.toml"
+PLC_MAP = Path(__file__).with_name("plc_map.toml")  # docs/plc.example.toml, packaged
 #: the emulated LMS511's field and angular step, degrees
 LMS511_FIELD_DEG = (190.0, 0.1667)
 #: the scan frequency the LMS511's telegrams state, Hz (its latency is one period)

@@ -357,3 +357,10 @@ def test_the_integration_page_shows_the_example_map_whole():
     block = block[:block.index("```")]
     assert block == EXAMPLE.read_text()
     assert parse_map(block).machines == load_map(EXAMPLE).machines
+
+
+def test_the_simulators_packaged_map_is_the_documented_example():
+    """The simulator serves the tags of the map it ships (``sim/plc_map.toml``, package
+    data), which must be the example the docs show."""
+    packaged = EXAMPLE.parents[1] / "sim" / "plc_map.toml"
+    assert packaged.read_text() == EXAMPLE.read_text()

@@ -43,7 +43,7 @@ MODULES: dict[str, tuple[str, list[str]]] = {
         for name in ("append", "head", "verify", "streams")]),
     "duckdb commit/read/as-of": ("ledger/duckdb_store.py", [
         f"ledger.duckdb_store.xǁDuckDBStoreǁ{name}__mutmut_*" for name in (
-            "_load_state", "_lookup", "_commit", "_insert_rows", "_write_rest",
+            "_load_state", "_lookup", "_commit", "_insert_rows", "_write_rest", "_with_gaps",
             "_new_analytes", "_query", "_filters", "read", "as_of", "gaps", "quarantine")]),
     "memory commit/read/as-of": ("ledger/memory.py", ["ledger.memory.*"]),
     "verify checks": ("ledger/verifying.py", ["ledger.verifying.*"]),
