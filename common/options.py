@@ -284,6 +284,15 @@ def add_accept_loss(parser: argparse.ArgumentParser | Any) -> argparse.Action:
         "logged and the sidecar rewritten (see docs/operations.md)")
 
 
+def add_signing_key(parser: argparse.ArgumentParser | Any, *,
+                    what: str = "event") -> argparse.Action:
+    """``--signing-key FILE``: the Ed25519 key (``NAME.sign.key``) a producer signs every
+    ``what`` it publishes with (default None: unsigned)."""
+    return parser.add_argument(
+        "--signing-key", metavar="FILE",
+        help=f"sign every published {what} with this Ed25519 key (NAME.sign.key)")
+
+
 def add_analytes(parser: argparse.ArgumentParser | Any) -> None:
     """``--analytes A,...`` and ``--unknown-analyte quarantine|flag`` (both default None:
     what the ledger recorded, else the built-in list with unknown analytes flagged)."""

@@ -280,10 +280,8 @@ class _FixPipeline(DevicePipeline):
     """Bytes in, fixes out: the NMEA reader, the date logic and the counters."""
 
     def __init__(self, config: Config, runtime: ServiceRuntime, site_time: SiteTime) -> None:
-        super().__init__(runtime, site_time)
+        super().__init__(runtime, site_time, config.source, "location_fix")
         self.config = config
-        self.publisher = runtime.publisher(config.source)
-        self.publisher.declare("location_fix")
         self.reader = nmea.NmeaReader()
 
     def start(self, port: serial.Serial) -> None:

@@ -60,6 +60,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from common.options import add_signing_key
+from ledger.head_file import fsync_directory
 from schemas import pb
 from security.event_keys import SigningKey, load_signing_key
 from services.lims_map import LimsMap, RefusedRow, RowAssay, parse_map, rows_to_assays
@@ -151,8 +153,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="the LIMS map (lims.toml; see docs/lims.example.toml)")
     parser.add_argument("--source", default=DEFAULT_SOURCE,
                         help=f"event source (default {DEFAULT_SOURCE})")
-    parser.add_argument("--signing-key", metavar="FILE",
-                        help="Ed25519 signing key (NAME.sign.key) to sign every assay with")
+    add_signing_key(parser, what="assay")
     parser.add_argument("--poll", type=float, default=DEFAULT_POLL_S, metavar="S",
                         help=f"seconds between looks at the folder (default {DEFAULT_POLL_S:g})")
     parser.add_argument("--settle", type=float, default=DEFAULT_SETTLE_S, metavar="S",
@@ -274,7 +275,7 @@ class Journal:
             f.flush()
             os.fsync(f.fileno())
         if new:
-            _fsync_dir(self.path.parent)
+            fsync_directory(self.path.parent)
 
     def begin(self, entry: FileEntry) -> None:
         """Record a file and the sequence range of its assays (before publishing them)."""
@@ -295,14 +296,6 @@ class Journal:
 
 class _ForeignJournal(ValueError):
     """The journal belongs to another source (never a torn line)."""
-
-
-def _fsync_dir(path: Path) -> None:
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
 
 
 # -- files in the folder ------------------------------------------------------------------
@@ -487,8 +480,8 @@ class LabAdapter:
             os.replace(path, target)
         elif not target.exists():
             self.runtime.log("file gone before archiving", level="warning", file=entry.name)
-        _fsync_dir(target.parent)
-        _fsync_dir(self.directory)
+        fsync_directory(target.parent)
+        fsync_directory(self.directory)
         self.journal.mark_archived(entry)
 
     def _duplicate(self, path: Path, digest: str, known: FileEntry) -> None:
@@ -496,7 +489,7 @@ class LabAdapter:
         folder.mkdir(parents=True, exist_ok=True)
         target = _free_name(folder, path.name, digest)
         os.replace(path, target)
-        _fsync_dir(folder)
+        fsync_directory(folder)
         self.status.add("duplicates")
         self.runtime.log("duplicate file", level="warning", file=path.name, sha256=digest[:16],
                          first_name=known.name, archive=str(target.relative_to(self.directory)))

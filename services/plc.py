@@ -71,6 +71,7 @@ from asyncua.crypto.uacrypto import CertProperties
 from cryptography import x509
 from cryptography.hazmat.primitives import serialization
 
+from common.options import add_signing_key
 from devices.opcua_tags import MapError, MachineTracker, Note, PlcMap, load_map
 from security.event_keys import SigningKey, load_signing_key
 from security.opcua_certs import application_uri_of, file_format
@@ -176,8 +177,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="the server's certificate: connect only to the server holding it")
     parser.add_argument("--opcua-insecure", action="store_true",
                         help="connect without security (anonymous, SecurityPolicy None)")
-    parser.add_argument("--signing-key", metavar="FILE",
-                        help="sign every published event with this Ed25519 key")
+    add_signing_key(parser, what="event")
     parser.add_argument("--queue-size", type=int, default=DEFAULT_QUEUE_SIZE, metavar="N",
                         help=f"server-side queue per monitored item (default {DEFAULT_QUEUE_SIZE})")
     parser.add_argument("--settle-ms", type=float, default=DEFAULT_SETTLE_MS, metavar="MS",

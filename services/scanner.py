@@ -283,10 +283,8 @@ class _ScanPipeline(DevicePipeline):
     """Bytes in, scans out: the reader, the arrival bookkeeping and the counters."""
 
     def __init__(self, config: Config, runtime: ServiceRuntime, site_time: SiteTime) -> None:
-        super().__init__(runtime, site_time)
+        super().__init__(runtime, site_time, config.source, "scan")
         self.config = config
-        self.publisher = runtime.publisher(config.source)
-        self.publisher.declare("scan")
         self.reader = lms200.TelegramReader()
         self._pending = b""  # the reader's unconsumed bytes (tail of the stream)
         self._window_end_s = time.monotonic()  # monotonic time the last byte arrived

@@ -216,10 +216,8 @@ class _TcpScanPipeline(DevicePipeline):
     """Bytes in, scans out: the reader, the scan counter, the clock and the counters."""
 
     def __init__(self, config: TcpConfig, runtime: ServiceRuntime, site_time: SiteTime) -> None:
-        super().__init__(runtime, site_time)
+        super().__init__(runtime, site_time, config.source, "scan")
         self.config = config
-        self.publisher = runtime.publisher(config.source)
-        self.publisher.declare("scan")
         self.reader = ColaReader(config.protocol)
         self.gaps = ScanGaps()
         self._waiting: deque[_Scan] = deque()

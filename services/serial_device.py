@@ -26,13 +26,17 @@ __all__ = ["DevicePipeline", "read_chunk", "run_serial_service"]
 
 
 class DevicePipeline:
-    """Base of a device pipeline: the runtime, the site clock, reader counters.
+    """Base of a device pipeline: the runtime, the site clock, the publisher of its
+    ``source`` (``type_name`` declared up front), reader counters.
 
     Subclasses implement :meth:`feed` and may extend :meth:`start` and :meth:`idle`.
     """
 
-    def __init__(self, runtime: ServiceRuntime, site_time: SiteTime) -> None:
+    def __init__(self, runtime: ServiceRuntime, site_time: SiteTime, source: str,
+                 type_name: str) -> None:
         self.runtime = runtime
+        self.publisher = runtime.publisher(source)
+        self.publisher.declare(type_name)
         self.status = runtime.status
         self.site_time = site_time
         self._clock_logged = False
