@@ -67,12 +67,15 @@ from replay.record_parts import (
 )
 from schemas.events import EVENT_TYPES, decode_signed_attachment, parse_key_expr, site_key_expr
 from schemas.times import NS_PER_S
+from services.pump import SamplePump
 from services.resubscribe import CacheRecall
 from services.service import ServiceRuntime, SiteTime, Stopper, ZenohOptions, log
 
 SERVICE = "recorder"
 DEFAULT_FLUSH_INTERVAL_S = 1.0
 DEFAULT_QUEUE_SIZE = 100_000
+#: samples that may wait in each subscriber's FIFO channel for the recorder's queue
+PUMP_CAPACITY = 100_000
 
 
 @dataclass(frozen=True)
@@ -534,10 +537,12 @@ def _record(config: Config, runtime: ServiceRuntime, recorder: Recorder,
     history = zext.HistoryConfig(detect_late_publishers=True) if config.history else None
     subscribers, listeners = [], []
     for key in config.key_exprs:
-        subscriber = zext.declare_advanced_subscriber(session, key, on_sample, history=history,
-                                                      subscriber_detection=True)
+        subscriber = SamplePump(
+            lambda handler, key=key: zext.declare_advanced_subscriber(
+                session, key, handler, history=history, subscriber_detection=True),
+            on_sample, capacity=PUMP_CAPACITY, name="recorder-pump")
         subscribers.append(subscriber)
-        listeners.append(subscriber.sample_miss_listener(on_miss))
+        listeners.append(subscriber.subscriber.sample_miss_listener(on_miss))
     # a publisher back after a router outage: ask its cache (services.resubscribe)
     recalls = [CacheRecall(session, key, on_sample, on_recall=lambda token, n: runtime.log(
         "publisher back: cache asked", token=token, replies=n))

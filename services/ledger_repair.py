@@ -13,10 +13,13 @@ import zenoh.ext as zext
 
 from ledger.store import LedgerStore
 from schemas.events import decode_attachment
+from services.pump import SamplePump
 from services.service import ServiceRuntime
 
 __all__ = ["GapRepair"]
 
+#: samples of a cache replay that may wait for the repair's filter (:mod:`services.pump`)
+REPLAY_CAPACITY = 100_000
 #: longest a repair sample waits for room in the full queue before it looks again
 #: whether its subscriber is being retired, seconds
 PUT_WAIT_S = 0.2
@@ -126,9 +129,10 @@ class GapRepair:
                     except queue.Full:
                         continue
 
-        sub = zext.declare_advanced_subscriber(
-            self.session, f"stockpile/{self.site}/@v1/*/{source}", on_sample,
-            history=zext.HistoryConfig(detect_late_publishers=False))
+        sub = SamplePump(lambda handler: zext.declare_advanced_subscriber(
+            self.session, f"stockpile/{self.site}/@v1/*/{source}", handler,
+            history=zext.HistoryConfig(detect_late_publishers=False)),
+            on_sample, capacity=REPLAY_CAPACITY, name=f"gap-repair-{source}")
         return sub, stop
 
     @staticmethod

@@ -100,6 +100,7 @@ from services.ledger_checkpoints import Checkpointer
 from services.ledger_disk import DEFAULT_MIN_FREE_MB, DiskGuard, publish_status
 from services.ledger_repair import GapRepair
 from services.resubscribe import CacheRecall
+from services.pump import SamplePump
 from services.zenoh_config import reader_endpoints
 
 SERVICE = "ledger"
@@ -536,9 +537,11 @@ def _serve(config: Config, store: LedgerStore, samples: queue.Queue,
             note="recorded as a gap when the source's next event arrives")
 
     history = zext.HistoryConfig(detect_late_publishers=True) if config.history else None
-    subscriber = zext.declare_advanced_subscriber(session, f"stockpile/{config.site}/@v1/**",
-                                                  on_sample, history=history, subscriber_detection=True)
-    miss_listener = subscriber.sample_miss_listener(on_miss)
+    subscriber = SamplePump(lambda handler: zext.declare_advanced_subscriber(
+        session, f"stockpile/{config.site}/@v1/**", handler, history=history,
+        subscriber_detection=True), on_sample, capacity=config.queue_size, name="ledger-pump",
+        on_error=lambda exc: runtime.log("sample not queued", level="error", error=str(exc)))
+    miss_listener = subscriber.subscriber.sample_miss_listener(on_miss)
     recall = CacheRecall.of_events(session, config.site, on_sample, SERVICE, config.history)
     runtime.log("serving", ledger=describe_ledger(config.ledger_path),
                 head=store.head().global_seq,

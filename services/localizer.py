@@ -73,6 +73,7 @@ from projector.kinematics import MachineGeometry
 from services.localizer_filter import LocalizerFilter
 from services.localizer_messages import estimate_messages, fix_covariance_m2, fix_enu_m
 from services.localizer_tuning import FilterTuning
+from services.pump import SamplePump
 from services.service import (
     DEFAULT_SITE,
     DEFAULT_STATUS_PERIOD_S,
@@ -87,6 +88,8 @@ SERVICE = "localizer"
 MAX_BUFFERED = 100_000
 #: samples taken from the queue before the buffer is released again
 MAX_BATCH = 500
+#: samples that may wait in each subscriber's FIFO channel (services.pump)
+PUMP_CAPACITY = 100_000
 #: subscribed event types
 INPUT_TYPES = ("site_declared", "machine_declared", "joint_reading", "location_fix")
 _READING, _FIX = 0, 1
@@ -428,12 +431,13 @@ def main(config: Config, *, stopper: Stopper | None = None) -> int:
         for name in ("readings", "fixes", "fixes_gated", "fixes_skipped", "regates",
                      "published"):
             status.add(name, 0)
-        subscribers = [
-            zext.declare_advanced_subscriber(
-                runtime.session, f"stockpile/{config.site}/@v1/{type_name}/**", on_sample,
+        subscribers = [SamplePump(
+            lambda handler, type_name=type_name: zext.declare_advanced_subscriber(
+                runtime.session, f"stockpile/{config.site}/@v1/{type_name}/**", handler,
                 history=zext.HistoryConfig(detect_late_publishers=True),
                 recovery=zext.RecoveryConfig(heartbeat=True),
-                subscriber_detection=True)
+                subscriber_detection=True),
+            on_sample, capacity=PUMP_CAPACITY, name=f"localizer-{type_name}")
             for type_name in INPUT_TYPES]
         runtime.log("subscribed", machine_id=config.machine_id,
                     keys=",".join(f"{t}/**" for t in INPUT_TYPES))

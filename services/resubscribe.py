@@ -34,6 +34,9 @@ from services.logfmt import log
 #: how long one cache query may take before zenoh ends it, s
 QUERY_TIMEOUT_S = 60.0
 
+#: replies of one cache query that may wait for ``on_sample`` (a cache's samples)
+REPLY_CAPACITY = 100_000
+
 #: how long the query for the publishers present at the start may take, s
 PRESENT_TIMEOUT_S = 5.0
 
@@ -155,26 +158,25 @@ class CacheRecall:
             self.on_recall(token, replies)
 
     def _query(self, token: str) -> int:
-        """Ask ``token``'s cache; hand its samples over; return how many."""
-        done = threading.Event()
-        replies = [0]
-
-        def on_reply(reply: Any) -> None:
-            if reply.ok is not None and not self._closed:
-                replies[0] += 1
-                self.on_sample(reply.ok)
-
+        """Ask ``token``'s cache; hand its samples over; return how many.  The replies
+        wait in a FIFO channel (:mod:`services.pump`), so Zenoh's threads never wait for
+        ``on_sample``'s thread."""
         try:
-            self.session.get(token, zenoh.handlers.Callback(on_reply, done.set),
-                             consolidation=zenoh.ConsolidationMode.NONE,
-                             accept_replies=zenoh.ReplyKeyExpr.ANY,
-                             timeout=self.query_timeout_s)
+            handler = self.session.get(token, zenoh.handlers.FifoChannel(REPLY_CAPACITY),
+                                       consolidation=zenoh.ConsolidationMode.NONE,
+                                       accept_replies=zenoh.ReplyKeyExpr.ANY,
+                                       timeout=self.query_timeout_s)
         except zenoh.ZError:
             return 0   # the session is closing
         self.recalls += 1
-        while not (done.wait(0.5) or self._closed):
-            pass
-        return replies[0]
+        replies = 0
+        for reply in handler:   # ends with the query (its timeout, or every answer in)
+            if self._closed:
+                break
+            if reply.ok is not None:
+                replies += 1
+                self.on_sample(reply.ok)
+        return replies
 
     def close(self) -> None:
         """Stop following tokens and handing replies over (a query under way is left to

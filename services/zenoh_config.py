@@ -34,6 +34,11 @@ from common.options import add_duration
 DEFAULT_LISTEN = "tcp/127.0.0.1:7447"
 #: how long before its certificate expires a process starts warning, seconds (30 days)
 DEFAULT_CERT_WARN_S = 30 * 86_400.0
+#: how long a message under congestion control BLOCK may wait for room in a link's queue
+#: before Zenoh closes the link, microseconds (Zenoh's own default: 5 s); set unless a
+#: ``--config`` file is given.  docs/operations.md "Backpressure" says why 60 s.
+BLOCK_WAIT_BEFORE_CLOSE_US = 60_000_000
+BLOCK_WAIT_KEY = "transport/link/tx/queue/congestion_control/block/wait_before_close"
 #: link protocols that carry data in the clear
 PLAIN_PROTOCOLS = frozenset({"tcp", "udp", "ws", "unixsock-stream", "unixpipe"})
 
@@ -189,6 +194,8 @@ def zenoh_config(*, mode: str = "peer", connect: Sequence[str] = (), listen: Seq
         # interface (tcp/[::]:0)
         config.insert_json5("listen/endpoints", json.dumps(list(listen)))
     config.insert_json5("scouting/multicast/enabled", json.dumps(bool(scouting)))
+    if not config_file:
+        config.insert_json5(BLOCK_WAIT_KEY, json.dumps(BLOCK_WAIT_BEFORE_CLOSE_US))
     if tls_dir or tls_name:
         if not (tls_dir and tls_name):
             raise InsecureEndpoint("TLS needs both --tls-dir and --tls-name")
