@@ -155,7 +155,28 @@ class _Parser(argparse.ArgumentParser):
         self.exit(EXIT_USAGE, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
 
 
-def build_parser() -> argparse.ArgumentParser:
+#: the top-level options that take a value (the logging options)
+_OPTIONS_WITH_VALUE = frozenset({"--log-level", "--log-format"})
+
+
+def command_of(argv: Sequence[str]) -> str | None:
+    """The top-level command ``argv`` names (its first word after the top-level
+    options), or None when it names none that :data:`COMMAND_MODULES` knows."""
+    commands = {name for entry in COMMAND_MODULES for name in entry.commands}
+    tokens = iter(argv)
+    for token in tokens:
+        if token in commands:
+            return token
+        if not token.startswith("-"):
+            return None
+        if token in _OPTIONS_WITH_VALUE:
+            next(tokens, None)
+    return None
+
+
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """The ``stockpile`` parser: every command, or only ``command`` (then only its
+    module is imported, so one command starts without importing the others)."""
     parser = _Parser(
         prog="stockpile",
         description="stockpile-ledger: the system of record for the grade of iron-ore "
@@ -167,6 +188,8 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True,
                                 parser_class=_Parser)
     for entry in COMMAND_MODULES:
+        if command is not None and command not in entry.commands:
+            continue
         # deferred: each command's module is imported here, not at the top, so that a
         # missing extra (an optional dependency) leaves the other commands working
         try:
@@ -201,7 +224,8 @@ def read_through_service(path: Path, holder: LedgerHolder) -> LedgerStore:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = build_parser()
+    argv = sys.argv[1:] if argv is None else list(argv)
+    parser = build_parser(command_of(argv))
     args = parser.parse_args(argv)
     configure_from_args(args)
     set_remote_reader(read_through_service)

@@ -41,6 +41,26 @@ def test_help_lists_every_command_with_one_line():
         assert command in ledger.stdout
 
 
+def test_one_command_imports_only_its_own_module():
+    """`stockpile ledger ...` builds the parser of that command alone: the simulator,
+    the projector and the services are not imported (checked in a fresh interpreter)."""
+    code = ("import sys; from stockpile.cli import build_parser, command_of; "
+            "argv = ['--log-level', 'info', 'ledger', 'stats', '--ledger', 'x.duckdb']; "
+            "assert command_of(argv) == 'ledger', command_of(argv); "
+            "p = build_parser(command_of(argv)); "
+            "assert p.parse_args(argv).command == 'ledger'; "
+            "print(sorted(m for m in ('sim.runner', 'projector.fold', 'services.localizer', "
+            "'stockpile.demo', 'ledger.cli') if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split() == ["['ledger.cli']"]
+    from stockpile.cli import command_of
+    assert command_of(["--help"]) is None and command_of(["nosuch", "x"]) is None
+    assert command_of(["--quiet", "audit", "cuts"]) == "audit"
+    assert run("nosuch").returncode == 2   # an unknown command: the full parser's error
+
+
 def test_bad_usage_is_one_line_and_exit_2(tmp_path):
     out = run("ledger", "export")  # --ledger missing
     assert out.returncode == 2
