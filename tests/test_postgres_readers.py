@@ -11,7 +11,7 @@ a short simulated yard with its pile; its declarations, passes, cut and assays, 
 the scans, so that the readers' folds stay light), imported with the real ``stockpile
 ledger import``.
 
-Two phases of the same load, in the same test: without readers, then with three reader
+Phases of the same load, in the same test: without readers, then with three reader
 processes, each run again every ``READER_PERIOD_S`` under the read-only role
 ``stockpile_reader``: ``stockpile audit cuts --json``, ``stockpile project --json`` and
 ``psql -c`` on the ``events`` view.  Checks:
@@ -26,6 +26,9 @@ processes, each run again every ``READER_PERIOD_S`` under the read-only role
 - the writer's commit latency (publish moment to the first committed-head notification
   covering the event, as ``bench/ingest.py`` measures it) at the 99th percentile with
   readers is within 2x of the run without (both printed);
+- a third phase, the control, runs processes at the readers' priority that burn the CPU
+  each reader took in the second phase and never touch the ledger: its p99 (printed)
+  says how much of the readers' cost is the machine's CPU rather than the ledger;
 - nothing is lost: every published event is in the ledger exactly once, no open gap.
 
 Each reader is a process of its own (a small driver that runs its command, and writes
@@ -92,7 +95,7 @@ READER_TIMEOUT_S = 120.0
 SEED_TYPES = ("site_declared", "pile_declared", "machine_declared", "lot_declared",
               "stack_started", "stack_ended", "reclaim_cut", "assay")
 MEMBERS = {"ledger": "ledger", "watch": "auditor", "cutter": "plc",
-           **{f"load{i}": "plc" for i in range(4)}}
+           **{f"load{i}": "plc" for i in range(6)}}
 
 
 # -- the yard --------------------------------------------------------------------------------
@@ -167,6 +170,14 @@ except OSError:
     pass   # no autogroup on this kernel: SCHED_IDLE alone orders the CPU
 stop = threading.Event()
 signal.signal(signal.SIGTERM, lambda *_: stop.set())
+if argv[0] == "--burn":   # the control: this much CPU per period, at the same priority
+    burn_s = float(argv[1]) * period_s
+    while not stop.is_set():
+        started = time.monotonic()
+        while time.monotonic() < started + burn_s and not stop.is_set():
+            pass
+        stop.wait(max(0.0, started + period_s - time.monotonic()))
+    sys.exit(0)
 in_process = argv[0] == "--stockpile"
 if in_process:   # the stockpile command run by this process, as a BI tool or dashboard would
     from stockpile.cli import main as stockpile_main
@@ -211,6 +222,8 @@ class Reader:
 
     def __init__(self, name: str, argv: list[str], base: Path) -> None:
         self.name, self.argv = name, argv
+        #: a control burner (``--burn``) gives no answers
+        self.answering = argv[0] != "--burn"
         self.out = base / f"reader-{name}.jsonl"
         self.process: subprocess.Popen | None = None
 
@@ -431,7 +444,8 @@ def run_phase(yard: Yard, plc: CutPlc, names: list[str], readers: list[Reader],
                    "the publishers' reports")
         cpu = meter.stop({f"reader_{r.name}_cpu_s": CpuMeter({})._tree_cpu_s(r.process.pid)
                           for r in readers})
-        wait_until(lambda: all(len(r.answers) >= MIN_ANSWERS for r in readers),
+        wait_until(lambda: all(len(r.answers) >= MIN_ANSWERS for r in readers
+                               if r.answering),
                    READER_TIMEOUT_S * MIN_ANSWERS, f"{MIN_ANSWERS} answers of every reader")
     finally:
         plc.stop()
@@ -529,9 +543,15 @@ def test_three_readers_while_the_ledger_service_appends(small_yard_sim, tmp_path
         quiet = run_phase(yard, plc, ["load0", "load1"], [], admin, schema, pg_pid)
         busy = run_phase(yard, plc, ["load2", "load3"], list(readers.values()), admin, schema,
                          pg_pid)
+        # the control: processes at the readers' priority burning the CPU each reader
+        # took in the busy phase, without touching the ledger
+        burners = [Reader(f"burn-{name}", ["--burn", f"{cpu_s / PHASE_S:.3f}"], tmp_path)
+                   for name, cpu_s in ((n, busy.cpu[f"reader_{n}_cpu_s"]) for n in readers)]
+        control = run_phase(yard, plc, ["load4", "load5"], burners, admin, schema, pg_pid)
         published_cuts = plc.publisher.count
         plc.publisher.close()
-    for name, phase in (("without readers", quiet), ("with readers", busy)):
+    for name, phase in (("without readers", quiet), ("with readers", busy),
+                        ("with the control burners", control)):
         pct = np.percentile(phase.latencies_ms, [50, 90, 99, 99.9, 100])
         print(f"commit latency {name}: p50/p90/p99/p99.9/max " + " / ".join(
             f"{v:.1f}" for v in pct) + " ms")
@@ -541,11 +561,13 @@ def test_three_readers_while_the_ledger_service_appends(small_yard_sim, tmp_path
     print(f"commit latency p99 without readers {quiet.p99_ms:.1f} ms "
           f"({quiet.rate_hz:,.0f} events/s), with three readers {busy.p99_ms:.1f} ms "
           f"({busy.rate_hz:,.0f} events/s); p50 {np.percentile(quiet.latencies_ms, 50):.1f} / "
-          f"{np.percentile(busy.latencies_ms, 50):.1f} ms")
+          f"{np.percentile(busy.latencies_ms, 50):.1f} ms; with the control burners (the "
+          f"readers' CPU at their priority, no ledger) {control.p99_ms:.1f} ms, "
+          f"{control.p99_ms / quiet.p99_ms:.2f}x")
     assert busy.rate_hz >= 2_000 and quiet.rate_hz >= 2_000
     check_answers(readers, admin, schema)
     # nothing lost: every published event once, no open gap
-    for report in quiet.reports + busy.reports:
+    for report in quiet.reports + busy.reports + control.reports:
         (n, lo, hi), = ledgered(admin, schema, "SELECT count(*), min(seq), max(seq) FROM "
                                 "{s}.event_log WHERE source = %s AND epoch = %s",
                                 [report["source"], report["epoch"]])
@@ -553,7 +575,8 @@ def test_three_readers_while_the_ledger_service_appends(small_yard_sim, tmp_path
     (n_cuts,), = ledgered(admin, schema, "SELECT count(*) FROM {s}.event_log WHERE "
                           "source = 'cutter'")
     assert n_cuts == published_cuts > 10
-    published = [r["source"] for r in quiet.reports + busy.reports] + ["cutter"]
+    published = [r["source"] for r in quiet.reports + busy.reports + control.reports] + [
+        "cutter"]
     assert ledgered(admin, schema, "SELECT count(*) FROM {s}.gaps WHERE closed_recorded_ns "
                     "IS NULL AND source = ANY(%s)", [published]) == [(0,)]
     if busy.p99_ms > 2 * quiet.p99_ms:
@@ -562,4 +585,5 @@ def test_three_readers_while_the_ledger_service_appends(small_yard_sim, tmp_path
         # not all (a fresh-clone CI run: 62 -> 139 ms); the answers and the loss are
         # asserted above, the ratio is recorded here with both numbers.
         pytest.xfail(f"commit p99 with readers {busy.p99_ms:.0f} ms is more than 2x the "
-                     f"{quiet.p99_ms:.0f} ms without (issue 38: within 2x)")
+                     f"{quiet.p99_ms:.0f} ms without (issue 38: within 2x); the control "
+                     f"burners' CPU alone: {control.p99_ms:.0f} ms")
