@@ -4,7 +4,8 @@ One process per reclaimer (``--machine-id``, default ``bwr1``).  It subscribes o
 ``stockpile/<site>/@v1/`` to ``site_declared``, ``machine_declared``, ``joint_reading``
 and ``location_fix`` with Zenoh advanced subscribers (history with late-publisher
 detection, so declarations published before it started come from the publishers'
-caches), runs :class:`services.localizer_filter.LocalizerFilter` (a UKF over the joints,
+caches, and the last ``HISTORY_SAMPLES`` measurements of each source), runs
+:class:`services.localizer_filter.LocalizerFilter` (a UKF over the joints,
 the encoder biases and the correlated GNSS error) and publishes, as source
 ``<machine>.localizer``:
 
@@ -90,6 +91,9 @@ MAX_BUFFERED = 100_000
 MAX_BATCH = 500
 #: samples that may wait in each subscriber's FIFO channel (services.pump)
 PUMP_CAPACITY = 100_000
+#: the most recent measurements of each source asked from its cache on start-up (the
+#: declarations: all the cache holds)
+HISTORY_SAMPLES = {"joint_reading": 2_000, "location_fix": 2_000}
 #: subscribed event types
 INPUT_TYPES = ("site_declared", "machine_declared", "joint_reading", "location_fix")
 _READING, _FIX = 0, 1
@@ -434,7 +438,9 @@ def main(config: Config, *, stopper: Stopper | None = None) -> int:
         subscribers = [SamplePump(
             lambda handler, type_name=type_name: zext.declare_advanced_subscriber(
                 runtime.session, f"stockpile/{config.site}/@v1/{type_name}/**", handler,
-                history=zext.HistoryConfig(detect_late_publishers=True),
+                history=zext.HistoryConfig(
+                    detect_late_publishers=True,
+                    max_samples=HISTORY_SAMPLES.get(type_name)),
                 recovery=zext.RecoveryConfig(heartbeat=True),
                 subscriber_detection=True),
             on_sample, capacity=PUMP_CAPACITY, name=f"localizer-{type_name}")
