@@ -4,7 +4,9 @@ A streaming replica of the session's server (``LocalPostgres.make_standby``:
 ``pg_basebackup -R``); the audit tests' ledger (``tests/test_audit.py``) is appended on the
 primary with the real ``stockpile ledger import``; once the standby has replayed the
 primary's WAL up to the end of that import (``pg_last_wal_replay_lsn() >=`` the primary's
-``pg_current_wal_lsn()`` taken after it), ``stockpile audit cuts|history|assays --json``,
+``pg_current_wal_insert_lsn()`` taken after it: with synchronous commit off, the last
+commit may not be written yet when the write position is read), ``stockpile audit
+cuts|history|assays --json``,
 ``ledger verify`` and ``sql`` on the standby give what they give on the primary, and
 writing to the standby is refused in one line.
 """
@@ -39,7 +41,7 @@ def on_port(url: str, port: int) -> str:
 def wait_replayed(primary_admin: str, standby_admin: str) -> str:
     """Block until the standby has replayed the primary's current WAL position; return it."""
     with psycopg.connect(primary_admin, autocommit=True) as con:
-        target = con.execute("SELECT pg_current_wal_lsn()").fetchone()[0]
+        target = con.execute("SELECT pg_current_wal_insert_lsn()").fetchone()[0]
     deadline = time.monotonic() + REPLAY_TIMEOUT_S
     with psycopg.connect(standby_admin, autocommit=True) as con:
         assert con.execute("SELECT pg_is_in_recovery()").fetchone()[0], "not a standby"

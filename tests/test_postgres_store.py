@@ -504,7 +504,7 @@ def test_a_standby_made_from_the_server_replays_what_the_primary_commits(pg_url,
         with PostgresStore(pg_url, ManualClock(100)) as store:
             store.append([joint_event("a.src", i, i) for i in range(5)])
         with psycopg.connect(pg_server.url(), autocommit=True) as primary:
-            lsn = primary.execute("SELECT pg_current_wal_lsn()").fetchone()[0]
+            lsn = primary.execute("SELECT pg_current_wal_insert_lsn()").fetchone()[0]
         with psycopg.connect(standby.url(), autocommit=True) as con:
             assert con.execute("SELECT pg_is_in_recovery()").fetchone()[0]
             assert _wait_until(lambda: con.execute(
