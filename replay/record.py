@@ -74,8 +74,6 @@ from services.service import ServiceRuntime, SiteTime, Stopper, ZenohOptions, lo
 SERVICE = "recorder"
 DEFAULT_FLUSH_INTERVAL_S = 1.0
 DEFAULT_QUEUE_SIZE = 100_000
-#: samples that may wait in each subscriber's FIFO channel for the recorder's queue
-PUMP_CAPACITY = 100_000
 
 
 @dataclass(frozen=True)
@@ -540,7 +538,7 @@ def _record(config: Config, runtime: ServiceRuntime, recorder: Recorder,
         subscriber = SamplePump(
             lambda handler, key=key: zext.declare_advanced_subscriber(
                 session, key, handler, history=history, subscriber_detection=True),
-            on_sample, capacity=PUMP_CAPACITY, name="recorder-pump")
+            on_sample, name="recorder-pump")
         subscribers.append(subscriber)
         listeners.append(subscriber.subscriber.sample_miss_listener(on_miss))
     # a publisher back after a router outage: ask its cache (services.resubscribe)

@@ -18,8 +18,6 @@ from services.service import ServiceRuntime
 
 __all__ = ["GapRepair"]
 
-#: samples of a cache replay that may wait for the repair's filter (:mod:`services.pump`)
-REPLAY_CAPACITY = 100_000
 #: longest a repair sample waits for room in the full queue before it looks again
 #: whether its subscriber is being retired, seconds
 PUT_WAIT_S = 0.2
@@ -132,7 +130,7 @@ class GapRepair:
         sub = SamplePump(lambda handler: zext.declare_advanced_subscriber(
             self.session, f"stockpile/{self.site}/@v1/*/{source}", handler,
             history=zext.HistoryConfig(detect_late_publishers=False)),
-            on_sample, capacity=REPLAY_CAPACITY, name=f"gap-repair-{source}")
+            on_sample, name=f"gap-repair-{source}")
         return sub, stop
 
     @staticmethod

@@ -89,8 +89,6 @@ SERVICE = "localizer"
 MAX_BUFFERED = 100_000
 #: samples taken from the queue before the buffer is released again
 MAX_BATCH = 500
-#: samples that may wait in each subscriber's FIFO channel (services.pump)
-PUMP_CAPACITY = 100_000
 #: the most recent measurements of each source asked from its cache on start-up (the
 #: declarations: all the cache holds)
 HISTORY_SAMPLES = {"joint_reading": 2_000, "location_fix": 2_000}
@@ -443,7 +441,7 @@ def main(config: Config, *, stopper: Stopper | None = None) -> int:
                     max_samples=HISTORY_SAMPLES.get(type_name)),
                 recovery=zext.RecoveryConfig(heartbeat=True),
                 subscriber_detection=True),
-            on_sample, capacity=PUMP_CAPACITY, name=f"localizer-{type_name}")
+            on_sample, name=f"localizer-{type_name}")
             for type_name in INPUT_TYPES]
         runtime.log("subscribed", machine_id=config.machine_id,
                     keys=",".join(f"{t}/**" for t in INPUT_TYPES))

@@ -16,6 +16,10 @@ from typing import Any, Callable
 
 import zenoh
 
+from services.logfmt import log
+
+#: samples that may wait in a channel for ``on_sample``, by default
+DEFAULT_CAPACITY = 100_000
 #: how long close() waits for the pump's thread after undeclaring, s
 CLOSE_WAIT_S = 5.0
 
@@ -28,16 +32,18 @@ class SamplePump:
     (e.g. ``lambda h: zenoh.ext.declare_advanced_subscriber(session, key, h, ...)``).
     :attr:`subscriber` is what it returned.  ``on_sample`` may block (a full queue
     downstream): the channel then fills and Zenoh holds back.  An exception from
-    ``on_sample`` is passed to ``on_error(exc)`` and the pump goes on.
+    ``on_sample`` is passed to ``on_error(exc)`` (default: one error line naming the
+    pump) and the pump goes on with the next sample.
     :meth:`close` undeclares the subscriber, which ends the thread.
     """
 
     def __init__(self, declare: Callable[[Any], Any], on_sample: Callable[[Any], None], *,
-                 capacity: int, name: str = "sample-pump",
+                 capacity: int = DEFAULT_CAPACITY, name: str = "sample-pump",
                  on_error: Callable[[BaseException], None] | None = None) -> None:
         if capacity < 1:
             raise ValueError(f"capacity must be >= 1, got {capacity}")
-        self.on_sample, self.on_error = on_sample, on_error
+        self.on_sample, self.name = on_sample, name
+        self.on_error = on_error if on_error is not None else self._log_error
         self.subscriber = declare(zenoh.handlers.FifoChannel(capacity))
         self._closed = False
         self._thread = threading.Thread(target=self._run, name=name, daemon=True)
@@ -48,9 +54,11 @@ class SamplePump:
             try:
                 self.on_sample(sample)
             except Exception as exc:   # noqa: BLE001 - one bad sample must not stop the pump
-                if self.on_error is None:
-                    raise
                 self.on_error(exc)
+
+    def _log_error(self, exc: BaseException) -> None:
+        log("pump", "sample handler failed", level="error", pump=self.name,
+            error=f"{type(exc).__name__}: {exc}")
 
     def close(self) -> None:
         """Undeclare the subscriber and wait (at most ``CLOSE_WAIT_S``) for the thread."""

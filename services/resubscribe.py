@@ -30,12 +30,10 @@ from typing import Any, Callable
 import zenoh
 
 from services.logfmt import log
+from services.pump import DEFAULT_CAPACITY
 
 #: how long one cache query may take before zenoh ends it, s
 QUERY_TIMEOUT_S = 60.0
-
-#: replies of one cache query that may wait for ``on_sample`` (a cache's samples)
-REPLY_CAPACITY = 100_000
 
 #: how long the query for the publishers present at the start may take, s
 PRESENT_TIMEOUT_S = 5.0
@@ -162,7 +160,7 @@ class CacheRecall:
         wait in a FIFO channel (:mod:`services.pump`), so Zenoh's threads never wait for
         ``on_sample``'s thread."""
         try:
-            handler = self.session.get(token, zenoh.handlers.FifoChannel(REPLY_CAPACITY),
+            handler = self.session.get(token, zenoh.handlers.FifoChannel(DEFAULT_CAPACITY),
                                        consolidation=zenoh.ConsolidationMode.NONE,
                                        accept_replies=zenoh.ReplyKeyExpr.ANY,
                                        timeout=self.query_timeout_s)
