@@ -5,7 +5,9 @@ purpose (its own kinematics, deposition and cuts), never the projector's code.
 
 The world:
 
-- :mod:`sim.scenario`: scenarios as data (``demo``, ``full-scale``, ``bench-scale``, ``load``)
+- :mod:`sim.scenario`: scenarios as data (``demo``, ``full-scale``, ``bench-scale``, ``load``;
+  ``cohesive``, ``delayed``, ``standing``)
+- :mod:`sim.material`: what a cut's faces do after the cut (the scenario's material)
 - :mod:`sim.grid`: the deposition grid and stacking patterns
 - :mod:`sim.world`: the pile (stacking, cuts, settling, mass and grade accounts), on
   :mod:`sim.parcels` (per-column parcel stacks)
@@ -24,7 +26,8 @@ The hardware, emulated:
 
 The run:
 
-- :mod:`sim.runner`: ``Simulation``, the event-driven run in site time, on
+- :mod:`sim.runner`: ``Simulation``, the event-driven run in site time (the reclaim's
+  handlers in :mod:`sim.reclaim_run`), on
   :mod:`sim.timetable`, :mod:`sim.motion`, :mod:`sim.messages` and :mod:`sim.rng`
 - :mod:`sim.publish`: producers and sinks (JSON lines, Zenoh)
 - :mod:`sim.drive`: planned cuts driven into the true pile, checked in its own geometry

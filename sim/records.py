@@ -10,7 +10,9 @@
   true tonnes, grade, lab-window Fe and tonnes per lot and deposit, :func:`cut_record`
   the cut's entry in truth.json;
 - :func:`write_truth` writes a finished run's ground truth: ``truth.json`` (scenario,
-  machine, seeds, stats, passes, cuts, assays, the world's summary) and ``truth.npz``
+  machine, seeds, stats, passes, cuts, assays, the world's summary, and ``material``: the
+  material's parameters, every slide after a cut and every delayed failure's drawn delay,
+  :meth:`sim.material.CutFaces.truth`) and ``truth.npz``
   (the surface, layer tops and parcels, the true joints, scanner poses and antenna
   positions over time, and with ``cut_surfaces`` the surface at each cut's start).
 """
@@ -126,8 +128,10 @@ def write_truth(sim) -> None:
     world = sim.world
     truth = {
         "scenario": {k: (v if isinstance(v, (int, float, str, bool, type(None))) else str(v))
-                     for k, v in asdict(sim.scenario).items() if k not in ("lots", "machine")},
+                     for k, v in asdict(sim.scenario).items()
+                     if k not in ("lots", "machine", "material")},
         "machine": asdict(sim.machine),
+        "material": sim.faces.truth(),
         "seed": sim.seed,
         "noise_seed": sim.noise_seed,
         "stats": asdict(sim.stats),

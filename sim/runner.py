@@ -56,6 +56,12 @@ change.  Do not combine them with a scanner service or localizer on the same yar
 ledger would get both versions (the localizer's transforms have source
 ``<machine>.localizer``; a scanner service's scans the same source, another epoch).
 
+Cut faces: once the wheel has passed, a cut's walls do what the scenario's material does
+(:mod:`sim.material`; the reclaim's handlers are :class:`sim.reclaim_run.ReclaimRun`): slump
+to the angle of repose (the default), stand steeper, stand and fail later as one slide, or
+stand. A run that ends on its own (no ``duration_h``) ends a minute after the last assay
+or a minute after the last delayed failure, whichever is later.
+
 Adapters (``adapters``, CLI ``--adapters``): ``"sim"`` (default) publishes as above; ``"real"``
 hands the machines', lab's and scanner's facts to a real yard's devices (:mod:`sim.adapters`).
 """
@@ -79,12 +85,12 @@ from sim.encoders import EncoderModel
 from sim.gnss import GnssModel
 from sim.adapters import LMS511_FIELD_DEG, RealDevices, check_adapters
 from sim.grades import ANALYTES, LabResult
-from sim.motion import (
-    Motion, bench_luff, landing_travel, move_speed_m_s, patrol_legs, patrol_pose, scanner_pose,
-    slew_range)
+from sim.material import RNG_STREAM, CutFaces
+from sim.motion import Motion, move_speed_m_s, patrol_legs, patrol_pose, scanner_pose
 from sim.publish import JsonlSink, Producer, Sink
 from sim.records import (
-    LAB_WINDOW_FE, cut_record, cut_totals, flow_grade, lab_schedule, lab_windows, write_truth)
+    LAB_WINDOW_FE, flow_grade, lab_schedule, lab_windows, write_truth)
+from sim.reclaim_run import CUT_SUBSWEEPS, ReclaimRun
 from sim.rng import named_rng
 from sim.scanner import BEAM_ERROR_CODE, ScannerModel
 from sim.scenario import Scenario
@@ -93,7 +99,6 @@ from sim.world import Grid, World
 
 __all__ = ["CUT_SUBSWEEPS", "SCAN_EVENTS", "RunStats", "Simulation"]
 
-CUT_SUBSWEEPS = 8        # a cut removes material in this many steps of its slew
 #: values of ``Simulation.scan_events`` / ``--scan-events`` (see the module docstring)
 SCAN_EVENTS = ("off", "truth", "encoders")
 #: a paced event handled this much (real seconds) behind schedule counts as late
@@ -127,7 +132,7 @@ class RunStats:
 
 
 @dataclass
-class Simulation:
+class Simulation(ReclaimRun):
     """One run of a scenario.  ``run()`` does everything; see the module docstring."""
 
     scenario: Scenario
@@ -202,6 +207,8 @@ class Simulation:
         self.last_reading: tuple[int, float, float, float] | None = None
         self.rng_belt = named_rng(self.seed, "belt")
         self.rng_stack = named_rng(self.seed, "stacking")
+        self.faces = CutFaces(sc.material, self.world, self.machine,
+                              named_rng(self.seed, RNG_STREAM))
         self.lms_file = (self.out_dir / "lms200.bin").open("wb")
         self.gnss_file = (self.out_dir / "gnss.nmea").open("wb")
         self.stats = RunStats()
@@ -253,8 +260,9 @@ class Simulation:
     def run(self, *, duration_h: float | None = None, speed: float = 0.0,
             idle_speed: float = 0.0) -> RunStats:
         """Run the scenario until ``duration_h`` site hours (default: a minute after the
-        last assay), paced at ``speed`` site seconds per wall second (0: as fast as
-        possible; ``idle_speed`` while no machine moves); writes every output."""
+        last assay or after the last delayed failure of a cut's faces, if later), paced at
+        ``speed`` site seconds per wall second (0: as fast as possible; ``idle_speed``
+        while no machine moves); writes every output."""
         sc = self.scenario
         wall0 = time.monotonic()
         t0 = sc.start_ns
@@ -267,8 +275,10 @@ class Simulation:
         self.stacking_until = ms.survey_end
         self.reclaiming = False
         self.lab_windows = lab_windows(self.lab_results, "Fe")
-        self._work_through(queue, ms.end_ns, speed, idle_speed, wall0)
-        self.stats.site_s = (ms.end_ns - t0) / NS_PER_S
+        # a run that ends on its own goes on past its delayed failures (sim.reclaim_run)
+        self.end_ns, self.end_fixed = ms.end_ns, duration_h is not None
+        self._work_through(queue, speed, idle_speed, wall0)
+        self.stats.site_s = (self.end_ns - t0) / NS_PER_S
         self.stats.wall_s = time.monotonic() - wall0
         self._finish()
         return self.stats
@@ -301,15 +311,15 @@ class Simulation:
         at(ms.run_on_end, "patrol", (ms.survey_end, survey_to))
         return queue
 
-    def _work_through(self, queue: Queue, end_ns: int, speed: float, idle_speed: float,
+    def _work_through(self, queue: Queue, speed: float, idle_speed: float,
                       wall0: float) -> None:
-        """Handle the queue's events up to ``end_ns``, paced at ``speed`` (see :meth:`run`)."""
+        """Handle the queue's events up to ``self.end_ns``, paced at ``speed`` (see :meth:`run`)."""
         t0 = self.scenario.start_ns
         next_report = time.monotonic() + 10.0
         t_prev, wall_due, schedule0, busy = t0, 0.0, wall0, None
         while queue:
             t, _, kind, payload = queue.pop()
-            if t > end_ns:
+            if t > self.end_ns:
                 # telegrams of scans taken before the end are still on the wire: send them
                 for t_late, _o, kind_late, data in sorted(queue.items + [(t, _, kind, payload)]):
                     if kind_late in ("telegram", "lms511"):
@@ -318,7 +328,7 @@ class Simulation:
             if self.progress is not None and time.monotonic() >= next_report:
                 next_report = time.monotonic() + 10.0
                 self.progress(f"site time {(t - t0) / NS_PER_H:6.2f} of "
-                              f"{(end_ns - t0) / NS_PER_H:.2f} h: "
+                              f"{(self.end_ns - t0) / NS_PER_H:.2f} h: "
                               f"{self.jsonl.count:,} events, {self.stats.scans:,} scans, "
                               f"{self.stats.passes} passes, {self.stats.cuts} cuts")
             was_busy, busy = busy, self._busy(t_prev)
@@ -509,75 +519,6 @@ class Simulation:
         if self.real:
             self.devices.assay(t, r)
         self.stats.assays += 1
-
-    # -- reclaiming -----------------------------------------------------------------------------
-
-    def _on_reclaim(self, t: int, state, at) -> None:
-        """Plan and start the next cut (state = bench, cut index, travel of the last cut)."""
-        sc, m = self.scenario, self.machine
-        bench, cut, travel = state
-        if bench >= sc.benches:
-            self.reclaiming = False
-            return
-        self.reclaiming = True
-        luff = bench_luff(sc, m, self.world, bench)
-        if travel is None:  # landing: approach from the low-y end until the wheel meets the pile
-            travel = landing_travel(sc, m, self.grid, self.world, luff)
-        else:
-            travel += m.cut_depth_m
-        slews = slew_range(m, self.grid, self.world, travel, luff)
-        if slews is None or cut >= sc.cuts_per_bench[bench]:
-            at(t + int(120 * NS_PER_S), "reclaim", (bench + 1, 0, None))
-            return
-        lo, hi = slews if cut % 2 == 0 else slews[::-1]
-        current = self.motion.at(t)
-        move_s = abs(travel - current[0]) / self.move_m_s + 20.0
-        t_start = t + int(move_s * NS_PER_S)
-        self.motion = Motion(t, t_start, current, (travel, lo, luff))
-        at(t_start, "cut_start", {"bench": bench, "cut": cut, "travel": travel, "luff": luff,
-                                  "slew_start": lo, "slew_end": hi, "t0": t_start,
-                                  "t1": t_start + int(sc.cut_duration_s * NS_PER_S), "parts": []})
-
-    def _on_cut_start(self, t: int, c: dict, at) -> None:
-        if self.cut_surfaces:
-            if not self.truth_cut_surfaces:
-                # the layers as stacked, before any cut or its slump moved them
-                parcels = self.world.parcels()
-                self.truth_first_cut_parcels = {
-                    "first_cut_thickness": parcels["thickness"].astype(np.float32),
-                    "first_cut_time_ns": parcels["time_ns"]}
-            self.truth_cut_surfaces.append(self.world.surface_z().astype(np.float32))
-        self.motion = Motion(c["t0"], c["t1"], (c["travel"], c["slew_start"], c["luff"]),
-                             (c["travel"], c["slew_end"], c["luff"]))
-        if self.real:
-            self.devices.cut_started(t, c, f"B{c['bench'] + 1}-C{c['cut'] + 1:02d}")
-        for k in range(CUT_SUBSWEEPS):
-            at(c["t0"] + (c["t1"] - c["t0"]) * (k + 1) // CUT_SUBSWEEPS, "cut_part", (c, k))
-
-    def _on_cut_part(self, t: int, payload, at) -> None:
-        c, k = payload
-        a = c["slew_start"] + (c["slew_end"] - c["slew_start"]) * k / CUT_SUBSWEEPS
-        b = c["slew_start"] + (c["slew_end"] - c["slew_start"]) * (k + 1) / CUT_SUBSWEEPS
-        truth = self.world.reclaim_cut(self.machine, c["travel"], c["luff"], a, b, int(t),
-                                       relax=False)
-        c["parts"].append(truth)
-        if k == CUT_SUBSWEEPS - 1:
-            # the walls of the whole cut slump once the wheel has passed
-            self.world.settle_cut(c["parts"])
-            self._finish_cut(t, c, at)
-
-    def _finish_cut(self, t: int, c: dict, at) -> None:
-        sc = self.scenario
-        totals = cut_totals(c["parts"], self.world.analytes)
-        tonnes = totals["true_tonnes"]
-        belt = tonnes * (1.0 + self.rng_belt.normal(0.0, sc.belt_scale_error_frac)) if tonnes > 0 else 0.0
-        cut_id = f"B{c['bench'] + 1}-C{c['cut'] + 1:02d}"
-        self.producers["reclaimer"].emit(messages.reclaim_cut(sc, c, cut_id, belt))
-        if self.real:
-            self.devices.cut_ended(t, belt)
-        self.cuts.append(cut_record(c, cut_id, totals, belt))
-        self.stats.cuts += 1
-        at(t + int(30 * NS_PER_S), "reclaim", (c["bench"], c["cut"] + 1, c["travel"]))
 
     # -- output -----------------------------------------------------------------------------
 

@@ -9,7 +9,13 @@ scenario       what it is
 ``bench-scale`` the thesis' laboratory pile in metres (Table 4.1 sizes), two reclaims of
                10 and 5 cuts (§5.3.4)
 ``load``       the demo pile with every sensor at its maximum rate (reliability tests)
+``cohesive``   the demo with cohesive ore: a cut's faces stand at up to 65 deg
+``delayed``    the demo with faces that stand as cut and fail to repose 10 min-3 h later
+``standing``   the demo with faces that never slide
 =============  =========================================================================
+
+The material (:class:`sim.material.Material`) says what a cut's faces do after the cut;
+every scenario but the last three slumps them at once to the angle of repose.
 
 Lengths in metres, times in seconds of site time unless a name says otherwise.
 """
@@ -20,6 +26,7 @@ from dataclasses import dataclass, field, replace
 
 from sim.grades import LotSpec, table_5_4_lots
 from sim.kinematics import BENCH_SCALE, FULL_SCALE, Machine
+from sim.material import Material
 
 #: 2026-11-01T00:00:00Z, the default start of every scenario.
 DEFAULT_START_NS = 1_793_491_200_000_000_000
@@ -48,6 +55,8 @@ class Scenario:
     bulk_density_t_m3: float = 2.4
     repose_deg: float = 37.0
     deposition_cell_m: float = 0.25   # the simulator's own fine grid
+    #: what a cut's faces do after the cut (default: slump at once to ``repose_deg``)
+    material: Material = field(default_factory=Material)
 
     # machines: one bucket-wheel reclaimer that also carries the scanner and GNSS
     machine_id: str = "bwr1"
@@ -88,6 +97,11 @@ class Scenario:
     #: dating its readings between ticks follows a paced run's unsteady pace closer
     clock_busy_period_s: float | None = None
     idle_hz: float = 0.1   # every sensor's rate cap while no machine moves (late assays)
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.material, Material):
+            raise TypeError("material must be a sim.material.Material")
+        self.material.check_repose(self.repose_deg)
 
     @property
     def benches(self) -> int:
@@ -146,7 +160,24 @@ def bench_scale() -> Scenario:
         scan_hz=5.0, assay_window_s=30.0)
 
 
-SCENARIOS = {"demo": demo, "full-scale": full_scale, "bench-scale": bench_scale, "load": load}
+def cohesive() -> Scenario:
+    # cohesive fines: a fresh face stands up to 65 deg, only what is steeper fails
+    return replace(demo(), name="cohesive", material=Material("cohesive", stand_angle_deg=65.0))
+
+
+def delayed() -> Scenario:
+    # faces stand as cut and each fails to repose as one slide 10 min to 3 h after its cut
+    return replace(demo(), name="delayed",
+                   material=Material("delayed", failure_delay_s=(600.0, 10_800.0)))
+
+
+def standing() -> Scenario:
+    # faces never slide (lump ore that holds a cut face)
+    return replace(demo(), name="standing", material=Material("standing"))
+
+
+SCENARIOS = {"demo": demo, "full-scale": full_scale, "bench-scale": bench_scale, "load": load,
+             "cohesive": cohesive, "delayed": delayed, "standing": standing}
 
 
 def scenario_by_name(name: str) -> Scenario:

@@ -25,7 +25,8 @@ grade) and the processes that change them:
   Slumped material is stored in its own deposit's slot, so in a receiving column the slot
   order (deposit order) is kept: if older material slides onto a column whose top is a
   newer deposit, it is recorded under it (mass and grade exact, vertical position
-  approximate, only inside the slump zone).
+  approximate, only inside the slump zone). With ``angle_deg`` only what is steeper than
+  that fails (a cohesive face, :mod:`sim.material`, which decides what a cut's walls do).
 
 Mass accounting: ``stacked == in pile + reclaimed + lost`` to floating-point rounding
 (lost = material that left the grid across its border; make the grid big enough and it
@@ -304,16 +305,18 @@ class World(ParcelColumns):
             truth.slump_lost_tonnes = res["lost_tonnes"]
         return truth
 
-    def settle_cut(self, parts: list[CutTruth]) -> None:
+    def settle_cut(self, parts: list[CutTruth], *, angle_deg: float | None = None) -> dict | None:
         """Let the walls of a cut made in sub-sweeps (``reclaim_cut(..., relax=False)``)
-        slump once the wheel has passed, if any sub-sweep took material; the slump is
-        recorded on the last part."""
+        slump once the wheel has passed, if any sub-sweep took material, to the angle of
+        repose or to ``angle_deg``; the slump is recorded on the last part. Returns
+        :meth:`settle`'s record, None when no sub-sweep took material."""
         if not parts or sum(p.volume_m3 for p in parts) <= 0:
-            return
+            return None
         footprint = np.logical_or.reduce([p.footprint for p in parts])
-        res = self.settle(bbox=footprint_bbox(footprint))
+        res = self.settle(bbox=footprint_bbox(footprint), angle_deg=angle_deg)
         parts[-1].slump_m3 = res["moved_m3"]
         parts[-1].slump_lost_tonnes = res["lost_tonnes"]
+        return res
 
     # ---------------------------------------------------------------- slope failure
     def unstable_columns(self) -> np.ndarray:
@@ -321,16 +324,25 @@ class World(ParcelColumns):
         and holding material."""
         return unstable_mask(self._surf, self._crit, self._tol_m, self.grid.ground_z_m)
 
-    def settle(self, bbox: tuple[int, int, int, int] | None = None) -> dict:
+    def settle(self, bbox: tuple[int, int, int, int] | None = None, *,
+               angle_deg: float | None = None) -> dict:
         """Let over-steep material fail (avalanche relaxation of the whole column content).
 
         ``bbox`` = (iy0, iy1, ix0, ix1) grid indices covering every unstable column (default:
-        found by scanning the grid). Moving material is routed through the recorded edge
-        fluxes with complete mixing in each cell it passes; each deposited piece goes to its
-        own deposit's slot. Returns {moved_m3, lost_tonnes, iterations, cells}."""
+        found by scanning the grid). Material steeper than the angle of repose fails, or
+        with ``angle_deg`` (deg) steeper than that (a cohesive face standing steeper).
+        Moving material is routed through the recorded edge fluxes with complete mixing in
+        each cell it passes; each deposited piece goes to its own deposit's slot. Returns
+        {moved_m3, lost_tonnes, iterations, cells}."""
         ny, nx = self.grid.shape
+        crit, tol_m = self._crit, self._tol_m
+        if angle_deg is not None:
+            if not (0.0 < float(angle_deg) < 90.0):
+                raise ValueError(f"angle_deg must be in (0, 90), got {angle_deg}")
+            tan = math.tan(math.radians(float(angle_deg)))
+            crit, tol_m = tan * self.grid.cell_m * DIST, self.relax_tol * tan * self.grid.cell_m
         if bbox is None:
-            un = self.unstable_columns()
+            un = unstable_mask(self._surf, crit, tol_m, self.grid.ground_z_m)
             if not un.any():
                 return {"moved_m3": 0.0, "lost_tonnes": 0.0, "iterations": 0, "cells": 0}
             rr = np.flatnonzero(un.any(axis=1))
@@ -347,8 +359,8 @@ class World(ParcelColumns):
         mob0[:, 0] = mob0[:, -1] = 0.0
         mob = mob0.copy()
         flux = np.zeros((8,) + mob.shape)
-        its, lost_thk, touched = relax(base, mob, pb, self._crit, self._tol_m,
-                                       self.max_relax_iterations, flux=flux)
+        its, lost_thk, touched = relax(base, mob, pb, crit, tol_m, self.max_relax_iterations,
+                                       flux=flux)
         rec = {"moved_m3": 0.0, "lost_tonnes": 0.0, "iterations": its, "cells": 0}
         if its == 0:
             self._settles.append(rec)
