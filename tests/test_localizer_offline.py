@@ -1,9 +1,9 @@
 """The product's localizer over a recorded run (``services/localizer_offline.py``).
 
 On the short simulated demo yard the projector tests share (``small_yard_sim``:
-``stockpile sim --scenario demo --duration 0.19 --speed 0 --scan-events truth``), the
-offline localizer's scanner poses, estimated from the run's encoders and GNSS, are
-compared with the simulator's true scanner poses in the same ``events.jsonl`` (the
+``stockpile sim --scenario demo --seed 2 --duration 0.19 --speed 0 --scan-events truth
+--assay-window 1200``), the offline localizer's scanner poses, estimated from the run's
+encoders and GNSS, are compared with the simulator's true scanner poses in the same ``events.jsonl`` (the
 ``<machine>.poses`` frame transforms the simulator cast each scan with: its own
 kinematics, not the localizer's); the fixes' dates with the simulator's true antenna
 times (``truth.npz``); the ledger input with a real import.
