@@ -4,10 +4,18 @@
     .venv/bin/python bench/projector_truth.py --scenario demo --seed 3 --keep /tmp/pt
     .venv/bin/python bench/projector_truth.py --scenario bench-scale --seed 1 --seed 2 --seed 3
     .venv/bin/python bench/projector_truth.py --scenario bench-scale --explain --keep /tmp/pe
+    .venv/bin/python bench/projector_truth.py --scenario demo --poses truth  # true poses
 
 For each scenario: ``stockpile sim --scan-events truth`` (scans and scanner poses as
 events, the poses the simulator cast with), ``stockpile ledger import --clock events``
 into a DuckDB ledger, then :func:`projector.query.project` with everything known.
+``--poses`` chooses which scanner poses place the scans (the scans are the same):
+``localizer`` (default, a yard's path) drops the simulator's true poses and imports the
+poses the product's localizer estimates from the run's encoders and GNSS (its UKF, as in
+the process demo: :func:`services.localizer_offline.write_ledger_input`, the ledger
+input ``events-localizer.jsonl`` in the run's folder, ``<run>-localizer``);
+``truth`` imports the simulator's true poses, a diagnosis of the projector apart from
+the localizer.  Each table's heading names its path.
 Truth is the simulator's own world model (its deposition grid and parcels), a different
 method from the projector's scans -> height map -> layer stack.
 
@@ -91,12 +99,16 @@ from _truth_tables import (cut_lots, deposition_times, fmt_tonnes, lot_tonnes,  
                            noise_spread, pct)
 from ledger import open_ledger  # noqa: E402
 from projector.query import grade_inputs, project, summarise  # noqa: E402
+from services.localizer_offline import write_ledger_input  # noqa: E402
 
 TARGET_PILE_PCT = 1.0
 TARGET_CUT_PCT = 3.0
 TARGET_FE_PP = 0.3
 #: the seed run when none is given (tests/test_accuracy_targets.py checks it in CI)
 DEFAULT_SEED = 1
+#: where the scans' poses come from (``--poses``): the localizer's estimate, or the truth
+POSES = {"localizer": "localizer poses (encoders + GNSS through the UKF)",
+         "truth": "true poses (the simulator's, a diagnosis)"}
 
 
 def _stockpile(*args: str) -> None:
@@ -105,14 +117,19 @@ def _stockpile(*args: str) -> None:
 
 
 def run(scenario: str, seed: int, out: Path, duration_h: float | None = None,
-        cut_surfaces: bool = False, noise_seed: int | None = None) -> dict:
+        cut_surfaces: bool = False, noise_seed: int | None = None,
+        poses: str = "localizer") -> dict:
     """Simulate (unless ``out`` holds the run), import and project one run.
 
     ``noise_seed``: the seed of the sensors' noise (``stockpile sim --noise-seed``), None
-    or ``seed``: the simulator's default (the same run as without it).
+    or ``seed``: the simulator's default (the same run as without it).  ``poses``: a key
+    of :data:`POSES`; the localizer's runs are kept apart (``<run>-localizer``).
     """
+    if poses not in POSES:
+        raise ValueError(f"poses must be one of {', '.join(POSES)}, got {poses!r}")
     noise_seed = None if noise_seed == seed else noise_seed
-    name = f"{scenario}-seed{seed}" + ("" if noise_seed is None else f"-noise{noise_seed}")
+    name = f"{scenario}-seed{seed}" + ("" if noise_seed is None else f"-noise{noise_seed}") \
+        + ("-localizer" if poses == "localizer" else "")
     sim_dir = out / name
     ledger = out / f"{name}.duckdb"
     started = time.perf_counter()
@@ -124,22 +141,35 @@ def run(scenario: str, seed: int, out: Path, duration_h: float | None = None,
             extra += ["--noise-seed", str(noise_seed)]
         _stockpile("sim", "--scenario", scenario, "--seed", str(seed), "--speed", "0",
                    "--scan-events", "truth", "--out", str(sim_dir), *extra)
-    if not ledger.exists():
-        _stockpile("ledger", "import", str(sim_dir / "events.jsonl"), "--ledger", str(ledger),
-                   "--clock", "events")
-    prepared = time.perf_counter() - started
     truth = json.loads((sim_dir / "truth.json").read_text())
+    if not ledger.exists():
+        _stockpile("ledger", "import", str(_ledger_input(sim_dir, truth, poses)), "--ledger",
+                   str(ledger), "--clock", "events")
+    prepared = time.perf_counter() - started
     pile_id = truth["scenario"].get("pile_id", "P1")
     with open_ledger(ledger, read_only=True) as store:
         t0 = time.perf_counter()
         state = project(store, pile_id)
         project_s = time.perf_counter() - t0
         lots, assays = grade_inputs(store, state.valid_time_ns, state.known_time_ns)
-    return {"scenario": scenario, "seed": seed,
+    return {"scenario": scenario, "seed": seed, "poses": poses,
             "noise_seed": seed if noise_seed is None else noise_seed,
             "state": state, "truth": truth,
             "prepare_s": prepared, "project_s": project_s, "sim_dir": sim_dir,
             "ledger": ledger, "exact_lab": _exact_lab(state, lots, assays, truth)}
+
+
+def _ledger_input(sim_dir: Path, truth: dict, poses: str) -> Path:
+    """The JSON lines a run's ledger is imported from: the simulator's ``events.jsonl``
+    (true poses), or ``events-localizer.jsonl`` (written unless kept: the localizer's
+    poses in place of the true ones)."""
+    if poses == "truth":
+        return sim_dir / "events.jsonl"
+    path = sim_dir / "events-localizer.jsonl"
+    if not path.exists():
+        write_ledger_input(sim_dir / "events.jsonl", sim_dir / "gnss.nmea", path,
+                           machine_id=truth["scenario"]["machine_id"])
+    return path
 
 
 def _exact_lab(state, lots, assays, truth: dict):
@@ -220,6 +250,7 @@ def report(result: dict) -> dict:
     worst_lot_pct = lot_tonnes(result)
     deposition_times(result)
     return {"scenario": result["scenario"], "seed": result["seed"],
+            "poses": result.get("poses", "truth"),
             "noise_seed": result.get("noise_seed", result["seed"]),
             "cut_errors": cut_errors, "pile_pct": err,
             "cuts": len(truth["cuts"]), "within": within, "worst_pct": worst_pct,
@@ -258,8 +289,9 @@ def _run_name(figures: dict) -> str:
 
 
 def _label(result: dict) -> str:
-    """``bench-scale (seed 5)`` or ``bench-scale (seed 5, noise 1005)``."""
-    return f"{result['scenario']} ({_draw(result)})"
+    """``bench-scale (seed 5), localizer poses (...)`` or ``bench-scale (seed 5, noise
+    1005), true poses (...)``."""
+    return f"{result['scenario']} ({_draw(result)}), {POSES[result.get('poses', 'truth')]}"
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -273,6 +305,10 @@ def main(argv: list[str] | None = None) -> int:
                     "(stockpile sim --noise-seed); repeatable; a table then gives each cut's "
                     "error over the draws, the seed's own first")
     ap.add_argument("--keep", metavar="DIR", help="keep (and reuse) the runs in DIR")
+    ap.add_argument("--poses", choices=tuple(POSES), default="localizer",
+                    help="the scanner poses that place the scans: the localizer's estimate "
+                    "from encoders and GNSS (default, a yard's path) or the simulator's "
+                    "true poses (a diagnosis)")
     ap.add_argument("--explain", action="store_true",
                     help="split each cut's error into the envelope's and the surface's "
                     "(simulates with --truth-cut-surfaces)")
@@ -286,12 +322,13 @@ def main(argv: list[str] | None = None) -> int:
             for scenario in scenarios:
                 for noise_seed in [None, *(n for n in args.noise_seed or [] if n != seed)]:
                     result = run(scenario, seed, out, args.duration, cut_surfaces=args.explain,
-                                 noise_seed=noise_seed)
+                                 noise_seed=noise_seed, poses=args.poses)
                     figures.append(report(result))
                     if args.explain:
                         explain(result)
         ok = all(f["ok"] for f in figures)
         if len(figures) > 1:
+            print(f"\n(all runs: {POSES[args.poses]})")
             summary(figures)
         if args.noise_seed:
             always = noise_spread(figures)

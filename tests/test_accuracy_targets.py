@@ -5,7 +5,8 @@
   volume: within ``TARGET_PCT`` (0.05 % noise-free, 0.3 % noisy).  The range noise is
   drawn from the run's seed (``--seed``, tests/seeding.py), one stream per case.
 - ``bench/projector_truth.py``: the demo scenario at the script's default seed, simulated,
-  imported into a DuckDB ledger and projected: the pile's tonnes within
+  imported into a DuckDB ledger with the simulator's true scanner poses (``--poses
+  truth``: the projector's targets apart from the localizer's error) and projected: the pile's tonnes within
   ``TARGET_PILE_PCT`` (1 %), every cut's tonnes within ``TARGET_CUT_PCT`` (3 %) and Fe
   within ``TARGET_FE_PP`` (0.3 pp) of the simulator's truth, and no cut missing.
 
@@ -47,9 +48,10 @@ def test_analytic_pile_volume_within_target(index, seed):
 
 @pytest.fixture(scope="module")
 def demo_truth(tmp_path_factory):
-    """``bench/projector_truth.py --scenario demo --seed 1``: the run and its figures."""
+    """``bench/projector_truth.py --scenario demo --seed 1 --poses truth``: the run and its
+    figures."""
     out = tmp_path_factory.mktemp("projector-truth")
-    result = projector_truth.run("demo", DEMO_SEED, out)
+    result = projector_truth.run("demo", DEMO_SEED, out, poses="truth")
     figures = projector_truth.report(result)
     return result, figures
 
