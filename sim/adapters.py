@@ -11,7 +11,7 @@ product's adapters carry them into the yard:
   (:class:`sim.lims.LimsDropWriter`, map :data:`sim.lims.MAP_TOML`; read by
   ``stockpile service lab``);
 * the scans go to an emulated SICK LMS511 on loopback TCP (:class:`sim.lms511.Lms511Server`,
-  CoLa-B, a 190 deg field at 0.1667 deg steps; read by ``stockpile service scanner --tcp``).
+  CoLa-B, a 190 deg field at 0.5 deg steps; read by ``stockpile service scanner --tcp``).
 
 :class:`RealDevices` opens, drives and closes the three.  The runner still writes every
 fact to ``events.jsonl`` (the record of the run, not published), but publishes only the
@@ -46,7 +46,7 @@ ADAPTER_MODES = ("sim", "real")
 #: the PLC tag map the simulated PLCs serve (its machines are the scenarios' bwr1, stk1)
 PLC_MAP = Path(__file__).with_name("plc_map.toml")  # docs/plc.example.toml, packaged
 #: the emulated LMS511's field and angular step, degrees
-LMS511_FIELD_DEG = (190.0, 0.1667)
+LMS511_FIELD_DEG = (190.0, 0.5)
 #: the scan frequency the LMS511's telegrams state, Hz (its latency is one period)
 LMS511_SCAN_HZ = 25.0
 

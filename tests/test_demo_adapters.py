@@ -29,8 +29,9 @@ SPEED = "40"
 #: the adapters' sources -> the event types each carries
 ADAPTER_TYPES = {"bwr1.encoders": {"joint_reading"}, "stk1.plc": {"stack_started", "stack_ended"},
                  "bwr1.plc": {"reclaim_cut"}, "lab1": {"assay"}, "bwr1.scanner": {"scan"}}
-#: the emulated LMS511's field: 190 deg at 0.1667 deg
-LMS511_BEAMS = math.floor(190.0 / 0.1667 + 1e-9) + 1
+#: the emulated LMS511's field and step in the demo, deg: 190 deg at 0.5 deg
+FIELD_DEG, STEP_DEG = 190.0, 0.5
+LMS511_BEAMS = math.floor(FIELD_DEG / STEP_DEG + 1e-9) + 1
 
 
 @pytest.fixture(scope="module")
@@ -89,7 +90,7 @@ def test_real_adapters_deliver_every_fact_exactly_once(adapters_demo):
                 scan = decode_payload("scan", r.payload)
                 assert len(scan.ranges) == LMS511_BEAMS
                 step_deg = math.degrees(scan.end_angle - scan.start_angle) / (len(scan.ranges) - 1)
-                assert math.isclose(step_deg, 0.1667, abs_tol=1e-4), step_deg
+                assert math.isclose(step_deg, STEP_DEG, abs_tol=1e-4), step_deg
     # every pass and cut the simulator finished, every assay it reported, came through
     assert held[("stk1.plc", "stack_ended")] == len(truth["passes"]) > 0
     assert held[("bwr1.plc", "reclaim_cut")] == len(truth["cuts"]) > 0

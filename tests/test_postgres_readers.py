@@ -90,6 +90,8 @@ DRAIN_TIMEOUT_S = 120.0
 MIN_ANSWERS = 3
 #: the most one reader's command may take, s
 READER_TIMEOUT_S = 120.0
+#: a p99 beyond 2x must stay within this multiple of the control burners' p99
+CONTROL_MARGIN = 1.5
 #: event types the seed ledger keeps of the simulated yard: its declarations, passes, cut
 #: and assays (no scans: a reader's fold stays light on this 2-core machine)
 SEED_TYPES = ("site_declared", "pile_declared", "machine_declared", "lot_declared",
@@ -582,8 +584,13 @@ def test_three_readers_while_the_ledger_service_appends(small_yard_sim, tmp_path
     if busy.p99_ms > 2 * quiet.p99_ms:
         # Known, measured, open (docs/deployment.md, "Readers"): readers in sessions of
         # their own at the lowest weight keep it within 2x on most runs (62-71 -> 79-98 ms),
-        # not all (a fresh-clone CI run: 62 -> 139 ms); the answers and the loss are
-        # asserted above, the ratio is recorded here with both numbers.
+        # not all (a fresh-clone CI run: 62 -> 139 ms).  The control says whether a miss is
+        # the machine's: burners with the readers' CPU and priority, touching no database,
+        # took it to 2.08x and 2.44x where the readers took it to 1.19x and 1.38x.  A miss
+        # the readers cause beyond their CPU (a lock the writer waits on) fails here.
+        assert busy.p99_ms <= CONTROL_MARGIN * control.p99_ms, (
+            f"commit p99 with readers {busy.p99_ms:.0f} ms, more than {CONTROL_MARGIN}x the "
+            f"control burners' {control.p99_ms:.0f} ms (without readers {quiet.p99_ms:.0f} ms)")
         pytest.xfail(f"commit p99 with readers {busy.p99_ms:.0f} ms is more than 2x the "
                      f"{quiet.p99_ms:.0f} ms without (issue 38: within 2x); the control "
                      f"burners' CPU alone: {control.p99_ms:.0f} ms")
