@@ -221,7 +221,12 @@ def test_grade_sd_matches_monte_carlo(seed):
     base = tonnes @ grades / tonnes.sum()
     draws = _grade_draws(rng, tonnes, grades, group, sd_by_group, band, diff, draws=DRAWS)
     assert np.allclose(draws.mean(axis=0), base, atol=0.05)
-    _close(draws.std(axis=0), got)
+    # the draws also hold the second-order product the kernel leaves out (first order):
+    # a band's moved tonnes (variance t_b^2 / 12) times its two pieces' grade errors
+    # (independent groups), over the mixture's tonnes squared
+    product_var = sum(t_b ** 2 / 12.0 * (sd_by_group[group[lo]] ** 2 + sd_by_group[group[hi]] ** 2)
+                      for (lo, hi), t_b in band) / tonnes.sum() ** 2
+    _close(draws.std(axis=0), np.sqrt(np.asarray(got) ** 2 + product_var))
 
 
 def test_grade_sd_limits():
