@@ -13,7 +13,7 @@ into a DuckDB ledger, then :func:`projector.query.project` with everything known
 ``localizer`` (default, a yard's path) drops the simulator's true poses and imports the
 poses the product's localizer estimates from the run's encoders and GNSS (its UKF, as in
 the process demo: :func:`services.localizer_offline.write_ledger_input`, the ledger
-input ``events-localizer.jsonl`` in the run's folder, ``<run>-localizer``);
+input ``events-localizer.jsonl`` in the run's folder, the ledger ``<run>-localizer.duckdb``);
 ``truth`` imports the simulator's true poses, a diagnosis of the projector apart from
 the localizer.  Each table's heading names its path.
 Truth is the simulator's own world model (its deposition grid and parcels), a different
@@ -123,15 +123,15 @@ def run(scenario: str, seed: int, out: Path, duration_h: float | None = None,
 
     ``noise_seed``: the seed of the sensors' noise (``stockpile sim --noise-seed``), None
     or ``seed``: the simulator's default (the same run as without it).  ``poses``: a key
-    of :data:`POSES`; the localizer's runs are kept apart (``<run>-localizer``).
+    of :data:`POSES`; both paths share the run's simulation, each has its own ledger
+    (``<run>-localizer.duckdb`` for the localizer's).
     """
     if poses not in POSES:
         raise ValueError(f"poses must be one of {', '.join(POSES)}, got {poses!r}")
     noise_seed = None if noise_seed == seed else noise_seed
-    name = f"{scenario}-seed{seed}" + ("" if noise_seed is None else f"-noise{noise_seed}") \
-        + ("-localizer" if poses == "localizer" else "")
+    name = f"{scenario}-seed{seed}" + ("" if noise_seed is None else f"-noise{noise_seed}")
     sim_dir = out / name
-    ledger = out / f"{name}.duckdb"
+    ledger = out / (name + ("-localizer" if poses == "localizer" else "") + ".duckdb")
     started = time.perf_counter()
     if not (sim_dir / "truth.json").exists():
         extra = ["--duration", str(duration_h)] if duration_h else []

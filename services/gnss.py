@@ -77,7 +77,7 @@ __all__ = [
     "SERVICE", "DEFAULT_BAUD", "DEFAULT_SOURCE", "DEFAULT_FRAME_ID", "DEFAULT_UERE_M",
     "DEFAULT_AUTONOMOUS_UERE_M", "AUTONOMOUS_QUALITIES", "uere_for_quality",
     "VERTICAL_SIGMA_FACTOR", "READ_TIMEOUT_S", "ERROR_KEYS", "NS_PER_DAY", "Config",
-    "gga_time_ns", "ellipsoidal_height_m", "position_covariance_m2", "fix_message",
+    "gga_time_ns", "ellipsoidal_height_m", "position_covariance_m2", "fix_message", "read_gga",
     "add_arguments", "config_from_args", "main",
 ]
 
@@ -245,6 +245,22 @@ def fix_message(gga: nmea.Gga, valid_time_ns: int, frame_id: str, uere_m: float)
 # -- command line -------------------------------------------------------------------------
 
 
+def read_gga(sentence: str) -> tuple[nmea.Gga | None, str | None, str | None]:
+    """A checksum-valid sentence as the service reads it: ``(gga, None, None)`` for a GGA
+    with a position, else ``(None, counter, error)``: ``counter`` is ``non_gga``,
+    ``unparseable`` (``error``: the parser's message) or ``no_fix``."""
+    kind = sentence[1:sentence.find(",")] if "," in sentence else sentence[1:]
+    if not kind.endswith("GGA"):
+        return None, "non_gga", None
+    try:
+        gga = nmea.parse_gga(sentence)
+    except nmea.NmeaError as exc:
+        return None, "unparseable", str(exc)
+    if gga.quality == 0:
+        return None, "no_fix", None
+    return gga, None, None
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Add the GNSS service's own options (the shared ones come from ``service_cli``)."""
     parser.add_argument("--device", required=True, metavar="PATH",
@@ -300,19 +316,11 @@ class _FixPipeline(DevicePipeline):
             self._sentence(sentence, arrived_s)
 
     def _sentence(self, sentence: str, arrived_s: float) -> None:
-        kind = sentence[1:sentence.find(",")] if "," in sentence else sentence[1:]
-        if not kind.endswith("GGA"):
-            self.status.add("non_gga")
-            return
-        try:
-            gga = nmea.parse_gga(sentence)
-        except nmea.NmeaError as exc:
-            if self.status.get("unparseable") == 0:
-                self.runtime.log("unparseable GGA", level="warning", error=str(exc))
-            self.status.add("unparseable")
-            return
-        if gga.quality == 0:
-            self.status.add("no_fix")
+        gga, skipped, error = read_gga(sentence)
+        if gga is None:
+            if skipped == "unparseable" and self.status.get("unparseable") == 0:
+                self.runtime.log("unparseable GGA", level="warning", error=error)
+            self.status.add(skipped)
             return
         now_ns = self.site_ns(arrived_s)
         if now_ns is None:

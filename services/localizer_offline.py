@@ -101,18 +101,10 @@ def gnss_fixes(nmea_bytes: bytes, clock_ns: Sequence[int], *, machine_id: str, e
 
 def _fix_of(sentence: str, count: Callable[..., None]) -> nmea.Gga | None:
     """A GGA sentence with a position and a time of day, or None (counted as the service
-    counts it)."""
-    kind = sentence[1:sentence.find(",")] if "," in sentence else sentence[1:]
-    if not kind.endswith("GGA"):
-        count("non_gga")
-        return None
-    try:
-        gga = nmea.parse_gga(sentence)
-    except nmea.NmeaError:
-        count("unparseable")
-        return None
-    if gga.quality == 0:
-        count("no_fix")
+    counts it, :func:`services.gnss.read_gga`)."""
+    gga, skipped, _error = gnss.read_gga(sentence)
+    if gga is None:
+        count(skipped)
         return None
     if not gga.time_of_day_s >= 0:      # no time of day: nothing to date it by
         count("unparseable")

@@ -155,10 +155,7 @@ class CutFaces:
                 extra["face_height_m"] = height_m
                 if height_m > self.material.critical_height_m:
                     angle_deg = None   # the face is too high to stand: it fails to repose
-        if angle_deg is None:
-            res = self.world.settle_cut(parts)   # today's slump, the very same call
-        else:
-            res = self.world.settle_cut(parts, angle_deg=angle_deg)
+        res = self.world.settle_cut(parts, angle_deg=angle_deg)   # None: to repose
         self._record(cut_id, end_ns, res, angle_deg, extra)
         return None
 
@@ -216,7 +213,8 @@ class CutFaces:
 
 
 def _dilate(mask: np.ndarray) -> np.ndarray:
-    """``mask`` grown by one cell toward its 8 neighbours."""
+    """``mask`` grown by one cell toward its 8 neighbours (``scipy.ndimage`` would make
+    :mod:`sim.scenario`, which imports this module, load SciPy)."""
     out = mask.copy()
     out[1:, :] |= mask[:-1, :]
     out[:-1, :] |= mask[1:, :]

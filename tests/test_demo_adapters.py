@@ -18,7 +18,7 @@ from devices.opcua_tags import load_map
 from ledger import open_ledger
 from schemas.events import decode_payload
 from services.plc import only_source
-from sim.adapters import PLC_MAP, RealDevices
+from sim.adapters import LMS511_FIELD_DEG, PLC_MAP, RealDevices
 from sim.runner import Simulation
 from sim.scenario import demo
 
@@ -29,8 +29,8 @@ SPEED = "40"
 #: the adapters' sources -> the event types each carries
 ADAPTER_TYPES = {"bwr1.encoders": {"joint_reading"}, "stk1.plc": {"stack_started", "stack_ended"},
                  "bwr1.plc": {"reclaim_cut"}, "lab1": {"assay"}, "bwr1.scanner": {"scan"}}
-#: the emulated LMS511's field and step in the demo, deg: 190 deg at 0.5 deg
-FIELD_DEG, STEP_DEG = 190.0, 0.5
+#: the emulated LMS511's field and step in the demo, deg, and its beams
+FIELD_DEG, STEP_DEG = LMS511_FIELD_DEG
 LMS511_BEAMS = math.floor(FIELD_DEG / STEP_DEG + 1e-9) + 1
 
 
