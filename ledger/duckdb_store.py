@@ -33,6 +33,7 @@ from __future__ import annotations
 import json
 import os
 import threading
+from dataclasses import replace
 from pathlib import Path
 from typing import Iterator, Sequence
 
@@ -48,7 +49,8 @@ from ledger.clock import SiteClock
 from ledger.errors import InterfaceError, OperationalError, ProgrammingError, backend_errors
 from ledger.head_file import HeadRecorder, reconcile
 from ledger.signing import SigningPolicy, registry_from_rows
-from ledger.records import Gap, Head, LedgerStats, QuarantineEntry, RecordedEvent, VerifyReport
+from ledger.records import (EventTally, Gap, Head, LedgerStats, QuarantineEntry, RecordedEvent,
+                            VerifyReport)
 from ledger.store import BODY_TYPES, BatchPlan, Key, LedgerStore, StreamState, WriterState
 
 SCHEMA_VERSION = "2"
@@ -221,6 +223,7 @@ class DuckDBStore(LedgerStore):
         self.path = Path(path)
         self._registered = False
         self._head_recorder: HeadRecorder | None = None
+        self._tally: EventTally | None = None   # stats(): counts kept as batches commit
         resolved = str(self.path.resolve())
         if read_only and not self.path.exists():
             raise OperationalError(f"no ledger at {self.path}")
@@ -368,6 +371,8 @@ class DuckDBStore(LedgerStore):
                     pass
                 raise
         self._analytes |= new_analytes
+        if self._tally is not None:
+            self._tally.add(plan.rows)
         if self._head_recorder is not None and plan.state is not None:
             s = plan.state
             self._head_recorder.record(Head(s.head_seq, s.last_recorded_ns, s.head_chain))
@@ -535,41 +540,25 @@ class DuckDBStore(LedgerStore):
         return [QuarantineEntry(*r[:9], bytes(r[9]), r[10], r[11], bytes(r[12])) for r in rows]
 
     def stats(self) -> LedgerStats:
-        """As :meth:`LedgerStore.stats`, computed in SQL (no payloads are read)."""
+        """As :meth:`LedgerStore.stats`: the events' counts from a tally the store keeps as
+        batches commit (the log is read once, at the first call), gaps and quarantine in
+        SQL."""
         with self._lock:
             self._check_open()
             with backend_errors():
                 con = self._con
-                per_type = dict(con.execute(
-                    "SELECT type, count(*) FROM event_log GROUP BY type ORDER BY type").fetchall())
-                per_source = dict(con.execute(
-                    "SELECT source, count(*) FROM event_log GROUP BY source ORDER BY source").fetchall())
-                vmin, vmax, rmin, rmax = con.execute(
-                    "SELECT min(valid_time_ns), max(valid_time_ns), min(recorded_time_ns), "
-                    "max(recorded_time_ns) FROM event_log").fetchone()
-                flagged = dict(con.execute(
-                    "SELECT f, count(*) FROM (SELECT unnest(string_split(flags, ',')) AS f "
-                    "FROM event_log WHERE flags IS NOT NULL) GROUP BY f ORDER BY f").fetchall())
+                if self._tally is None:
+                    self._tally = _tally_of_log(con)
                 open_gaps, missing, closed_gaps = con.execute(
                     "SELECT count(*) FILTER (WHERE closed_recorded_ns IS NULL), "
                     "coalesce(sum(last_seq - first_seq + 1) FILTER (WHERE closed_recorded_ns IS NULL), 0), "
                     "count(*) FILTER (WHERE closed_recorded_ns IS NOT NULL) FROM gaps").fetchone()
                 by_code = dict(con.execute(
                     "SELECT code, count(*) FROM quarantine GROUP BY code ORDER BY code").fetchall())
-        return LedgerStats(
-            events=sum(per_type.values()),
-            head=self.head(),
-            per_type=per_type,
-            per_source=per_source,
-            valid_time_range_ns=None if vmin is None else (vmin, vmax),
-            recorded_time_range_ns=None if rmin is None else (rmin, rmax),
-            open_gaps=open_gaps,
-            missing_events=int(missing),
-            closed_gaps=closed_gaps,
-            quarantined=sum(by_code.values()),
-            quarantine_by_code=by_code,
-            flagged=flagged,
-        )
+            counted = self._tally.stats(self.head(), [], [])
+        return replace(counted, open_gaps=open_gaps, missing_events=int(missing),
+                       closed_gaps=closed_gaps, quarantined=sum(by_code.values()),
+                       quarantine_by_code=by_code)
 
     # -- closing ---------------------------------------------------------------------------
 
@@ -585,3 +574,21 @@ class DuckDBStore(LedgerStore):
             with _OPEN_WRITERS_LOCK:
                 _OPEN_WRITERS.discard(self._resolved)
             self._registered = False
+
+
+def _tally_of_log(con) -> EventTally:
+    """The :class:`EventTally` of every row of ``event_log``, counted in SQL."""
+    tally = EventTally()
+    tally.per_type.update(dict(con.execute(
+        "SELECT type, count(*) FROM event_log GROUP BY type").fetchall()))
+    tally.per_source.update(dict(con.execute(
+        "SELECT source, count(*) FROM event_log GROUP BY source").fetchall()))
+    vmin, vmax, rmin, rmax = con.execute(
+        "SELECT min(valid_time_ns), max(valid_time_ns), min(recorded_time_ns), "
+        "max(recorded_time_ns) FROM event_log").fetchone()
+    if vmin is not None:
+        tally.valid, tally.recorded = (vmin, vmax), (rmin, rmax)
+    tally.flagged.update(dict(con.execute(
+        "SELECT f, count(*) FROM (SELECT unnest(string_split(flags, ',')) AS f "
+        "FROM event_log WHERE flags IS NOT NULL) GROUP BY f").fetchall()))
+    return tally

@@ -189,29 +189,54 @@ class LedgerStats:
     def of(cls, rows: Iterable[RecordedEvent], head: Head, gaps: list[Gap],
            quarantine: list[QuarantineEntry]) -> LedgerStats:
         """The stats of a ledger's rows (one pass), its head, gaps and quarantine."""
-        per_type: Counter[str] = Counter()
-        per_source: Counter[str] = Counter()
-        flagged: Counter[str] = Counter()
-        valid = recorded = None
+        tally = EventTally()
+        tally.add(rows)
+        return tally.stats(head, gaps, quarantine)
+
+
+class EventTally:
+    """Running counts of an event log: per type, per source and per flag, and the valid
+    and recorded time ranges (ns).  :meth:`add` takes rows as they are committed, so a
+    store answers :meth:`~ledger.store.LedgerStore.stats` without reading its log again."""
+
+    __slots__ = ("per_type", "per_source", "flagged", "valid", "recorded")
+
+    def __init__(self) -> None:
+        self.per_type: Counter[str] = Counter()
+        self.per_source: Counter[str] = Counter()
+        self.flagged: Counter[str] = Counter()
+        self.valid: tuple[int, int] | None = None
+        self.recorded: tuple[int, int] | None = None
+
+    def add(self, rows: Iterable[RecordedEvent]) -> None:
+        """Count ``rows`` in."""
         for row in rows:
-            per_type[row.type] += 1
-            per_source[row.source] += 1
+            self.per_type[row.type] += 1
+            self.per_source[row.source] += 1
             for flag in row.flags:
-                flagged[flag] += 1
-            v, r = row.valid_time_ns, row.recorded_time_ns
-            valid = (v, v) if valid is None else (min(valid[0], v), max(valid[1], v))
-            recorded = (r, r) if recorded is None else (min(recorded[0], r), max(recorded[1], r))
-        return cls(
-            events=sum(per_type.values()),
+                self.flagged[flag] += 1
+            self.valid = _widen(self.valid, row.valid_time_ns)
+            self.recorded = _widen(self.recorded, row.recorded_time_ns)
+
+    def stats(self, head: Head, gaps: list[Gap],
+              quarantine: list[QuarantineEntry]) -> LedgerStats:
+        """The :class:`LedgerStats` of the rows counted, with ``head``, ``gaps`` and
+        ``quarantine``."""
+        return LedgerStats(
+            events=sum(self.per_type.values()),
             head=head,
-            per_type=dict(sorted(per_type.items())),
-            per_source=dict(sorted(per_source.items())),
-            valid_time_range_ns=valid,
-            recorded_time_range_ns=recorded,
+            per_type=dict(sorted(self.per_type.items())),
+            per_source=dict(sorted(self.per_source.items())),
+            valid_time_range_ns=self.valid,
+            recorded_time_range_ns=self.recorded,
             open_gaps=sum(1 for g in gaps if g.is_open),
             missing_events=sum(g.size for g in gaps if g.is_open),
             closed_gaps=sum(1 for g in gaps if not g.is_open),
             quarantined=len(quarantine),
             quarantine_by_code=dict(sorted(Counter(q.code for q in quarantine).items())),
-            flagged=dict(sorted(flagged.items())),
+            flagged=dict(sorted(self.flagged.items())),
         )
+
+
+def _widen(span: tuple[int, int] | None, value: int) -> tuple[int, int]:
+    return (value, value) if span is None else (min(span[0], value), max(span[1], value))
