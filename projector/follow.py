@@ -61,11 +61,11 @@ def follow_height(state: ProjectorState, t_ns: int, *, drops: bool = True,
     shape = state.pile.geometry.shape
     up, down = np.zeros(shape, bool), np.zeros(shape, bool)
     up[region], down[region] = up_r, down_r
-    face = face_cells(state)
+    face = face_cells(state, elevation if elevation.shape == shape else None)
     if face is not None:
         # an open face follows the scans once they are fitted (material_fit.close_face)
-        up &= ~face
-        down &= ~face
+        up &= ~face[0]
+        down &= ~face[1]
         if not (up.any() or (drops and down.any())):
             return
     if elevation.shape != shape:

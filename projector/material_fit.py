@@ -50,14 +50,16 @@ class OpenFace:
 
     ``cut_index``: the cut's index in ``state.cuts``; ``end_ns``: its end (UTC ns);
     ``region``: the block (slice, slice) its slide may move; ``cells``: bool over the
-    region, the cells a slide to repose moves (grown by a cell); ``tan_repose`` and
-    ``tan_prior``: the slopes of the slide to repose and of the predicted one.
+    region, the cells a slide to repose moves (grown by a cell); ``repose_top_m``: the
+    stack's top over the region slid to repose (m); ``tan_repose`` and ``tan_prior``: the
+    slopes of the slide to repose and of the predicted one.
     """
 
     cut_index: int
     end_ns: int
     region: tuple[slice, slice]
     cells: np.ndarray
+    repose_top_m: np.ndarray
     tan_repose: float
     tan_prior: float
 
@@ -195,24 +197,36 @@ def open_face(state: ProjectorState, record: CutRecord, floor_m: np.ndarray) -> 
     if not moved.any():
         return top
     tan_pri = prior_tan(state, tan_rep)
-    predicted = (at_repose if tan_pri == tan_rep
+    predicted = (at_repose.copy() if tan_pri == tan_rep
                  else _relaxed(top[region], base, state.pile.geometry.cell_m, tan_pri))
     cells = ndimage.binary_dilation(moved, structure=np.ones((3, 3), bool))
-    state.open_face = OpenFace(len(state.cuts), record.end_ns, region, cells, tan_rep, tan_pri)
+    at_repose.setflags(write=False)
+    cells.setflags(write=False)
+    state.open_face = OpenFace(len(state.cuts), record.end_ns, region, cells, at_repose,
+                               tan_rep, tan_pri)
     top[region] = predicted
     state.count("faces_opened")
     return top
 
 
-def face_cells(state: ProjectorState) -> np.ndarray | None:
-    """The open face's cells over the whole grid (bool, (nx, ny)), which the stack does
-    not follow the map over until the face closes; None when no face is open."""
+def face_cells(state: ProjectorState, elevation: np.ndarray | None = None
+               ) -> tuple[np.ndarray, np.ndarray] | None:
+    """What the stack does not follow until the open face closes, ``(rises, drops)``
+    (bool, (nx, ny)): rises on the face's cells, and drops there that a slide explains,
+    not below the face slid to repose by more than the margin (``elevation``, m, the
+    heights followed, (nx, ny); None: every drop there).  None when no face is open.
+    A drop below any slide (the wheel dug deeper than its envelope) is followed."""
     face = state.open_face
     if face is None:
         return None
-    mask = np.zeros(state.pile.geometry.shape, bool)
-    mask[face.region] = face.cells
-    return mask
+    rises = np.zeros(state.pile.geometry.shape, bool)
+    rises[face.region] = face.cells
+    drops = rises.copy()
+    if elevation is not None and elevation.shape == rises.shape:
+        with np.errstate(invalid="ignore"):
+            below = elevation[face.region] < face.repose_top_m - state.margin_m
+        drops[face.region] &= ~below
+    return rises, drops
 
 
 def _seen_since(state: ProjectorState, face: OpenFace, next_floor_m: np.ndarray | None,
@@ -274,10 +288,10 @@ def close_face(state: ProjectorState, next_floor_m: np.ndarray | None = None,
         state.stack, moved, _raised = slump.slump(state.stack, tan, region)
         record.slumped_m3 = moved.volume_m3
         state.count("slumps")
-    _predict_unseen(state, face, seen)
+    _predict_unseen(state, face)
 
 
-def _predict_unseen(state: ProjectorState, face: OpenFace, seen: np.ndarray) -> None:
+def _predict_unseen(state: ProjectorState, face: OpenFace) -> None:
     """The height map takes the stack's top (as good as one point) on the face's cells
     not seen since its cut: they keep the fitted prediction."""
     grid = state.height.grid
@@ -285,8 +299,8 @@ def _predict_unseen(state: ProjectorState, face: OpenFace, seen: np.ndarray) -> 
     elevation = grid["elevation"][region]
     new_top = state.stack.surface()[region]
     with np.errstate(invalid="ignore"):
-        unseen = face.cells & ~np.isfinite(seen) & np.isfinite(elevation) & (
-            np.abs(elevation - new_top) > 1e-9)
+        unseen = face.cells & ~(grid["last_update_ns"][region] > face.end_ns) & np.isfinite(
+            elevation) & (np.abs(elevation - new_top) > 1e-9)
     if not unseen.any():
         return
     elevation[unseen] = new_top[unseen]
