@@ -100,13 +100,13 @@ def _state(nx: int = 12, ny: int = 64) -> F.ProjectorState:
 
 
 def _cut(state: F.ProjectorState, cut_id: str, y_m: float, start_s: float,
-         end_s: float) -> tuple[F.CutRecord, np.ndarray]:
-    """A cut taking everything at y < ``y_m`` down to the ground, as the fold applies one:
-    the face before it closes, the envelope clamps, the new face opens."""
+         end_s: float, floor_m: float = 0.0) -> tuple[F.CutRecord, np.ndarray]:
+    """A cut taking everything at y < ``y_m`` down to ``floor_m``, as the fold applies
+    one: the face before it closes, the envelope clamps, the new face opens."""
     g = state.pile.geometry
     y = (np.arange(g.ny) + 0.5) * g.cell_m
     floor = np.full(g.shape, np.inf)
-    floor[:, y < y_m] = 0.0
+    floor[:, y < y_m] = floor_m
     material_fit.close_face(state, floor, int(start_s * NS))
     record = F.CutRecord(cut_id, "B1", "bwr1", int(start_s * NS), int(end_s * NS), 0.0)
     F._clamp_to_floor(state, record, floor, None)
@@ -216,3 +216,25 @@ def test_a_delayed_failure_moves_the_face_into_the_toe_conserving_mass(seed):
     # a second look at the same surface finds nothing more to fail
     follow.follow_height(state, 90 * NS)
     assert len(state.delayed_failures) == 1
+
+
+def test_a_drop_below_any_slide_is_the_cut_s_while_its_face_is_open():
+    """While the face is open, the scans see part of the hole 0.3 m below the envelope's
+    floor (the wheel dug deeper): no slide explains that, so the drop is followed and
+    charged to the cut; the face's own cells (its crest seen slid) are not."""
+    state = _state()
+    g = state.pile.geometry
+    record, _ = _cut(state, "C1", 2.0, 20, 30, floor_m=0.5)
+    y = (np.arange(g.ny) + 0.5) * g.cell_m
+    top = state.stack.surface()
+    seen = slump.relax_surface(top, state.stack.ground(), CELL, math.tan(math.radians(REPOSE)))
+    deeper = y < 0.5
+    seen[:, deeper] = 0.2
+    for t in (40, 45, 50):
+        _see(state, seen, t)
+    follow.follow_height(state, 50 * NS)
+    want = 0.3 * g.cell_area_m2 * g.nx * int(deeper.sum())
+    assert math.isclose(record.residual_m3, want, rel_tol=1e-9), record.residual_m3
+    # the crest, seen slid, still stands in the stack until the face closes
+    crest = (y > 2.0) & (y < 3.0)
+    np.testing.assert_array_equal(state.stack.surface()[:, crest], top[:, crest])
