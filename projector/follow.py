@@ -22,7 +22,7 @@ from projector.completion import filled_elevation, unseen_floor
 from projector.crossings import stale
 from projector.cuts import journal_rises, near_cut
 from projector.layers import DepositInfo
-from projector.material_fit import face_cells, slide_seen_failure
+from projector.material_fit import face_cells, note_sightings, slide_seen_failure
 from projector.state import ProjectorState, last_event_ns, settling_last_pass
 
 __all__ = ["follow_height"]
@@ -48,6 +48,7 @@ def follow_height(state: ProjectorState, t_ns: int, *, drops: bool = True,
     has it; ``filled_m`` its :func:`projector.completion.filled_elevation` (with no
     ``region``).
     """
+    note_sightings(state)   # after every batch of scans: the open face's first looks
     region, elevation = _elevation_to_follow(state, t_ns, drops, region, unseen_floor_m,
                                              filled_m)
     top_r = state.stack.surface()[region]

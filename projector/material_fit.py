@@ -30,7 +30,7 @@ from projector.repose import tan_repose
 from projector.state import CutRecord, ProjectorState
 
 __all__ = ["OpenFace", "SlideFit", "fit_slide_angle", "open_face", "close_face",
-           "face_cells", "slide_seen_failure", "material_estimate", "prior_tan"]
+           "face_cells", "note_sightings", "slide_seen_failure", "material_estimate", "prior_tan"]
 
 #: the coarse step (deg) of the angles tried between repose and 90 deg; two halvings refine it
 FIT_STEP_DEG = 5.0
@@ -204,6 +204,7 @@ def open_face(state: ProjectorState, record: CutRecord, floor_m: np.ndarray) -> 
     cells.setflags(write=False)
     state.open_face = OpenFace(len(state.cuts), record.end_ns, region, cells, at_repose,
                                tan_rep, tan_pri)
+    state.face_sightings = (np.full(cells.shape, np.nan), np.full(cells.shape, np.nan))
     top[region] = predicted
     state.count("faces_opened")
     return top
@@ -229,26 +230,41 @@ def face_cells(state: ProjectorState, elevation: np.ndarray | None = None
     return rises, drops
 
 
-def _seen_since(state: ProjectorState, face: OpenFace, next_floor_m: np.ndarray | None,
-                next_start_ns: int | None) -> np.ndarray:
-    """The heights (m, over the face's region) the scans saw since the face's cut; NaN
-    where they did not, or where the next cut (``next_floor_m``, +inf outside its
-    footprint; started at ``next_start_ns``) may have dug what they saw: at or above its
-    floor in its footprint, and seen since it started just beside it."""
+def note_sightings(state: ProjectorState) -> None:
+    """Keep (in place) the height the map first took on each open face cell after the
+    face's cut, and when: the next cut's digging changes them again later."""
+    face = state.open_face
+    if face is None or state.face_sightings is None:
+        return
+    first_z, first_ns = state.face_sightings
     grid = state.height.grid
-    elevation = grid["elevation"][face.region]
     updated = grid["last_update_ns"][face.region]
     with np.errstate(invalid="ignore"):
-        seen = np.isfinite(elevation) & (updated > face.end_ns)
-        if next_floor_m is not None:
+        new = face.cells & np.isnan(first_ns) & (updated > face.end_ns)
+    if new.any():
+        first_z[new] = grid["elevation"][face.region][new]
+        first_ns[new] = updated[new]
+
+
+def _seen_since(state: ProjectorState, face: OpenFace, next_floor_m: np.ndarray | None,
+                next_start_ns: int | None) -> np.ndarray:
+    """The heights (m, over the face's region) the scans first saw since the face's cut
+    (:func:`note_sightings`); NaN where they did not, or where the next cut
+    (``next_floor_m``, +inf outside its footprint; started at ``next_start_ns``) may have
+    dug what they saw: first seen after it started, in its footprint at or above its
+    floor or just beside it."""
+    note_sightings(state)
+    first_z, first_ns = state.face_sightings
+    with np.errstate(invalid="ignore"):
+        seen = np.isfinite(first_z)
+        if next_floor_m is not None and next_start_ns is not None:
             floor = next_floor_m[face.region]
             inside = np.isfinite(floor)
-            dug = inside & (elevation >= floor - state.margin_m)
-            beside = ndimage.binary_dilation(inside, structure=np.ones((3, 3), bool)) & ~inside
-            if next_start_ns is not None:
-                dug |= beside & (updated >= next_start_ns)
+            near = ndimage.binary_dilation(inside, structure=np.ones((3, 3), bool))
+            late = first_ns >= next_start_ns
+            dug = late & ((inside & (first_z >= floor - state.margin_m)) | (near & ~inside))
             seen &= ~dug
-    return np.where(seen, elevation, np.nan)
+    return np.where(seen, first_z, np.nan)
 
 
 def close_face(state: ProjectorState, next_floor_m: np.ndarray | None = None,
@@ -261,13 +277,13 @@ def close_face(state: ProjectorState, next_floor_m: np.ndarray | None = None,
     face = state.open_face
     if face is None:
         return
-    state.open_face = None
     record = state.cuts[face.cut_index]
     geometry = state.pile.geometry
     region = face.region
     top = state.stack.surface()[region]
     base = state.stack.ground()[region]
     seen = _seen_since(state, face, next_floor_m, next_start_ns)
+    state.open_face, state.face_sightings = None, None
     repose_deg = math.degrees(math.atan(face.tan_repose))
     fit = fit_slide_angle(top, base, np.where(face.cells, seen, np.nan), geometry.cell_m,
                           repose_deg, change_m=state.margin_m)

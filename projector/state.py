@@ -127,6 +127,9 @@ class ProjectorState:
     #: the latest cut's face while its slide waits for the scans after it
     #: (a :class:`projector.material_fit.OpenFace`, immutable; None: no face open)
     open_face: Any = None
+    #: the open face's first sightings since its cut, ``(heights m, times UTC ns)`` over
+    #: its region (NaN: not yet seen; :func:`projector.material_fit.note_sightings`)
+    face_sightings: Any = None
     #: every face slide fitted to the scans: ``(cut id, angle deg, cells seen)``
     slide_fits: list[tuple[str, float, int]] = field(default_factory=list)
     #: every later failure of a face the scans saw: ``(seen at UTC ns, volume moved m3)``
@@ -150,6 +153,8 @@ class ProjectorState:
             pose_xyz=list(self.pose_xyz), pose_q=list(self.pose_q),
             pending=list(self.pending), counters=dict(self.counters),
             rises_journal=list(self.rises_journal), slide_fits=list(self.slide_fits),
+            face_sightings=(None if self.face_sightings is None
+                            else tuple(a.copy() for a in self.face_sightings)),
             delayed_failures=list(self.delayed_failures))
 
 
