@@ -40,6 +40,9 @@ MIN_FIT_CELLS = 12
 STOOD_DEG = 5.0
 #: fewest cells of a drop away from the latest cut that can be a delayed failure
 MIN_FAILURE_CELLS = 25
+#: a cell of the next cut's footprint first seen within this many margins of its floor
+#: may have been dug when it was seen
+DUG_MARGINS = 3.0
 #: a residual beyond this many margins counts no more than that (walls, strays)
 RESIDUAL_CLIP_MARGINS = 10.0
 
@@ -251,8 +254,9 @@ def _seen_since(state: ProjectorState, face: OpenFace, next_floor_m: np.ndarray 
     """The heights (m, over the face's region) the scans first saw since the face's cut
     (:func:`note_sightings`); NaN where they did not, or where the next cut
     (``next_floor_m``, +inf outside its footprint; started at ``next_start_ns``) may have
-    dug what they saw: first seen after it started, in its footprint at or above its
-    floor or just beside it."""
+    dug what they saw: first seen after it started, in its footprint at its floor
+    (within :data:`DUG_MARGINS` margins) or just beside it.  A cell of its footprint
+    first seen clearly above its floor was seen before the wheel got there."""
     note_sightings(state)
     first_z, first_ns = state.face_sightings
     with np.errstate(invalid="ignore"):
@@ -262,7 +266,8 @@ def _seen_since(state: ProjectorState, face: OpenFace, next_floor_m: np.ndarray 
             inside = np.isfinite(floor)
             near = ndimage.binary_dilation(inside, structure=np.ones((3, 3), bool))
             late = first_ns >= next_start_ns
-            dug = late & ((inside & (first_z >= floor - state.margin_m)) | (near & ~inside))
+            at_floor = np.abs(first_z - floor) <= DUG_MARGINS * state.margin_m
+            dug = late & ((inside & at_floor) | (near & ~inside))
             seen &= ~dug
     return np.where(seen, first_z, np.nan)
 
