@@ -34,8 +34,10 @@ __all__ = ["OpenFace", "SlideFit", "fit_slide_angle", "open_face", "close_face",
 
 #: the coarse step (deg) of the angles tried between repose and 90 deg; two halvings refine it
 FIT_STEP_DEG = 5.0
-#: fewest face cells seen since the cut for a fit (fewer: the prior stays)
+#: fewest face cells seen since the cut for a fit (fewer: the prior stays) ...
 MIN_FIT_CELLS = 12
+#: ... and the least share of the face's cells seen
+MIN_FIT_FRACTION = 0.02
 #: a face whose fitted angle is this much (deg) steeper than repose stood
 STOOD_DEG = 5.0
 #: fewest cells of a drop away from the latest cut that can be a delayed failure
@@ -88,14 +90,15 @@ def _relaxed(top_m: np.ndarray, base_m: np.ndarray, cell_m: float, tan: float) -
 
 def fit_slide_angle(top_m, base_m, seen_m, cell_m: float, repose_deg: float, *,
                     change_m: float, clip_m: float | None = None,
-                    step_deg: float = FIT_STEP_DEG,
-                    min_cells: int = MIN_FIT_CELLS) -> SlideFit:
+                    step_deg: float = FIT_STEP_DEG, min_cells: int = MIN_FIT_CELLS,
+                    min_fraction: float = MIN_FIT_FRACTION) -> SlideFit:
     """The slide angle between ``repose_deg`` and 90 deg whose slide of ``top_m`` best
     explains the heights seen, ``seen_m``.
 
     The face's cells are those a slide to repose moves by more than ``change_m``; the
     angle minimises the sum of squared residuals (each clipped at ``clip_m``) over those
-    seen.  Angles are tried from repose up in steps of ``step_deg`` and at 90 deg (the
+    seen (at least ``min_cells`` and ``min_fraction`` of the face's cells, else no fit:
+    NaN).  Angles are tried from repose up in steps of ``step_deg`` and at 90 deg (the
     face as cut), then twice at half the step either side of the best; of angles that
     explain the heights alike (a face steeper than the grid resolves) the steepest.
 
@@ -138,7 +141,7 @@ def fit_slide_angle(top_m, base_m, seen_m, cell_m: float, repose_deg: float, *,
     face = np.abs(surface(repose_deg) - top) > change_m
     observed = face & np.isfinite(seen)
     n_seen, n_face = int(observed.sum()), int(face.sum())
-    if n_seen < min_cells:
+    if n_seen < max(min_cells, min_fraction * n_face):
         return SlideFit(math.nan, n_seen, n_face - n_seen, {})
     z = seen[observed]
     sse: dict[float, float] = {}
