@@ -40,6 +40,9 @@ MIN_FIT_CELLS = 12
 MIN_FIT_FRACTION = 0.02
 #: a face whose fitted angle is this much (deg) steeper than repose stood
 STOOD_DEG = 5.0
+#: a fitted angle less than this much (deg) steeper than repose is read as repose: the
+#: repose estimate's own error and the fit's resolution near it are of that order
+SNAP_DEG = 2.5
 #: fewest cells of a drop away from the latest cut that can be a delayed failure
 MIN_FAILURE_CELLS = 25
 #: a cell of the next cut's footprint first seen within this many margins of its floor
@@ -296,7 +299,7 @@ def close_face(state: ProjectorState, next_floor_m: np.ndarray | None = None,
     fit = fit_slide_angle(top, base, np.where(face.cells, seen, np.nan), geometry.cell_m,
                           repose_deg, change_m=state.margin_m)
     if math.isfinite(fit.angle_deg):
-        angle = fit.angle_deg
+        angle = repose_deg if fit.angle_deg < repose_deg + SNAP_DEG else fit.angle_deg
         tan = face.tan_repose if angle <= repose_deg else (
             math.inf if angle >= 90.0 else math.tan(math.radians(angle)))
         state.slide_fits.append((record.cut_id, angle, fit.cells_seen))
