@@ -4,8 +4,9 @@ Before the clamp: rises the cut's own digging caused in its footprint are undone
 (:func:`undo_digging_rises`, from the journal :func:`journal_rises` keeps), the buried
 deposit tops are fitted once the passes that laid them are complete
 (:func:`fit_buried_boundaries`) and the top the cut takes is fitted where it stands above
-the floor (:func:`fit_top_for_cut`).  After it: the face left slides to the angle of repose
-(:func:`slump_face`) and the height map takes the new top (:func:`predict_height`).  Later
+the floor (:func:`fit_top_for_cut`).  After it: the height map takes the predicted top
+(:func:`predict_height`; the face's slide is :mod:`projector.material_fit`'s, and
+:func:`slump_face` slides a face to the angle of repose at once, for diagnosis).  Later
 drops count as the cut's geometry residual only near its footprint (:func:`near_cut`).
 Each step updates the state in place.  Why each step is there: see docs/design-notes.md.
 """

@@ -31,8 +31,11 @@ How each event type acts
                       corrected), rasterised and fused into the height map in batches
                       (cells a stacking pass reached since they were last seen are
                       refreshed first: their old height no longer holds)
-``reclaim_cut``       clamps every surface to the cutting-envelope floor; the removed
-                      bands are the cut's composition
+``reclaim_cut``       slides the face the cut before left as the scans since saw it
+                      (:mod:`projector.material_fit`), clamps every surface to the
+                      cutting-envelope floor (the removed bands are the cut's
+                      composition) and opens the face this cut leaves: the stack keeps
+                      it as cut, the height map takes the predicted slide
 ``assay``             kept (with its recorded time) for the grade join
 
 After each batch of scans the layer stack follows the height map: a cell that rose
@@ -40,8 +43,9 @@ beyond the noise margin adds to the open pass's deposit (outside any pass: to a
 flagged deposit); a cell that fell beyond the margin is clamped to the measurement
 and the removed material is attributed to the latest cut as its geometry residual
 when the cell is in that cut's footprint (before any cut: flagged as unexplained loss;
-after one, a drop away from the latest cut is by default not followed: the stack keeps
-its own slid face there).
+after one, a drop away from the latest cut slides a face that failed later to repose
+when such a failure explains it, and is otherwise by default not followed: the stack
+keeps its own slid face there).  The latest cut's face is not followed while it is open.
 The scans that watched a cut dig are fused before it is applied;
 what rose in its footprint since its start is undone first (those scans see the walls
 the wheel leaves standing, not material).
@@ -58,13 +62,14 @@ from projector.completion import (accounted_ns, catch_up_rises, complete_unseen,
                                   filled_elevation)
 from projector.config import FoldConfig
 from projector.cuts import (fit_buried_boundaries, fit_top_for_cut, predict_height,
-                            slump_face, undo_digging_rises)
+                            undo_digging_rises)
 from projector.envelope import cut_floor
 from projector.follow import follow_height
 from projector.grades import AssayRecord, grade_from_map
 from projector.grid import GridGeometry
 from projector.kinematics import Reclaimer
 from projector.layers import DepositInfo, LayerStack
+from projector.material_fit import close_face, open_face
 from projector.scans import process_scans
 from projector.state import (CutRecord, PassRecord, PendingScan, PileInfo, ProjectorState,
                              around, initial_state, settling_last_pass)
@@ -83,7 +88,7 @@ GEOMETRY_TYPES = ("pile_declared", "machine_declared", "stack_started", "stack_e
 #: module paths).  Snapshots are keyed by it as well as by the config, so those of another
 #: version are never used (:class:`projector.query.SnapshotStore`, which reads it from this
 #: module, and ``SnapshotStore.drop_other_versions`` deletes them).
-FOLD_VERSION = 24
+FOLD_VERSION = 25
 
 DEFAULT_CELL_M = 0.25
 DEFAULT_VOXEL_M = 1.0
@@ -108,6 +113,7 @@ def flush(state: ProjectorState) -> ProjectorState:
     updates the state in place and returns it."""
     process_scans(state, final=True)
     if state.stack is not None:
+        close_face(state)
         if settling_last_pass(state):
             catch_up_rises(state, state.high_water[0])
         filled = filled_elevation(state)
@@ -154,6 +160,7 @@ def _on_stack_started(state: ProjectorState, event, msg) -> None:
     if msg.pile_id != state.config.pile_id or state.stack is None:
         return
     process_scans(state)
+    close_face(state)   # the pass's rises are followed everywhere
     # a rise sighted before this pass pours but not yet confirmed is the passes' before
     # it: confirmed later it could not be told from this pass's layer
     seen_before_ns = accounted_ns(state, state.height.grid["last_update_ns"])
@@ -230,6 +237,8 @@ def _on_reclaim_cut(state: ProjectorState, event, msg) -> None:
     floor = None if machine is None else cut_floor(
         state.pile.geometry, machine, msg.travel_m, msg.luff_rad, msg.slew_start_rad,
         msg.slew_end_rad)
+    # the face the cut before left slides as the scans since saw it (not this cut's digging)
+    close_face(state, floor, start_ns)
     settling = settling_last_pass(state)
     if settling:   # the first cut after a pass: that pass is complete
         catch_up_rises(state, start_ns)
@@ -258,7 +267,9 @@ def _clamp_to_floor(state: ProjectorState, record: CutRecord, floor_m: np.ndarra
                     restore: np.ndarray | None) -> None:
     """Take what stands above a cut's envelope ``floor_m`` (m, (nx, ny), +inf outside) off
     the stack as the cut's removal (then clamp to ``restore``, :func:`fit_top_for_cut`'s,
-    when given), let the face slide, and put the new top into the height map."""
+    when given), open the face it leaves (the stack keeps it as cut until the scans after
+    it are fitted, :mod:`projector.material_fit`) and put the predicted slide into the
+    height map."""
     before = state.stack.surface()
     state.stack, removal = state.stack.clamp(floor_m)
     if restore is not None:
@@ -267,12 +278,12 @@ def _clamp_to_floor(state: ProjectorState, record: CutRecord, floor_m: np.ndarra
         state.stack, _rest = state.stack.clamp(restore)
     record.removals.append(removal)
     record.predicted_m3 = removal.volume_m3
+    predicted = state.stack.surface()
     if removal.volume_m3 > 0:
-        record.slumped_m3 = slump_face(state, floor_m)
-    # the height map learns the cut (and the slide) too: the scans after it confirm or
-    # correct it
-    state.height = predict_height(state.height, state.stack.surface(), before,
-                                  state.point_sd_m)
+        predicted = open_face(state, record, floor_m)
+    # the height map learns the cut (and the predicted slide) too: the scans after it
+    # confirm or correct it
+    state.height = predict_height(state.height, predicted, before, state.point_sd_m)
 
 
 def _on_assay(state: ProjectorState, event, msg) -> None:

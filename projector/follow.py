@@ -6,8 +6,10 @@ the cell since it was last seen (:func:`projector.attribution.rise_to_crossing_p
 else to the top deposit: the open pass's, the pass that ended last while its layer
 settles, or a flagged deposit outside any pass.  A drop is clamped off the stack and
 charged to the latest cut as its geometry residual where it lies near that cut's
-footprint (before any cut: an unexplained loss); away from it the stack keeps its own
-slid face unless ``FoldConfig.follow_far_drops``.
+footprint (before any cut: an unexplained loss); away from it, a face that failed
+later slides to repose (:func:`projector.material_fit.slide_seen_failure`), else the
+stack keeps its own slid face unless ``FoldConfig.follow_far_drops``.  The latest cut's
+face, while open, is not followed (:func:`projector.material_fit.face_cells`).
 """
 
 from __future__ import annotations
@@ -20,6 +22,7 @@ from projector.completion import filled_elevation, unseen_floor
 from projector.crossings import stale
 from projector.cuts import journal_rises, near_cut
 from projector.layers import DepositInfo
+from projector.material_fit import face_cells, note_sightings, slide_seen_failure
 from projector.state import ProjectorState, last_event_ns, settling_last_pass
 
 __all__ = ["follow_height"]
@@ -45,6 +48,7 @@ def follow_height(state: ProjectorState, t_ns: int, *, drops: bool = True,
     has it; ``filled_m`` its :func:`projector.completion.filled_elevation` (with no
     ``region``).
     """
+    note_sightings(state)   # after every batch of scans: the open face's first looks
     region, elevation = _elevation_to_follow(state, t_ns, drops, region, unseen_floor_m,
                                              filled_m)
     top_r = state.stack.surface()[region]
@@ -58,6 +62,13 @@ def follow_height(state: ProjectorState, t_ns: int, *, drops: bool = True,
     shape = state.pile.geometry.shape
     up, down = np.zeros(shape, bool), np.zeros(shape, bool)
     up[region], down[region] = up_r, down_r
+    face = face_cells(state, elevation if elevation.shape == shape else None)
+    if face is not None:
+        # an open face follows the scans once they are fitted (material_fit.close_face)
+        up &= ~face[0]
+        down &= ~face[1]
+        if not (up.any() or (drops and down.any())):
+            return
     if elevation.shape != shape:
         block, elevation = elevation, np.full(shape, np.nan)
         elevation[region] = block
@@ -74,7 +85,7 @@ def follow_height(state: ProjectorState, t_ns: int, *, drops: bool = True,
             first_sight = stale(state, t_ns, seen_ns=sighted_before_ns)
         journal_rises(state, t_ns, rising, top, first_sight=first_sight)
     if drops and down.any():
-        _follow_drops(state, down, elevation, top)
+        _follow_drops(state, t_ns, down, elevation, top)
 
 
 def _elevation_to_follow(state: ProjectorState, t_ns: int, drops: bool, region,
@@ -128,18 +139,25 @@ def _raise_to_map(state: ProjectorState, t_ns: int, up: np.ndarray,
         state.cuts[-1].returned_m3 += added
 
 
-def _follow_drops(state: ProjectorState, down: np.ndarray, elevation: np.ndarray,
-                  top: np.ndarray) -> None:
+def _follow_drops(state: ProjectorState, t_ns: int, down: np.ndarray,
+                  elevation: np.ndarray, top: np.ndarray) -> None:
     """Clamp the stack to ``elevation`` (m) in the cells ``down`` (bool, (nx, ny)) and
     charge what that removes: near the latest cut (:func:`projector.cuts.near_cut`), to
-    it as its geometry residual (before any cut: an unexplained loss); away from it,
-    unless ``follow_far_drops``, the stack keeps its own face (``top``, m, the stack's
-    top before this follow) and counter ``far_drops_mm3`` says how far the measurement
-    lies below it, followed, an unexplained loss (counter ``unexplained_loss_mm3``)."""
+    it as its geometry residual (before any cut: an unexplained loss); away from it, a
+    face that failed later slides to repose when a failure explains the drop
+    (:func:`projector.material_fit.slide_seen_failure`, at ``t_ns``); beyond that, unless
+    ``follow_far_drops``, the stack keeps its own face (``top``, m, the stack's top before
+    this follow, or after that slide) and counter ``far_drops_mm3`` says how far the
+    measurement lies below it, followed, an unexplained loss (counter
+    ``unexplained_loss_mm3``)."""
     near = down
     if state.cuts:
         near = down & near_cut(state, state.cuts[-1])
     far = down & ~near
+    if state.cuts and far.any() and slide_seen_failure(state, far, elevation, t_ns) > 0:
+        top = state.stack.surface()
+        with np.errstate(invalid="ignore"):
+            far &= elevation < top
     if state.cuts and not state.config.follow_far_drops:
         # the stack keeps its own slid face away from the cut; the gap is reported
         with np.errstate(invalid="ignore"):   # no deeper than the ground

@@ -69,6 +69,13 @@ class CutRecord:
     residual_m3: float = 0.0
     returned_m3: float = 0.0
     slumped_m3: float = 0.0
+    #: the angle (deg) its face was slid to: fitted to the scans after it
+    #: (:func:`projector.material_fit.close_face`), else the prior; NaN until closed
+    slide_angle_deg: float = math.nan
+    #: cells of its face (where a slide to repose would move the surface) the scans saw
+    #: between the cut and the face's closing, and those left to the prediction
+    face_cells_seen: int = 0
+    face_cells_predicted: int = 0
 
 
 @dataclass
@@ -117,6 +124,16 @@ class ProjectorState:
     #: the last scan height offset applied, ``(scan t_ns, offset m)``
     #: (:func:`projector.scans.reference_ground`)
     ground_offset: tuple[int, float] = (-(2 ** 62), 0.0)
+    #: the latest cut's face while its slide waits for the scans after it
+    #: (a :class:`projector.material_fit.OpenFace`, immutable; None: no face open)
+    open_face: Any = None
+    #: the open face's first sightings since its cut, ``(heights m, times UTC ns)`` over
+    #: its region (NaN: not yet seen; :func:`projector.material_fit.note_sightings`)
+    face_sightings: Any = None
+    #: every face slide fitted to the scans: ``(cut id, angle deg, cells seen)``
+    slide_fits: list[tuple[str, float, int]] = field(default_factory=list)
+    #: every later failure of a face the scans saw: ``(seen at UTC ns, volume moved m3)``
+    delayed_failures: list[tuple[int, float]] = field(default_factory=list)
     counters: dict[str, int] = field(default_factory=dict)
     high_water: tuple[int, int] = (-(2 ** 62), -1)   # (valid ns, global seq) folded so far
 
@@ -135,7 +152,10 @@ class ProjectorState:
             assays=list(self.assays), pose_t_ns=list(self.pose_t_ns),
             pose_xyz=list(self.pose_xyz), pose_q=list(self.pose_q),
             pending=list(self.pending), counters=dict(self.counters),
-            rises_journal=list(self.rises_journal))
+            rises_journal=list(self.rises_journal), slide_fits=list(self.slide_fits),
+            face_sightings=(None if self.face_sightings is None
+                            else tuple(a.copy() for a in self.face_sightings)),
+            delayed_failures=list(self.delayed_failures))
 
 
 def initial_state(config: FoldConfig | str) -> ProjectorState:

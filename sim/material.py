@@ -73,9 +73,9 @@ class Material:
     """
 
     kind: str = "repose"
-    stand_angle_deg: float = 65.0
+    stand_angle_deg: float = 50.0
     critical_height_m: float | None = None
-    failure_delay_s: tuple[float, float] = (600.0, 10_800.0)
+    failure_delay_s: tuple[float, float] = (300.0, 3_600.0)
 
     def __post_init__(self) -> None:
         if self.kind not in KINDS:

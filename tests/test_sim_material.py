@@ -284,8 +284,8 @@ def test_delayed_faces_stand_then_fail_to_repose_at_the_drawn_time(runs, tmp_pat
 def test_every_scenario_writes_its_material(tmp_path):
     """``stockpile sim --scenario NAME`` for the new kinds; truth.json's ``material`` has
     the parameters the kind uses (None for those it does not)."""
-    expected = {"demo": ("repose", None, None), "cohesive": ("cohesive", 65.0, None),
-                "delayed": ("delayed", None, [600.0, 10_800.0]),
+    expected = {"demo": ("repose", None, None), "cohesive": ("cohesive", 50.0, None),
+                "delayed": ("delayed", None, [300.0, 3_600.0]),
                 "standing": ("standing", None, None)}
     for name, (kind, stand, delay) in expected.items():
         sc = scenario_by_name(name)
@@ -298,9 +298,9 @@ def test_every_scenario_writes_its_material(tmp_path):
     assert proc.returncode == 0, proc.stderr
     material = json.loads((tmp_path / "truth.json").read_text())["material"]
     assert material == {"kind": "delayed", "repose_deg": REPOSE_DEG, "stand_angle_deg": None,
-                        "critical_height_m": None, "failure_delay_s": [600.0, 10_800.0],
+                        "critical_height_m": None, "failure_delay_s": [300.0, 3_600.0],
                         "slides": [], "failures": []}
-    assert Material("cohesive").parameters(37.0)["stand_angle_deg"] == 65.0
+    assert Material("cohesive").parameters(37.0)["stand_angle_deg"] == 50.0
 
 
 @pytest.mark.parametrize("kwargs, message", [
