@@ -68,6 +68,7 @@ from projector.layers import DepositInfo, LayerStack
 from projector.scans import process_scans
 from projector.state import (CutRecord, PassRecord, PendingScan, PileInfo, ProjectorState,
                              around, initial_state, settling_last_pass)
+from projector.summary_sd import footprint_variance
 
 # the config and the state's records are re-exported: callers name them ``F.<name>``, and
 # snapshots pickled before they moved name them ``projector.fold.<name>``
@@ -266,6 +267,7 @@ def _clamp_to_floor(state: ProjectorState, record: CutRecord, floor_m: np.ndarra
         # part above the floor; what the rise put under the floor goes again
         state.stack, _rest = state.stack.clamp(restore)
     record.removals.append(removal)
+    record.footprint_var_m2 = footprint_variance(state.height.variance, removal)
     record.predicted_m3 = removal.volume_m3
     if removal.volume_m3 > 0:
         record.slumped_m3 = slump_face(state, floor_m)

@@ -69,6 +69,10 @@ class CutRecord:
     residual_m3: float = 0.0
     returned_m3: float = 0.0
     slumped_m3: float = 0.0
+    #: the height map's variance (m^2, NaN = never seen) before the cut at the cells of its
+    #: envelope removal (``removals[0]``), in ascending flat-index order
+    #: (:func:`projector.summary_sd.footprint_variance`); None: not kept
+    footprint_var_m2: np.ndarray | None = None
 
 
 @dataclass
