@@ -4,9 +4,11 @@
     .venv/bin/python bench/coverage.py --scenario demo --runs 20 --keep /tmp/cov \\
         --set unseen_sd_m=0.3 --set corr_cells=20          # the kept folds, another config
 
-Each run is one draw of the simulator (:func:`projector_truth.run`: ``stockpile sim
---scan-events truth``, the ledger imported, the scans placed by the localizer's poses
-unless ``--poses truth``, then :func:`projector.query.project`).  A draw is a world seed
+Each run is one draw of the simulator, as ``bench/projector_truth.py`` runs it
+(``stockpile sim --scan-events truth``, the scans placed by the localizer's poses unless
+``--poses truth``), imported by ``stockpile ledger import --clock events``'s code into an
+in-memory ledger (the same events and recorded times as its DuckDB file, faster), then
+:func:`projector.query.project` with everything known.  A draw is a world seed
 (``--first-seed`` onwards: the belt's grades, the lab's errors and the sensors' noise) or,
 with ``--noise-draws N``, N draws of the sensors' noise on each world (``stockpile sim
 --noise-seed``: the same world measured again).  For every cut and the pile it forms
@@ -41,14 +43,15 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "bench"))
+sys.path.insert(0, str(ROOT / "bench"))   # projector_truth
+sys.path.insert(0, str(ROOT))             # before bench/: its projector.py is not the package
 
-from projector_truth import POSES, run  # noqa: E402
-from projector.query import summarise  # noqa: E402
-from projector.uncertainty import UncertaintyConfig  # noqa: E402
+from projector_truth import POSES, _ledger_input, _stockpile  # noqa: E402
 from ledger import open_ledger  # noqa: E402
-from projector.query import grade_inputs  # noqa: E402
+from ledger.clock import EventClock  # noqa: E402
+from ledger.importing import import_lines  # noqa: E402
+from projector.query import grade_inputs, project, summarise  # noqa: E402
+from projector.uncertainty import UncertaintyConfig  # noqa: E402
 
 FIGURES = ("cut tonnes", "cut Fe", "pile tonnes", "pile Fe")
 
@@ -74,11 +77,20 @@ def folded(scenario: str, seed: int, noise_seed: int | None, out: Path, duration
     cache = out / f"{name}-{poses}.state.pkl"
     if cache.exists():
         return pickle.loads(cache.read_bytes())
-    result = run(scenario, seed, out, duration_h, noise_seed=noise_seed, poses=poses)
-    p = result["state"]
-    with open_ledger(result["ledger"], read_only=True) as store:
+    sim_dir = out / name
+    if not (sim_dir / "truth.json").exists():
+        extra = ["--duration", str(duration_h)] if duration_h else []
+        extra += [] if noise_seed is None else ["--noise-seed", str(noise_seed)]
+        _stockpile("sim", "--scenario", scenario, "--seed", str(seed), "--speed", "0",
+                   "--scan-events", "truth", "--out", str(sim_dir), *extra)
+    truth = json.loads((sim_dir / "truth.json").read_text())
+    # the in-memory ledger, imported by `stockpile ledger import --clock events`'s code
+    with open_ledger(":memory:", EventClock()) as store, \
+            open(_ledger_input(sim_dir, truth, poses), "rb") as lines:
+        import_lines(store, lines)
+        p = project(store, truth["scenario"].get("pile_id", "P1"))
         lots, assays = grade_inputs(store, p.valid_time_ns, p.known_time_ns)
-    kept = (p.state, lots, assays, p.valid_time_ns, p.known_time_ns, result["truth"])
+    kept = (p.state, lots, assays, p.valid_time_ns, p.known_time_ns, truth)
     cache.write_bytes(pickle.dumps(kept, protocol=5))
     return kept
 
@@ -127,15 +139,17 @@ def verdict(c: dict) -> str:
 
 
 def print_table(scenario: str, rows: dict[str, list[tuple]], runs: int) -> dict:
+    """The coverage table of one scenario; ``rows``: per figure, ``(run, label, ours,
+    truth, sd, z)``."""
     print(f"\n== {scenario}: {runs} runs")
     print(f"{'figure':<12} {'n':>5} {'within 1 sd':>12} {'within 2 sd':>12} {'mean z':>8} "
           f"{'rms z':>7} {'median sd':>10} {'median |err|':>12}  verdict")
     table = {}
     for figure in FIGURES:
-        c = coverage([r[4] for r in rows[figure]])
-        sds = [r[3] for r in rows[figure] if math.isfinite(r[3])]
+        c = coverage([r[5] for r in rows[figure]])
+        sds = [r[4] for r in rows[figure] if math.isfinite(r[4])]
         c["median_sd"] = float(np.median(sds)) if sds else math.nan
-        errs = [abs(r[1] - r[2]) for r in rows[figure] if math.isfinite(r[1] - r[2])]
+        errs = [abs(r[2] - r[3]) for r in rows[figure] if math.isfinite(r[2] - r[3])]
         c["median_abs_err"] = float(np.median(errs)) if errs else math.nan
         table[figure] = c
         print(f"{figure:<12} {c['n']:>5} {c['within_1sd_pct']:>11.1f}% "
