@@ -40,6 +40,14 @@ def _num(value: float | None, fmt: str = ",.1f") -> str:
     return format(value, fmt)
 
 
+def _pm(value: float | None, sd: float | None, fmt: str = ",.1f") -> str:
+    """``62.10 +/- 0.30``: a figure and its standard deviation (the figure alone when the
+    sd is unknown)."""
+    if sd is None or not math.isfinite(sd) or value is None or not math.isfinite(value):
+        return _num(value, fmt)
+    return f"{_num(value, fmt)} +/- {sd:{fmt}}"
+
+
 def _when(ns: int | None) -> str:
     """UTC time for tables: ``2026-11-01 01:13:17`` (seconds, no zone)."""
     if ns is None:
@@ -138,8 +146,9 @@ def _cut_row(c, truth: dict[str, dict[str, Any]] | None, analyte: str,
         "estimated_known_time": format_time_ns(c.estimated_known_ns),
         "estimated_known_time_ns": c.estimated_known_ns,
         "tonnes_at_end_t": c.tonnes_at_end_t, "tonnes_t": c.tonnes_t,
-        "tonnes_scale_t": c.tonnes_scale_t,
+        "tonnes_sd": c.tonnes_sd_t, "tonnes_scale_t": c.tonnes_scale_t,
         "grade_at_end_pct": c.grade_at_end_pct, "grade_pct": c.grade_pct,
+        "grade_sd": c.grade_sd_pp,
         "delta_pp": c.delta_pp, "assayed_fraction_at_end": c.assayed_fraction_at_end,
         "assayed_fraction": c.assayed_fraction, "lots_t": c.lots_t,
         "residual_m3": c.residual_m3, "changed": c.changed(threshold_pp),
@@ -174,8 +183,9 @@ def _cuts_table(report, rows: list[dict[str, Any]], with_truth: bool, a: str) ->
         right.append(False)
     body = []
     for c, row in zip(report.cuts, rows):
-        cells = [c.cut_id, _when(c.end_time_ns), _num(c.tonnes_t), _num(c.tonnes_scale_t),
-                 _num(c.grade_at_end_pct.get(a), ".2f"), _num(c.grade_pct.get(a), ".2f"),
+        cells = [c.cut_id, _when(c.end_time_ns), _pm(c.tonnes_t, c.tonnes_sd_t),
+                 _num(c.tonnes_scale_t), _num(c.grade_at_end_pct.get(a), ".2f"),
+                 _pm(c.grade_pct.get(a), c.grade_sd_pp.get(a), ".2f"),
                  _num(c.delta_pp.get(a), "+.2f"),
                  f"{c.assayed_fraction_at_end:.2f} / {c.assayed_fraction:.2f}"]
         if with_truth:
@@ -195,7 +205,7 @@ def _print_cuts(report, rows: list[dict[str, Any]], with_truth: bool, a: str,
     """The cuts report for people: a heading, the table and what changed."""
     print(f"pile {report.pile_id}: {len(rows)} reclaim cuts; grade as estimated when each cut "
           f"ended vs as known at {format_time_ns(report.known_time_ns)} ({a}; --analyte to "
-          f"change)")
+          f"change; +/-: one standard deviation)")
     if not rows:
         print("  no reclaim cuts in the ledger for this pile")
         return
@@ -257,7 +267,8 @@ def cmd_history(args: argparse.Namespace) -> int:
                "points": [{"valid_time": format_time_ns(p.valid_time_ns),
                            "valid_time_ns": p.valid_time_ns,
                            "volume_m3": p.volume_m3, "tonnes_t": p.tonnes_t,
-                           "grade_pct": p.grade_pct, "assayed_fraction": p.assayed_fraction,
+                           "tonnes_sd": p.tonnes_sd_t, "grade_pct": p.grade_pct,
+                           "grade_sd": p.grade_sd_pp, "assayed_fraction": p.assayed_fraction,
                            "volume_then_m3": p.volume_then_m3, "tonnes_then_t": p.tonnes_then_t,
                            "grade_then_pct": p.grade_then_pct,
                            "assayed_fraction_then": p.assayed_fraction_then,
@@ -267,11 +278,12 @@ def cmd_history(args: argparse.Namespace) -> int:
     a = analyte
     print(f"pile {report.pile_id}: tonnes and grade every {format_duration_s(args.every)} of "
           f"valid time, as known at {format_time_ns(report.known_time_ns)} (K) and as known at "
-          f"the time ({a})")
+          f"the time ({a}; +/-: one standard deviation)")
     headers = ["valid time (UTC)", "t at K", "t then", f"{a} at K %", f"{a} then %", "d pp",
                "assayed K/then"]
-    body = [[_when(p.valid_time_ns), _num(p.tonnes_t), _num(p.tonnes_then_t),
-             _num(p.grade_pct.get(a), ".2f"), _num(p.grade_then_pct.get(a), ".2f"),
+    body = [[_when(p.valid_time_ns), _pm(p.tonnes_t, p.tonnes_sd_t), _num(p.tonnes_then_t),
+             _pm(p.grade_pct.get(a), p.grade_sd_pp.get(a), ".2f"),
+             _num(p.grade_then_pct.get(a), ".2f"),
              _num(p.delta_pp.get(a), "+.2f"),
              f"{p.assayed_fraction:.2f} / {p.assayed_fraction_then:.2f}"]
             for p in report.points]

@@ -91,6 +91,8 @@ class CutAudit:
     reprojected : bool
         True when a geometry event was recorded after the estimate's K, so the estimate
         was projected on its own rather than taken from the shared fold.
+    tonnes_sd_t, grade_sd_pp : float, dict
+        Standard deviations of ``tonnes_t`` (t) and ``grade_pct`` (pp per analyte).
     """
 
     cut_id: str
@@ -109,6 +111,8 @@ class CutAudit:
     lots_t: dict[str, float]
     residual_m3: float
     reprojected: bool = False
+    tonnes_sd_t: float = math.nan
+    grade_sd_pp: dict[str, float] = field(default_factory=dict)
 
     def changed(self, threshold_pp: float = 1e-9) -> bool:
         """Whether any analyte's grade moved by more than ``threshold_pp`` since the cut ended."""
@@ -140,6 +144,8 @@ class HistoryPoint:
         As known at the valid time itself (K = V).
     reprojected : bool
         The "then" figures were projected on their own (a geometry event arrived late).
+    tonnes_sd_t, grade_sd_pp : float, dict
+        Standard deviations of ``tonnes_t`` (t) and ``grade_pct`` (pp per analyte).
     """
 
     valid_time_ns: int
@@ -152,6 +158,8 @@ class HistoryPoint:
     grade_then_pct: dict[str, float]
     assayed_fraction_then: float
     reprojected: bool = False
+    tonnes_sd_t: float = math.nan
+    grade_sd_pp: dict[str, float] = field(default_factory=dict)
 
     @property
     def delta_pp(self) -> dict[str, float]:
@@ -402,7 +410,8 @@ def audit_cuts(store, pile_id: str, known_time_ns: int | None = None, *,
             assayed_fraction=float(now.assayed_fraction) if now else 0.0,
             lots_t=dict(sorted(lots_t.items(), key=lambda kv: -kv[1])),
             residual_m3=float(now.residual_m3) if now else math.nan,
-            reprojected=i in reprojected))
+            reprojected=i in reprojected, tonnes_sd_t=float(now.tonnes_sd) if now else math.nan,
+            grade_sd_pp=dict(now.grade_sd) if now else {}))
     rows.sort(key=lambda r: (r.end_time_ns, r.cut_id))
     return CutsReport(pile_id, known, analytes, rows, float(final.tonnes), counter[0])
 
@@ -470,7 +479,8 @@ def audit_history(store, pile_id: str, every_ns: int, known_time_ns: int | None 
             grade_pct=dict(now.grade), assayed_fraction=now.assayed_fraction,
             volume_then_m3=then.volume_m3, tonnes_then_t=then.tonnes,
             grade_then_pct={a: then.grade.get(a, math.nan) for a in now.grade} or dict(then.grade),
-            assayed_fraction_then=then.assayed_fraction, reprojected=late)
+            assayed_fraction_then=then.assayed_fraction, reprojected=late,
+            tonnes_sd_t=now.tonnes_sd, grade_sd_pp=dict(now.grade_sd))
     return HistoryReport(pile_id, known, int(every_ns), analytes,
                          [points[i] for i in range(len(times))], counter[0])
 

@@ -145,7 +145,8 @@ def _add_predictions(out: dict, plan, predictions, bounds) -> None:
         out["cuts"].append({
             "cut": cut.index + 1, "travel_m": cut.travel_m, "luff_rad": cut.luff_rad,
             "slew_start_rad": cut.slew_start_rad, "slew_end_rad": cut.slew_end_rad,
-            "volume_m3": p.volume_m3, "tonnes": p.tonnes, "grade": p.grade,
+            "volume_m3": p.volume_m3, "tonnes": p.tonnes, "tonnes_sd": p.tonnes_sd,
+            "grade": p.grade, "grade_sd": p.grade_sd,
             "assayed_fraction": p.assayed_fraction, "bank_m": g.bank_m,
             "slumped_m3": g.slumped_m3, "deposits": p.deposits})
     tonnes = sum(p.tonnes for p in predictions)
@@ -183,16 +184,24 @@ def make_plan(args: argparse.Namespace, store=None) -> dict:
     density = float(pile_msg.default_bulk_density_t_m3) or 2.4
     warnings = _noise_warnings(state, plan, machine)
     predictions = predict_cuts(state.geometry, [c.removal for c in plan.cuts], lots, assays,
-                               state.known_time_ns, density, pile_id=args.pile)
+                               state.known_time_ns, density, pile_id=args.pile,
+                               height=state.state.height)
     out = _plan_json(args, state, plan, machine, warnings)
     out["landing"] = _landing_json(plan)
     _add_predictions(out, plan, predictions, bounds)
     return out
 
 
-def _fmt_grade(grade: dict) -> str:
-    return ", ".join(f"{a} {g:.2f} %" for a, g in grade.items()
+def _fmt_grade(grade: dict, sd: dict | None = None) -> str:
+    """``Fe 62.10 +/- 0.30 %, ...``: each finite grade with its sd (pp) where known."""
+    sd = sd or {}
+    return ", ".join(f"{a} {g:.2f}{_pm(sd.get(a), '.2f')} %" for a, g in grade.items()
                      if g is not None and math.isfinite(g)) or "-"
+
+
+def _pm(sd, fmt: str) -> str:
+    """`` +/- 0.30`` for a finite sd, else nothing."""
+    return f" +/- {sd:{fmt}}" if sd is not None and math.isfinite(sd) else ""
 
 
 def print_plan(out: dict) -> None:
@@ -221,12 +230,14 @@ def print_plan(out: dict) -> None:
           f"luff {math.degrees(j['luff_rad']):.2f} deg; bench floor {lz['bench_floor_m']:.2f} m, "
           f"cutting depth {lz['cutting_depth_m']:.2f} m, "
           f"advancing {'+' if lz['direction'] > 0 else '-'}y")
-    print(f"\n  {'cut':>3} {'travel m':>10} {'slew deg':>17} {'tonnes':>11} {'assayed':>7}  grade")
+    print(f"\n  {'cut':>3} {'travel m':>10} {'slew deg':>17} {'tonnes +/- sd':>22} {'assayed':>7}"
+          "  grade (+/-: one standard deviation)")
     for c in out["cuts"]:
         slew = f"{math.degrees(c['slew_start_rad']):7.2f}->{math.degrees(c['slew_end_rad']):7.2f}"
-        tonnes = f"{c['tonnes']:,.1f}" if c["tonnes"] >= 100 else f"{c['tonnes']:.4g}"
-        print(f"  {c['cut']:>3} {c['travel_m']:>10.3f} {slew:>17} {tonnes:>11} "
-              f"{c['assayed_fraction']:>7.2f}  {_fmt_grade(c['grade'])}")
+        fmt = ",.1f" if c["tonnes"] >= 100 else ".4g"
+        tonnes = f"{c['tonnes']:{fmt}}{_pm(c.get('tonnes_sd'), fmt)}"
+        print(f"  {c['cut']:>3} {c['travel_m']:>10.3f} {slew:>17} {tonnes:>22} "
+              f"{c['assayed_fraction']:>7.2f}  {_fmt_grade(c['grade'], c.get('grade_sd'))}")
     b = out["bench"]
     print(f"\n  bench: {b['tonnes']:,.4g} t, {_fmt_grade(b['grade'])} "
           f"(assayed fraction {b['assayed_fraction']:.2f})")

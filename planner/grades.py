@@ -11,7 +11,7 @@ come out of exactly the code that reports the pile's real cuts.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Mapping, Sequence
 
 import numpy as np
@@ -38,6 +38,9 @@ class CutPrediction:
         Share of the tonnes whose grade comes from an assay known at K (0..1).
     deposits : list of dict
         Per deposit: ``deposit``, ``pass_id``, ``lot_id``, ``volume_m3``, ``tonnes``.
+    tonnes_sd, grade_sd : float, dict
+        The tonnes' standard deviation (t) and the grade's per analyte (pp)
+        (:mod:`projector.summary_sd`).
     """
 
     volume_m3: float
@@ -45,12 +48,14 @@ class CutPrediction:
     grade: dict[str, float]
     assayed_fraction: float
     deposits: list[dict]
+    tonnes_sd: float = math.nan
+    grade_sd: dict[str, float] = field(default_factory=dict)
 
 
 def predict_cuts(geometry: GridGeometry, removals: Sequence[Removal | Sequence[Removal]],
                  lots: Mapping[str, Mapping[str, float]], assays: Sequence,
                  known_time_ns: int, default_bulk_density_t_m3: float, *,
-                 pile_id: str = "") -> list[CutPrediction]:
+                 pile_id: str = "", height=None) -> list[CutPrediction]:
     """Tonnes, grade and assayed fraction of each planned cut, as known at K.
 
     Parameters
@@ -67,6 +72,9 @@ def predict_cuts(geometry: GridGeometry, removals: Sequence[Removal | Sequence[R
         K (UTC ns).
     default_bulk_density_t_m3 : float
         The pile's density where no assay gives one (t/m3, > 0).
+    height : projector.heightmap.HeightMap, optional
+        The pile's fused height map: its variances over a cut's footprint are the
+        volume's; without it every cell counts as never seen.
 
     Returns
     -------
@@ -90,10 +98,12 @@ def predict_cuts(geometry: GridGeometry, removals: Sequence[Removal | Sequence[R
                             float(default_bulk_density_t_m3))
     state.stack = LayerStack.empty(geometry, 0.0)
     state.cuts = records
+    state.height = height
     summary = summarise(state, dict(lots), list(assays), valid_time_ns=int(known_time_ns),
                         known_time_ns=int(known_time_ns))
     return [CutPrediction(c.volume_m3, c.tonnes, dict(c.grade), c.assayed_fraction,
-                          list(c.deposits)) for c in summary.cuts]
+                          list(c.deposits), c.tonnes_sd, dict(c.grade_sd))
+            for c in summary.cuts]
 
 
 @dataclass(frozen=True)

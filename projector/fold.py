@@ -73,6 +73,7 @@ from projector.material_fit import close_face, open_face
 from projector.scans import process_scans
 from projector.state import (CutRecord, PassRecord, PendingScan, PileInfo, ProjectorState,
                              around, initial_state, settling_last_pass)
+from projector.summary_sd import footprint_variance
 
 # the config and the state's records are re-exported: callers name them ``F.<name>``, and
 # snapshots pickled before they moved name them ``projector.fold.<name>``
@@ -88,7 +89,7 @@ GEOMETRY_TYPES = ("pile_declared", "machine_declared", "stack_started", "stack_e
 #: module paths).  Snapshots are keyed by it as well as by the config, so those of another
 #: version are never used (:class:`projector.query.SnapshotStore`, which reads it from this
 #: module, and ``SnapshotStore.drop_other_versions`` deletes them).
-FOLD_VERSION = 25
+FOLD_VERSION = 26
 
 DEFAULT_CELL_M = 0.25
 DEFAULT_VOXEL_M = 1.0
@@ -277,6 +278,7 @@ def _clamp_to_floor(state: ProjectorState, record: CutRecord, floor_m: np.ndarra
         # part above the floor; what the rise put under the floor goes again
         state.stack, _rest = state.stack.clamp(restore)
     record.removals.append(removal)
+    record.footprint_var_m2 = footprint_variance(state.height.variance, removal)
     record.predicted_m3 = removal.volume_m3
     predicted = state.stack.surface()
     if removal.volume_m3 > 0:

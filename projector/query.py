@@ -36,6 +36,9 @@ from projector import fold as F
 from projector.grades import (AssayRecord, grade_from_map, GradeClasses, effective_assays,
                                      grade_classes)
 from projector.grid import GridGeometry
+from projector.material_fit import material_estimate
+from projector.summary_sd import cut_sd, pile_sd
+from projector.uncertainty import UncertaintyConfig
 from projector.voxels import ClassWeights, integrate
 
 __all__ = ["DepositSummary", "GradeJoin", "CutSummary", "PileState", "project", "grade_inputs",
@@ -72,6 +75,8 @@ class CutSummary:
     residual_m3: float
     slumped_in_m3: float
     deposits: list[dict[str, Any]]
+    tonnes_sd: float = math.nan                     # t (projector.summary_sd)
+    grade_sd: dict[str, float] = field(default_factory=dict)   # analyte -> pp
 
 
 @dataclass
@@ -92,6 +97,8 @@ class PileState:
     state: F.ProjectorState = field(repr=False)
     analytes: tuple[str, ...] = ()
     _join: "GradeJoin | None" = field(default=None, repr=False)
+    tonnes_sd: float = math.nan                     # t (projector.summary_sd)
+    grade_sd: dict[str, float] = field(default_factory=dict)   # analyte -> pp
 
     @property
     def surface_m(self) -> np.ndarray:
@@ -102,6 +109,11 @@ class PileState:
     def elevation_m(self) -> np.ndarray:
         """The fused height map (nx, ny), NaN where never seen."""
         return self.state.height.elevation
+
+    @property
+    def material(self) -> dict[str, Any]:
+        """The pile's material as its scans show it (:func:`~projector.material_fit.material_estimate`)."""
+        return material_estimate(self.state)
 
     def voxel_grades(self):
         """``(tonnes (nvx, nvy, nvz), grade (nvx, nvy, nvz, A) %, voxel grid)``."""
@@ -120,10 +132,11 @@ class PileState:
         return {
             "pile_id": self.pile_id, "valid_time_ns": self.valid_time_ns,
             "known_time_ns": self.known_time_ns, "volume_m3": self.volume_m3,
-            "tonnes": self.tonnes, "grade": self.grade,
-            "assayed_fraction": self.assayed_fraction,
+            "tonnes": self.tonnes, "tonnes_sd": self.tonnes_sd, "grade": self.grade,
+            "grade_sd": self.grade_sd, "assayed_fraction": self.assayed_fraction,
             "deposits": [d.__dict__ for d in self.deposits],
             "cuts": [c.__dict__ for c in self.cuts], "counters": self.counters,
+            "material": self.material,
         }
 
 
@@ -132,8 +145,10 @@ class PileState:
 
 def project(store, pile_id: str, valid_time_ns: int | None = None,
             known_time_ns: int | None = None, *, config: F.FoldConfig | None = None,
-            snapshots: "SnapshotStore | None" = None) -> PileState:
-    """The pile ``pile_id`` as of valid time V, as known at K (default: everything)."""
+            snapshots: "SnapshotStore | None" = None,
+            uncertainty: UncertaintyConfig | None = None) -> PileState:
+    """The pile ``pile_id`` as of valid time V, as known at K (default: everything); the
+    standard deviations from ``uncertainty`` (default :class:`UncertaintyConfig`'s)."""
     v = FAR_FUTURE_NS if valid_time_ns is None else int(valid_time_ns)
     k = FAR_FUTURE_NS if known_time_ns is None else int(known_time_ns)
     config = config or F.FoldConfig(pile_id=pile_id)
@@ -148,7 +163,8 @@ def project(store, pile_id: str, valid_time_ns: int | None = None,
         F.apply(state, event)
     view = F.flush(state)   # the state is ours alone (fresh, or loaded from a file)
     lots, assays = grade_inputs(store, v, k)
-    return summarise(view, lots, assays, valid_time_ns=v, known_time_ns=k)
+    return summarise(view, lots, assays, valid_time_ns=v, known_time_ns=k,
+                     uncertainty=uncertainty)
 
 
 def grade_inputs(store, valid_time_ns: int, known_time_ns: int
@@ -232,8 +248,10 @@ def _grade(sums: np.ndarray, graded_t: float, analytes) -> dict[str, float]:
 
 
 def summarise(state: F.ProjectorState, lots, assays, *, valid_time_ns: int,
-              known_time_ns: int) -> PileState:
-    """Totals, deposits and cuts of a folded state, grades joined as known at K."""
+              known_time_ns: int, uncertainty: UncertaintyConfig | None = None) -> PileState:
+    """Totals, deposits and cuts of a folded state, grades joined as known at K, each
+    pile's and cut's figures with their standard deviations (:mod:`projector.summary_sd`,
+    from ``uncertainty``, default :class:`UncertaintyConfig`'s)."""
     pile = state.pile
     if pile is None:
         return PileState(state.config.pile_id, valid_time_ns, known_time_ns, None, 0.0, 0.0, {},
@@ -259,11 +277,14 @@ def summarise(state: F.ProjectorState, lots, assays, *, valid_time_ns: int,
         tot_assayed += a_t
         tot_graded += g_t
         tot_v += volume
-    cuts = [_cut_summary(c, stack, join, analytes) for c in state.cuts]
+    sd_config = uncertainty or UncertaintyConfig()
+    cuts = [_cut_summary(c, stack, join, analytes, cut_sd(c, state, join, sd_config))
+            for c in state.cuts]
     return PileState(pile.pile_id, valid_time_ns, known_time_ns, pile.geometry, tot_v, tot_t,
                      _grade(tot_sums, tot_graded, analytes),
                      tot_assayed / tot_t if tot_t > 0 else 0.0, deposits, cuts,
-                     dict(state.counters), state, analytes, join)
+                     dict(state.counters), state, analytes, join,
+                     **pile_sd(state, join, sd_config))
 
 
 def _deposit_weights(state: F.ProjectorState, join: GradeJoin) -> list["ClassWeights"]:
@@ -288,7 +309,7 @@ def _deposit_weights(state: F.ProjectorState, join: GradeJoin) -> list["ClassWei
     return weights
 
 
-def _cut_summary(cut: F.CutRecord, stack, join: GradeJoin, analytes) -> CutSummary:
+def _cut_summary(cut: F.CutRecord, stack, join: GradeJoin, analytes, sd: dict) -> CutSummary:
     per_deposit: dict[int, list] = {}
     tonnes, sums, assayed_t, graded_t, volume = 0.0, np.zeros(len(analytes)), 0.0, 0.0, 0.0
     for removal in cut.removals:
@@ -308,7 +329,7 @@ def _cut_summary(cut: F.CutRecord, stack, join: GradeJoin, analytes) -> CutSumma
     return CutSummary(cut.cut_id, cut.bench_id, cut.start_ns, cut.end_ns, volume, tonnes,
                       cut.belt_tonnes, _grade(sums, graded_t, analytes),
                       assayed_t / tonnes if tonnes > 0 else 0.0, cut.predicted_m3,
-                      cut.residual_m3, cut.slumped_m3, deposits)
+                      cut.residual_m3, cut.slumped_m3, deposits, **sd)
 
 
 # -- snapshots --------------------------------------------------------------------------------

@@ -76,6 +76,10 @@ class CutRecord:
     #: between the cut and the face's closing, and those left to the prediction
     face_cells_seen: int = 0
     face_cells_predicted: int = 0
+    #: the height map's variance (m^2, NaN = never seen) before the cut at the cells of its
+    #: envelope removal (``removals[0]``), in ascending flat-index order
+    #: (:func:`projector.summary_sd.footprint_variance`); None: not kept
+    footprint_var_m2: np.ndarray | None = None
 
 
 @dataclass

@@ -4,16 +4,16 @@ Pure functions on numpy arrays, shapes and values checked up front (``ValueError
 Errors are zero-mean, propagated to first order; each kernel's model and what it leaves
 out are in its docstring and docs/uncertainty.md.
 
-How the fold will call them (:mod:`projector.query`; docs/uncertainty.md has the detail)
----------------------------------------------------------------------------------------
-- The pile (``summarise``): ``var_m2 = state.height.variance``, ``mask`` = the cells with
-  material; pieces = every deposit's grade classes (``GradeJoin.classes``): ``group`` an
-  id per assay (assayed classes) or per lot (the planned class), ``density_reported``
-  where the assay gave a density; boundaries between consecutive deposits of different
-  lots from :func:`boundary_band_thickness_m` on ``S(k-1), S(k), S(k+1)``.
-- A cut (``_cut_summary``): the same from its ``removals``, ``mask`` = the removed cells,
-  the surveys before and after the cut added (:meth:`VolumeVariance.plus`; the fold is
-  to keep the footprint's variances at the cut), ``residual_m3`` from ``CutSummary``.
+How the query calls them (:mod:`projector.summary_sd`; docs/uncertainty.md has the detail)
+------------------------------------------------------------------------------------------
+- The pile: ``var_m2 = state.height.variance``, ``mask`` = the cells with material;
+  pieces = every deposit's grade classes: ``group`` an id per assay (assayed classes) or
+  per lot (the planned class), ``density_reported`` where the assay gave a density;
+  boundaries between consecutive deposits of different lots from
+  :func:`boundary_band_thickness_m` on ``S(k-1), S(k), S(k+1)``.
+- A cut: the same from its ``removals``, ``mask`` = its envelope's removed cells with
+  the variances the fold kept of them just before the cut, ``residual_m3`` from the cut
+  record (its floor is the envelope's, so no survey after it is added).
 - ``plan``, ``audit`` and the dashboard read the figures the query returns.
 
 Units: m, m^2, m^3 (variances m^6), tonnes, t/m^3, mass % (grade sds in percentage
@@ -333,8 +333,8 @@ class UncertaintyConfig:
         share of a cut's geometry residual (m^3) taken as its volume sd.
     """
 
-    corr_cells: int = 10
-    corr_share: float = 0.5
+    corr_cells: int = 20
+    corr_share: float = 1.0
     unseen_sd_m: float = 0.5
     density_repeat_rel: float = 0.01
     density_default_rel: float = 0.05
@@ -342,7 +342,7 @@ class UncertaintyConfig:
         "Fe": 0.15, "SiO2": 0.08, "Al2O3": 0.04, "P": 0.003, "LOI": 0.1})
     planned_sd_pp: Mapping[str, float] = field(hash=False, default_factory=lambda: {
         "Fe": 2.5, "SiO2": 1.2, "Al2O3": 0.25, "P": 0.01, "LOI": 0.4})
-    boundary_band_m: float = 0.25
+    boundary_band_m: float = 0.06
     residual_sd_share: float = 0.5
 
     def __post_init__(self) -> None:

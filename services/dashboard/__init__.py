@@ -39,6 +39,10 @@ Entities (numbers carry their units in the path):
 ``/series/cuts/tonnes_t/{geometry,belt_scale}``, ``/series/cuts/grade_pct/<A>/{at_end,
 known_now}``, ``/series/cuts/assayed_fraction/{at_end,known_now}``: one point per cut at
 its end time
+``..._hi``, ``..._lo`` beside ``/series/pile/tonnes_t/known_then``, ``/series/pile/
+grade_pct/<A>/known_then``, ``/series/cuts/tonnes_t/geometry`` and ``/series/cuts/
+grade_pct/<A>/at_end``: the figure +/- one standard deviation (its band, pale blue;
+``tonnes_sd`` and ``grade_sd`` of :func:`projector.query.summarise`)
 ``/log``                           TextLog: lots, passes, cuts, assay arrivals (lateness),
                                    superseded assays, reconciliation deltas above
                                    ``--delta-threshold-pp``, gaps, quarantined input

@@ -63,10 +63,12 @@ class CutLog:
         self.at_end[cut.cut_id] = cut
         self.out.at(cut.end_time_ns, self.tracker.seq)
         self.out.series("/series/cuts/tonnes_t/geometry", cut.tonnes)
+        self.out.band("/series/cuts/tonnes_t/geometry", cut.tonnes, cut.tonnes_sd)
         self.out.series("/series/cuts/tonnes_t/belt_scale", cut.tonnes_scale)
         self.out.series("/series/cuts/assayed_fraction/at_end", cut.assayed_fraction)
         for a, g in grade.items():
             self.out.series(f"/series/cuts/grade_pct/{a}/at_end", g)
+            self.out.band(f"/series/cuts/grade_pct/{a}/at_end", g, cut.grade_sd.get(a))
         if live:
             self.log_now(cut)
         self.logged[cut.cut_id] = grade

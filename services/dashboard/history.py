@@ -127,6 +127,9 @@ class History:
     def log_totals(self, state, *, now: bool) -> None:
         """An update's figures as known then (and, ``now``, as known now) and its volume."""
         self.log_figures("known_then", state.tonnes, state.grade, state.assayed_fraction)
+        self.out.band("/series/pile/tonnes_t/known_then", state.tonnes, state.tonnes_sd)
+        for a, g in state.grade.items():
+            self.out.band(f"/series/pile/grade_pct/{a}/known_then", g, state.grade_sd.get(a))
         if now:
             self.log_figures("known_now", state.tonnes, state.grade, state.assayed_fraction)
         self.out.series("/series/pile/volume_m3", state.volume_m3)

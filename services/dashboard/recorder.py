@@ -58,6 +58,13 @@ class Recorder:
         if value is not None and math.isfinite(value):
             self.rec.log(path, rr().Scalars(float(value)))
 
+    def band(self, path: str, value: float, sd: float | None) -> None:
+        """A figure's one-sd band at the time last set: ``<path>_hi`` and ``<path>_lo``
+        (``value`` +/- ``sd``; nothing for a non-finite value or sd)."""
+        if value is not None and sd is not None and math.isfinite(value) and math.isfinite(sd):
+            self.series(f"{path}_hi", value + sd)
+            self.series(f"{path}_lo", value - sd)
+
     def text(self, text: str, level: str = "INFO", *, valid_ns: int | None = None,
              seq: int | None = None) -> None:
         """A line of ``/log`` at :meth:`at` ``(valid_ns, seq)``."""

@@ -19,6 +19,8 @@ GREY = (150, 150, 150)
 BLUE = [90, 160, 255]
 #: "as known now" lines and points
 ORANGE = [240, 120, 40]
+#: the one-sd bands of "as known then" and "at the cut's end" (pale blue)
+BAND = [170, 205, 255]
 
 _ANCHORS = np.array([[49, 54, 149], [69, 117, 180], [116, 173, 209], [171, 217, 233],
                      [254, 224, 144], [253, 174, 97], [244, 109, 67], [215, 48, 39]], float)
@@ -116,6 +118,8 @@ def log_series_styles(rec, analytes: Iterable[str], *, first: bool) -> None:
                   "/series/pile/volume_m3": ("pile volume m3", [200, 200, 200])}
         for path, (name, colour) in styles.items():
             rec.log(path, rr.SeriesLines(names=name, colors=[colour]), static=True)
+        _log_bands(rr, rec, "/series/pile/tonnes_t/known_then", "as known then")
+        _log_bands(rr, rec, "/series/cuts/tonnes_t/geometry", "geometry", points=True)
         for path, name, colour in (("/series/cuts/tonnes_t/geometry", "geometry", ORANGE),
                                    ("/series/cuts/tonnes_t/belt_scale", "belt scale", BLUE)):
             rec.log(path, rr.SeriesPoints(names=name, colors=[colour], marker_sizes=[4.0]),
@@ -131,3 +135,17 @@ def log_series_styles(rec, analytes: Iterable[str], *, first: bool) -> None:
         rec.log(f"/series/cuts/grade_pct/{a}/known_now",
                 rr.SeriesPoints(names=f"{a} % known now", colors=[ORANGE],
                                 marker_sizes=[4.0]), static=True)
+        _log_bands(rr, rec, f"/series/pile/grade_pct/{a}/known_then", f"{a} % as known then")
+        _log_bands(rr, rec, f"/series/cuts/grade_pct/{a}/at_end", f"{a} % at the cut's end",
+                   points=True)
+
+
+def _log_bands(rr, rec, path: str, name: str, *, points: bool = False) -> None:
+    """The static style of a series' one-sd band, ``<path>_hi`` and ``<path>_lo``
+    (:meth:`services.dashboard.recorder.Recorder.band`): thin pale lines (points for the
+    cuts' series)."""
+    for side, sign in (("hi", "+"), ("lo", "-")):
+        label = f"{name} {sign}1 sd"
+        style = (rr.SeriesPoints(names=label, colors=[BAND], marker_sizes=[2.0]) if points
+                 else rr.SeriesLines(names=label, colors=[BAND], widths=[0.5]))
+        rec.log(f"{path}_{side}", style, static=True)

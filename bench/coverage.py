@@ -1,0 +1,204 @@
+"""Calibration of the standard deviations: how often the truth lies within 1 and 2 sd.
+
+    .venv/bin/python bench/coverage.py --scenario demo --runs 20 --keep /tmp/cov
+    .venv/bin/python bench/coverage.py --scenario demo --runs 20 --keep /tmp/cov \\
+        --set unseen_sd_m=0.3 --set corr_cells=20          # the kept folds, another config
+
+Each run is one draw of the simulator, as ``bench/projector_truth.py`` runs it
+(``stockpile sim --scan-events truth``, the scans placed by the localizer's poses unless
+``--poses truth``), imported by ``stockpile ledger import --clock events``'s code into an
+in-memory ledger (the same events and recorded times as its DuckDB file, faster), then
+:func:`projector.query.project` with everything known.  A draw is a world seed
+(``--first-seed`` onwards: the belt's grades, the lab's errors and the sensors' noise) or,
+with ``--noise-draws N``, N draws of the sensors' noise on each world (``stockpile sim
+--noise-seed``: the same world measured again).  For every cut and the pile it forms
+``z = (ours - truth) / sd`` of the tonnes and of Fe, with the truth from the simulator's
+``truth.json`` (a cut's ``true_tonnes`` and ``grade``, the world's ``tonnes`` and
+``grade`` at the end), and prints per scenario and figure: the number of figures, the
+share within 1 sd and within 2 sd (targets about 68 % and 95 %; accepted 60-76 % and
+90-98 %), the mean z (a bias shows as a mean away from 0), the rms z (1 for a
+calibrated sd), and the median sd beside the median absolute error (for a normal error,
+the median |error| is 0.67 sd).
+
+The folded state of each run is kept beside it (``<run>.state.pkl``, with the grade
+inputs), so ``--set NAME=VALUE`` (fields of :class:`projector.uncertainty.UncertaintyConfig`)
+recomputes the figures of kept runs without folding again.  ``--duration`` (site hours)
+stops each run early: the demo's cuts all end by about 1.25 h, before most assays arrive
+(the cuts are then graded from the lots' plans).
+"""
+
+from __future__ import annotations
+
+import argparse
+import ast
+import json
+import math
+import pickle
+import sys
+import tempfile
+import time
+from dataclasses import fields
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "bench"))   # projector_truth
+sys.path.insert(0, str(ROOT))             # before bench/: its projector.py is not the package
+
+from projector_truth import POSES, _ledger_input, _stockpile  # noqa: E402
+from ledger import open_ledger  # noqa: E402
+from ledger.clock import EventClock  # noqa: E402
+from ledger.importing import import_lines  # noqa: E402
+from projector.query import grade_inputs, project, summarise  # noqa: E402
+from projector.uncertainty import UncertaintyConfig  # noqa: E402
+
+FIGURES = ("cut tonnes", "cut Fe", "pile tonnes", "pile Fe")
+
+
+def parse_set(items: list[str]) -> UncertaintyConfig:
+    """An :class:`UncertaintyConfig` from ``NAME=VALUE`` items (a Python literal each)."""
+    names = {f.name for f in fields(UncertaintyConfig)}
+    kwargs = {}
+    for item in items:
+        name, sep, value = item.partition("=")
+        if not sep or name not in names:
+            raise SystemExit(f"--set wants NAME=VALUE with NAME one of {', '.join(sorted(names))}"
+                             f", got {item!r}")
+        kwargs[name] = ast.literal_eval(value)
+    return UncertaintyConfig(**kwargs)
+
+
+def folded(scenario: str, seed: int, noise_seed: int | None, out: Path, duration_h,
+           poses: str) -> tuple:
+    """``(folded state, lots, assays, valid ns, known ns, truth)`` of one run, from its kept
+    pickle or simulated, imported and folded now (then kept)."""
+    name = f"{scenario}-seed{seed}" + ("" if noise_seed is None else f"-noise{noise_seed}")
+    cache = out / f"{name}-{poses}.state.pkl"
+    if cache.exists():
+        return pickle.loads(cache.read_bytes())
+    sim_dir = out / name
+    if not (sim_dir / "truth.json").exists():
+        extra = ["--duration", str(duration_h)] if duration_h else []
+        extra += [] if noise_seed is None else ["--noise-seed", str(noise_seed)]
+        _stockpile("sim", "--scenario", scenario, "--seed", str(seed), "--speed", "0",
+                   "--scan-events", "truth", "--out", str(sim_dir), *extra)
+    truth = json.loads((sim_dir / "truth.json").read_text())
+    # the in-memory ledger, imported by `stockpile ledger import --clock events`'s code
+    with open_ledger(":memory:", EventClock()) as store, \
+            open(_ledger_input(sim_dir, truth, poses), "rb") as lines:
+        import_lines(store, lines)
+        p = project(store, truth["scenario"].get("pile_id", "P1"))
+        lots, assays = grade_inputs(store, p.valid_time_ns, p.known_time_ns)
+    kept = (p.state, lots, assays, p.valid_time_ns, p.known_time_ns, truth)
+    cache.write_bytes(pickle.dumps(kept, protocol=5))
+    return kept
+
+
+def z_scores(kept: tuple, config: UncertaintyConfig) -> dict[str, list[tuple]]:
+    """Per figure, ``(label, ours, truth, sd, z)`` of one run's cuts and pile."""
+    state, lots, assays, v, k, truth = kept
+    p = summarise(state, lots, assays, valid_time_ns=v, known_time_ns=k, uncertainty=config)
+    out: dict[str, list[tuple]] = {f: [] for f in FIGURES}
+
+    def add(figure, label, ours, true, sd):
+        z = (ours - true) / sd if sd > 0 else math.nan
+        out[figure].append((label, ours, true, sd, z))
+
+    ours = {c.cut_id: c for c in p.cuts}
+    for c in truth["cuts"]:
+        mine = ours.get(c["cut_id"])
+        if mine is None:
+            continue
+        add("cut tonnes", c["cut_id"], mine.tonnes, c["true_tonnes"], mine.tonnes_sd)
+        add("cut Fe", c["cut_id"], mine.grade.get("Fe", math.nan), c["grade"]["Fe"],
+            mine.grade_sd.get("Fe", math.nan))
+    world = truth["world"]
+    add("pile tonnes", "pile", p.tonnes, world["tonnes"], p.tonnes_sd)
+    add("pile Fe", "pile", p.grade.get("Fe", math.nan), world["grade"]["Fe"],
+        p.grade_sd.get("Fe", math.nan))
+    return out
+
+
+def coverage(zs: list[float]) -> dict:
+    """n, share within 1 and 2 sd (%), mean and rms z of finite z values."""
+    z = np.array([v for v in zs if math.isfinite(v)])
+    if z.size == 0:
+        return {"n": 0, "within_1sd_pct": math.nan, "within_2sd_pct": math.nan,
+                "mean_z": math.nan, "rms_z": math.nan}
+    return {"n": int(z.size), "within_1sd_pct": float(np.mean(np.abs(z) <= 1) * 100),
+            "within_2sd_pct": float(np.mean(np.abs(z) <= 2) * 100),
+            "mean_z": float(z.mean()), "rms_z": float(np.sqrt(np.mean(z * z)))}
+
+
+def verdict(c: dict) -> str:
+    if c["n"] == 0:
+        return "-"
+    ok = 60 <= c["within_1sd_pct"] <= 76 and 90 <= c["within_2sd_pct"] <= 98
+    return "PASS" if ok else "MISS"
+
+
+def print_table(scenario: str, rows: dict[str, list[tuple]], runs: int) -> dict:
+    """The coverage table of one scenario; ``rows``: per figure, ``(run, label, ours,
+    truth, sd, z)``."""
+    print(f"\n== {scenario}: {runs} runs")
+    print(f"{'figure':<12} {'n':>5} {'within 1 sd':>12} {'within 2 sd':>12} {'mean z':>8} "
+          f"{'rms z':>7} {'median sd':>10} {'median |err|':>12}  verdict")
+    table = {}
+    for figure in FIGURES:
+        c = coverage([r[5] for r in rows[figure]])
+        sds = [r[4] for r in rows[figure] if math.isfinite(r[4])]
+        c["median_sd"] = float(np.median(sds)) if sds else math.nan
+        errs = [abs(r[2] - r[3]) for r in rows[figure] if math.isfinite(r[2] - r[3])]
+        c["median_abs_err"] = float(np.median(errs)) if errs else math.nan
+        table[figure] = c
+        print(f"{figure:<12} {c['n']:>5} {c['within_1sd_pct']:>11.1f}% "
+              f"{c['within_2sd_pct']:>11.1f}% {c['mean_z']:>+8.2f} {c['rms_z']:>7.2f} "
+              f"{c['median_sd']:>10.3g} {c['median_abs_err']:>12.3g}  {verdict(c)}")
+    return table
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--scenario", action="append",
+                    help="a simulator scenario (repeatable; default demo)")
+    ap.add_argument("--runs", type=int, default=20, help="worlds per scenario (default 20)")
+    ap.add_argument("--first-seed", type=int, default=1, help="the first world's seed")
+    ap.add_argument("--noise-draws", type=int, default=1, metavar="N",
+                    help="draws of the sensors' noise per world (default 1: the seed's own)")
+    ap.add_argument("--duration", type=float, default=None, help="site hours (default: all)")
+    ap.add_argument("--poses", choices=tuple(POSES), default="localizer")
+    ap.add_argument("--keep", metavar="DIR", help="keep (and reuse) the runs in DIR")
+    ap.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
+                    help="an UncertaintyConfig field (repeatable)")
+    ap.add_argument("--json", metavar="FILE", help="also write every z and the tables here")
+    args = ap.parse_args(argv)
+    config = parse_set(args.set)
+    print(f"uncertainty config: {config}", flush=True)
+    result = {"config": repr(config), "scenarios": {}}
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(args.keep or tmp)
+        out.mkdir(parents=True, exist_ok=True)
+        for scenario in args.scenario or ["demo"]:
+            rows: dict[str, list[tuple]] = {f: [] for f in FIGURES}
+            draws = [(s, None if d == 0 else 1000 * d + s)
+                     for s in range(args.first_seed, args.first_seed + args.runs)
+                     for d in range(args.noise_draws)]
+            t0 = time.perf_counter()
+            for i, (seed, noise) in enumerate(draws, 1):
+                kept = folded(scenario, seed, noise, out, args.duration, args.poses)
+                for figure, found in z_scores(kept, config).items():
+                    rows[figure] += [(f"seed{seed}-noise{noise or seed}", *r) for r in found]
+                n_cuts = len(rows["cut tonnes"])
+                print(f"  {scenario} run {i}/{len(draws)} (seed {seed}, noise "
+                      f"{noise or seed}): {n_cuts} cuts so far, "
+                      f"{time.perf_counter() - t0:.0f} s", flush=True)
+            table = print_table(scenario, rows, len(draws))
+            result["scenarios"][scenario] = {"table": table, "rows": rows}
+    if args.json:
+        Path(args.json).write_text(json.dumps(result, indent=1, default=float))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

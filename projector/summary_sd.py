@@ -1,0 +1,196 @@
+"""Standard deviations of a projected pile's and cut's tonnes and grade (issue 42, item 3).
+
+The query's side of :mod:`projector.uncertainty`: it gathers what the kernels need from a
+folded state and the grade join, and returns ``{"tonnes_sd": t, "grade_sd": {analyte:
+pp}}`` per figure (:func:`pile_sd`, :func:`cut_sd`); :func:`projector.query.summarise`
+calls them.  docs/uncertainty.md says how each term is formed and what it leaves out.
+
+- **Volume.**  The pile: the height map's fused variances over the cells with material
+  (never-seen cells: the configured prior).  A cut: the variances the fold kept of its
+  footprint just before it (:func:`footprint_variance`, ``CutRecord.footprint_var_m2``;
+  a planned cut, which has none, takes the map's current ones); its floor is the cutting
+  envelope's (the machine's kinematics), and what the scans after it saw below that
+  floor is its geometry residual, a further volume error.
+- **Pieces.**  The material's grade classes (:func:`projector.grades.grade_classes`), in
+  groups that share one error: one per assay (keyed by the lot and the assay's grade
+  and density) for assayed material, one per lot for material graded from its plan.
+- **Buried boundaries.**  Between consecutive deposits of different lots: the material
+  within ``UncertaintyConfig.boundary_band_m`` of the boundary, wherever both deposits
+  hold material (a cut: both lost some), its grade difference the lots' planned one.
+
+Units: m, m^2, m^3, tonnes, t/m^3, mass % (sds of grades in percentage points, pp).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from projector.grades import grade_classes
+from projector.uncertainty import (UncertaintyConfig, VolumeVariance, boundary_band_thickness_m,
+                                   figure_sd, volume_variance)
+
+__all__ = ["footprint_cells", "footprint_variance", "pile_sd", "cut_sd"]
+
+
+def footprint_cells(removal, shape: tuple[int, int]) -> np.ndarray:
+    """Flat indices (ascending, unique) into ``shape`` of the cells a
+    :class:`projector.deposits.Removal` took material from."""
+    parts = [np.ravel_multi_index((d.ix, d.iy), shape) for d in removal.deposits]
+    return np.unique(np.concatenate(parts)) if parts else np.zeros(0, np.int64)
+
+
+def footprint_variance(variance_m2: np.ndarray, removal) -> np.ndarray:
+    """The height variances (m^2, NaN never seen) at a removal's cells
+    (:func:`footprint_cells` order), a new array: what the fold keeps of a cut."""
+    return np.asarray(variance_m2, np.float64).ravel()[
+        footprint_cells(removal, variance_m2.shape)].copy()
+
+
+class _Pieces:
+    """Material gathered into pieces (one per grade class of one call) with their groups."""
+
+    def __init__(self, join) -> None:
+        self.join = join
+        self.tonnes: list[np.ndarray] = []
+        self.group: list[np.ndarray] = []
+        self.assayed: list[np.ndarray] = []
+        self.reported: list[np.ndarray] = []
+        self._ids: dict[tuple, int] = {}
+
+    def add(self, lot_id: str, times_ns, volumes_m3) -> None:
+        """Some material of one lot: deposition times (UTC ns) and volumes (m^3) per cell."""
+        volumes = np.asarray(volumes_m3, np.float64)
+        if volumes.size == 0:
+            return
+        join = self.join
+        planned = join.lots.get(lot_id)
+        if planned is None:    # an undeclared lot: one planned group, default density
+            index, assayed = np.zeros(volumes.size, np.int64), np.zeros(1, bool)
+            grade, density = np.full((1, len(join.analytes)), np.nan), np.full(1, np.nan)
+        else:
+            c = grade_classes(lot_id, planned, join.by_lot.get(lot_id, []),
+                              np.asarray(times_ns), join.analytes)
+            index, assayed, grade, density = c.index, c.assayed, c.grade, c.density_t_m3
+        reported = np.isfinite(density)
+        rho = np.where(reported, density, join.density_default)
+        self.tonnes.append(np.bincount(index, weights=volumes, minlength=len(assayed)) * rho)
+        # an assay is known by its lot, grade and density (bytes: NaN equals itself)
+        self.group.append(np.array([self._id(("assay", lot_id, grade[i].tobytes(),
+                                              density[i].tobytes())
+                                              if assayed[i] else ("lot", lot_id))
+                                    for i in range(len(assayed))], np.int64))
+        self.assayed.append(assayed)
+        self.reported.append(reported)
+
+    def _id(self, key: tuple) -> int:
+        return self._ids.setdefault(key, len(self._ids))
+
+    def arrays(self) -> dict:
+        """``tonnes``, ``group``, ``assayed``, ``density_reported`` as :func:`figure_sd`
+        takes them."""
+        cat = (lambda parts, dtype: np.concatenate(parts).astype(dtype) if parts
+               else np.zeros(0, dtype))
+        return {"tonnes": cat(self.tonnes, np.float64), "group": cat(self.group, np.int64),
+                "assayed": cat(self.assayed, bool), "density_reported": cat(self.reported, bool)}
+
+
+def _lot_diff_pp(join, lower_lot: str, upper_lot: str) -> np.ndarray | None:
+    """The upper lot's planned grade less the lower's (pp, per analyte); None when the two
+    are one lot or either is undeclared."""
+    lo, hi = join.lots.get(lower_lot), join.lots.get(upper_lot)
+    if lower_lot == upper_lot or lo is None or hi is None:
+        return None
+    diff = np.array([hi.get(a, math.nan) - lo.get(a, math.nan) for a in join.analytes])
+    return np.nan_to_num(diff)     # an analyte one plan lacks: no known difference
+
+
+def _figure(config: UncertaintyConfig, join, pieces: _Pieces, volume: VolumeVariance,
+            volume_m3: float, boundaries: list[tuple[float, np.ndarray]],
+            residual_m3: float = 0.0) -> dict:
+    """:func:`figure_sd` of gathered pieces; ``boundaries``: ``(band volume m^3, diff pp)``,
+    the band's tonnes at the pieces' mean density."""
+    p = pieces.arrays()
+    density = float(p["tonnes"].sum()) / volume_m3 if volume_m3 > 0 else 0.0
+    n_a = len(join.analytes)
+    bt = np.array([v * density for v, _d in boundaries], np.float64)
+    diff = np.array([d for _v, d in boundaries], np.float64).reshape(len(boundaries), n_a)
+    return figure_sd(config, join.analytes, volume=volume, volume_m3=max(volume_m3, 0.0),
+                     boundary_tonnes=bt, boundary_grade_diff_pp=diff,
+                     residual_m3=residual_m3, **p)
+
+
+def pile_sd(state, join, config: UncertaintyConfig) -> dict:
+    """``{"tonnes_sd", "grade_sd"}`` of a folded state's whole pile (module docstring)."""
+    stack, geometry = state.stack, state.pile.geometry
+    area = geometry.cell_area_m2
+    pieces, boundaries, volume_m3 = _Pieces(join), [], 0.0
+    for k in range(1, stack.n_deposits + 1):
+        cells, thick, times = stack.deposit_cells(k)
+        pieces.add(stack.info(k).lot_id, times, thick * area)
+        volume_m3 += float(thick.sum() * area)
+        if k < stack.n_deposits:
+            diff = _lot_diff_pp(join, stack.info(k).lot_id, stack.info(k + 1).lot_id)
+            if diff is not None:
+                lo, z, hi = stack.surface_k(k - 1), stack.surface_k(k), stack.surface_k(k + 1)
+                both = (z > lo) & (hi > z)
+                band = boundary_band_thickness_m(lo[both], z[both], hi[both],
+                                                 config.boundary_band_m)
+                boundaries.append((float(band.sum() * area), diff))
+    var = (state.height.variance if state.height is not None
+           else np.full(geometry.shape, np.nan))
+    volume = _volume(config, var, stack.surface() > stack.ground(), area)
+    return _figure(config, join, pieces, volume, volume_m3, boundaries)
+
+
+def _volume(config: UncertaintyConfig, var_m2, mask, area_m2: float) -> VolumeVariance:
+    return volume_variance(var_m2, mask, area_m2, corr_cells=config.corr_cells,
+                           corr_share=config.corr_share, unseen_sd_m=config.unseen_sd_m)
+
+
+def cut_sd(cut, state, join, config: UncertaintyConfig) -> dict:
+    """``{"tonnes_sd", "grade_sd"}`` of one cut record of a folded state (a planned cut's
+    too: a record without ``footprint_var_m2``) (module docstring)."""
+    geometry = state.pile.geometry
+    area = geometry.cell_area_m2
+    pieces, volume_m3 = _Pieces(join), 0.0
+    removed: dict[int, tuple] = {}          # deposit -> (info, removed thickness (nx*ny,))
+    for removal in cut.removals:
+        for d in removal.deposits:
+            pieces.add(d.info.lot_id, d.deposition_time_ns, d.cell_volume_m3)
+            volume_m3 += d.volume_m3
+            info, thick = removed.get(d.index, (d.info, np.zeros(geometry.nx * geometry.ny)))
+            np.add.at(thick, np.ravel_multi_index((d.ix, d.iy), geometry.shape),
+                      d.cell_volume_m3 / area)
+            removed[d.index] = (info, thick)
+    boundaries = []
+    order = sorted(removed)
+    for lower, upper in zip(order, order[1:]):
+        (lo_info, lo_m), (hi_info, hi_m) = removed[lower], removed[upper]
+        diff = _lot_diff_pp(join, lo_info.lot_id, hi_info.lot_id)
+        both = (lo_m > 0) & (hi_m > 0)
+        if diff is not None and both.any():
+            band = boundary_band_thickness_m(-lo_m[both], np.zeros(int(both.sum())), hi_m[both],
+                                             config.boundary_band_m)
+            boundaries.append((float(band.sum() * area), diff))
+    volume = _volume(config, *_footprint_grid(cut, state), area)
+    return _figure(config, join, pieces, volume, volume_m3, boundaries, cut.residual_m3)
+
+
+def _footprint_grid(cut, state) -> tuple[np.ndarray, np.ndarray]:
+    """``(variance (nx, ny) m^2, mask)`` of a cut's footprint before it: the variances the
+    fold kept (over its envelope's removal), else (a planned cut: over all its removals)
+    the height map's current ones, else never seen."""
+    shape = state.pile.geometry.shape
+    kept = getattr(cut, "footprint_var_m2", None)
+    parts = cut.removals[:1] if kept is not None else cut.removals
+    cells = np.unique(np.concatenate([footprint_cells(r, shape) for r in parts] + [
+        np.zeros(0, np.int64)]))
+    var, mask = np.full(shape, np.nan), np.zeros(shape, bool)
+    mask.ravel()[cells] = True
+    if kept is not None and kept.shape == cells.shape:
+        var.ravel()[cells] = kept
+    elif state.height is not None:
+        var.ravel()[cells] = state.height.variance.ravel()[cells]
+    return var, mask
