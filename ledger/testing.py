@@ -30,6 +30,7 @@ from ledger.records import FLAG_UNKNOWN_LOT, Gap, QuarantineEntry, RecordedEvent
 from ledger.signing import SigningPolicy
 from ledger.store import LedgerStore
 from ledger.testing_signing import SigningContract, rechained
+from ledger.testing_stats import StatsContract
 from ledger.verifying import CHAIN_MISMATCH
 
 
@@ -190,7 +191,7 @@ def tampered_side(quarantine: list[QuarantineEntry], gaps: list[Gap],
     return quarantine, gaps
 
 
-class LedgerStoreContract(SigningContract):
+class LedgerStoreContract(SigningContract, StatsContract):
     """Behaviour every :class:`~ledger.store.LedgerStore` backend must show."""
 
     #: whether the backend keeps data across ``reopen``
@@ -544,48 +545,6 @@ class LedgerStoreContract(SigningContract):
                 failures.append(f"{case}: {report}")
             store.close()
         assert failures == []
-
-    def test_stats_follow_every_batch(self, tmp_path):
-        """stats() between batches, and after a reopen, match counts taken over read()."""
-        store, clock = self._new(tmp_path)
-
-        def expected() -> tuple:
-            rows = list(store.read())
-            flags = [f for r in rows for f in r.flags]
-            valid = [r.valid_time_ns for r in rows]
-            recorded = [r.recorded_time_ns for r in rows]
-            return (len(rows),
-                    {t: sum(r.type == t for r in rows) for t in {r.type for r in rows}},
-                    {s: sum(r.source == s for r in rows) for s in {r.source for r in rows}},
-                    {f: flags.count(f) for f in set(flags)},
-                    (min(valid), max(valid)) if rows else None,
-                    (min(recorded), max(recorded)) if rows else None)
-
-        def seen(stats) -> tuple:
-            return (stats.events, stats.per_type, stats.per_source, stats.flagged,
-                    stats.valid_time_range_ns, stats.recorded_time_range_ns)
-
-        assert seen(store.stats()) == expected() == (0, {}, {}, {}, None, None)
-        lot = pb.LotDeclared(lot_id="L1", planned_tonnes=10.0, planned_grade={"Fe": 60.0})
-        set_timestamp_ns(lot.time, 40)
-        unknown = pb.Assay(assay_id="A1", lot_id="L9", analytes={"Fe": 61.0}, status=2)
-        for field_name, t in (("window_start", 5), ("window_end", 6), ("reported_time", 7)):
-            set_timestamp_ns(getattr(unknown, field_name), t)
-        batches = [[joint_event("a.src", 0, 300), joint_event("b.src", 0, 20)],
-                   [make_event(lot, source="plan.lots", epoch=1, seq=0),
-                    make_event(unknown, source="lab.assays", epoch=1, seq=0),
-                    joint_event("a.src", 0, 300)],
-                   [joint_event("a.src", 3, 900), joint_event("b.src", 1, 1)]]
-        for at_ns, batch in zip((100, 200, 300), batches):
-            clock.set_ns(at_ns)
-            store.append(batch)
-            assert seen(store.stats()) == expected()
-        assert store.stats().flagged == {FLAG_UNKNOWN_LOT: 1}
-        assert store.stats().valid_time_range_ns == (1, 900)
-        if self.persistent:
-            store = self.reopen(store, clock)
-            assert seen(store.stats()) == expected()
-        store.close()
 
     def test_randomised_batches_keep_every_invariant(self, tmp_path):
         seed = random.randrange(2**32)
