@@ -15,6 +15,7 @@ from pathlib import Path
 from urllib.parse import urlsplit
 from typing import Any, Sequence
 
+from common.figures import plus_minus
 from common.options import (add_bitemporal, add_duration, add_ledger, add_max_rows,
                             add_progress, describe_ledger, format_duration_s, is_ledger_url)
 from schemas.analytes import canonical_name
@@ -42,10 +43,9 @@ def _num(value: float | None, fmt: str = ",.1f") -> str:
 
 def _pm(value: float | None, sd: float | None, fmt: str = ",.1f") -> str:
     """``62.10 +/- 0.30``: a figure and its standard deviation (the figure alone when the
-    sd is unknown)."""
-    if sd is None or not math.isfinite(sd) or value is None or not math.isfinite(value):
-        return _num(value, fmt)
-    return f"{_num(value, fmt)} +/- {sd:{fmt}}"
+    sd is unknown, ``-`` when the figure is)."""
+    text = _num(value, fmt)
+    return text if text == "-" else text + plus_minus(sd, fmt)
 
 
 def _when(ns: int | None) -> str:

@@ -46,7 +46,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "bench"))   # projector_truth
 sys.path.insert(0, str(ROOT))             # before bench/: its projector.py is not the package
 
-from projector_truth import POSES, _ledger_input, _stockpile  # noqa: E402
+from projector_truth import POSES, ledger_input, run_name, simulate  # noqa: E402
 from ledger import open_ledger  # noqa: E402
 from ledger.clock import EventClock  # noqa: E402
 from ledger.importing import import_lines  # noqa: E402
@@ -73,20 +73,13 @@ def folded(scenario: str, seed: int, noise_seed: int | None, out: Path, duration
            poses: str) -> tuple:
     """``(folded state, lots, assays, valid ns, known ns, truth)`` of one run, from its kept
     pickle or simulated, imported and folded now (then kept)."""
-    name = f"{scenario}-seed{seed}" + ("" if noise_seed is None else f"-noise{noise_seed}")
-    cache = out / f"{name}-{poses}.state.pkl"
+    cache = out / f"{run_name(scenario, seed, noise_seed)}-{poses}.state.pkl"
     if cache.exists():
         return pickle.loads(cache.read_bytes())
-    sim_dir = out / name
-    if not (sim_dir / "truth.json").exists():
-        extra = ["--duration", str(duration_h)] if duration_h else []
-        extra += [] if noise_seed is None else ["--noise-seed", str(noise_seed)]
-        _stockpile("sim", "--scenario", scenario, "--seed", str(seed), "--speed", "0",
-                   "--scan-events", "truth", "--out", str(sim_dir), *extra)
-    truth = json.loads((sim_dir / "truth.json").read_text())
+    sim_dir, truth = simulate(scenario, seed, out, duration_h, noise_seed=noise_seed)
     # the in-memory ledger, imported by `stockpile ledger import --clock events`'s code
     with open_ledger(":memory:", EventClock()) as store, \
-            open(_ledger_input(sim_dir, truth, poses), "rb") as lines:
+            open(ledger_input(sim_dir, truth, poses), "rb") as lines:
         import_lines(store, lines)
         p = project(store, truth["scenario"].get("pile_id", "P1"))
         lots, assays = grade_inputs(store, p.valid_time_ns, p.known_time_ns)

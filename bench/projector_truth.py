@@ -117,9 +117,30 @@ POSES = {"localizer": "localizer poses (encoders + GNSS through the UKF)",
          "truth": "true poses (the simulator's, a diagnosis)"}
 
 
-def _stockpile(*args: str) -> None:
+def run_stockpile(*args: str) -> None:
     subprocess.run([sys.executable, "-m", "stockpile.cli", *args], check=True,
                    stdout=subprocess.DEVNULL)
+
+
+def run_name(scenario: str, seed: int, noise_seed: int | None = None) -> str:
+    """The name of a run's simulation directory (and of what is kept beside it)."""
+    return f"{scenario}-seed{seed}" + ("" if noise_seed is None else f"-noise{noise_seed}")
+
+
+def simulate(scenario: str, seed: int, out: Path, duration_h: float | None = None,
+             cut_surfaces: bool = False, noise_seed: int | None = None) -> tuple[Path, dict]:
+    """The run's simulation directory under ``out`` (simulated unless it holds the run's
+    ``truth.json``) and its truth; ``noise_seed`` None: the simulator's default."""
+    sim_dir = out / run_name(scenario, seed, noise_seed)
+    if not (sim_dir / "truth.json").exists():
+        extra = ["--duration", str(duration_h)] if duration_h else []
+        if cut_surfaces:
+            extra.append("--truth-cut-surfaces")
+        if noise_seed is not None:
+            extra += ["--noise-seed", str(noise_seed)]
+        run_stockpile("sim", "--scenario", scenario, "--seed", str(seed), "--speed", "0",
+                      "--scan-events", "truth", "--out", str(sim_dir), *extra)
+    return sim_dir, json.loads((sim_dir / "truth.json").read_text())
 
 
 def run(scenario: str, seed: int, out: Path, duration_h: float | None = None,
@@ -135,22 +156,12 @@ def run(scenario: str, seed: int, out: Path, duration_h: float | None = None,
     if poses not in POSES:
         raise ValueError(f"poses must be one of {', '.join(POSES)}, got {poses!r}")
     noise_seed = None if noise_seed == seed else noise_seed
-    name = f"{scenario}-seed{seed}" + ("" if noise_seed is None else f"-noise{noise_seed}")
-    sim_dir = out / name
-    ledger = out / (name + ("-localizer" if poses == "localizer" else "") + ".duckdb")
     started = time.perf_counter()
-    if not (sim_dir / "truth.json").exists():
-        extra = ["--duration", str(duration_h)] if duration_h else []
-        if cut_surfaces:
-            extra.append("--truth-cut-surfaces")
-        if noise_seed is not None:
-            extra += ["--noise-seed", str(noise_seed)]
-        _stockpile("sim", "--scenario", scenario, "--seed", str(seed), "--speed", "0",
-                   "--scan-events", "truth", "--out", str(sim_dir), *extra)
-    truth = json.loads((sim_dir / "truth.json").read_text())
+    sim_dir, truth = simulate(scenario, seed, out, duration_h, cut_surfaces, noise_seed)
+    ledger = out / (sim_dir.name + ("-localizer" if poses == "localizer" else "") + ".duckdb")
     if not ledger.exists():
-        _stockpile("ledger", "import", str(_ledger_input(sim_dir, truth, poses)), "--ledger",
-                   str(ledger), "--clock", "events")
+        run_stockpile("ledger", "import", str(ledger_input(sim_dir, truth, poses)), "--ledger",
+                      str(ledger), "--clock", "events")
     prepared = time.perf_counter() - started
     pile_id = truth["scenario"].get("pile_id", "P1")
     with open_ledger(ledger, read_only=True) as store:
@@ -165,7 +176,7 @@ def run(scenario: str, seed: int, out: Path, duration_h: float | None = None,
             "ledger": ledger, "exact_lab": _exact_lab(state, lots, assays, truth)}
 
 
-def _ledger_input(sim_dir: Path, truth: dict, poses: str) -> Path:
+def ledger_input(sim_dir: Path, truth: dict, poses: str) -> Path:
     """The JSON lines a run's ledger is imported from: the simulator's ``events.jsonl``
     (true poses), or ``events-localizer.jsonl`` (written unless kept: the localizer's
     poses in place of the true ones)."""

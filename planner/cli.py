@@ -13,6 +13,7 @@ import math
 import re
 import sys
 
+from common.figures import format_grades, plus_minus
 from common.options import add_bitemporal, add_ledger
 from schemas.analytes import canonical_name
 from schemas.events import decode_payload
@@ -192,18 +193,6 @@ def make_plan(args: argparse.Namespace, store=None) -> dict:
     return out
 
 
-def _fmt_grade(grade: dict, sd: dict | None = None) -> str:
-    """``Fe 62.10 +/- 0.30 %, ...``: each finite grade with its sd (pp) where known."""
-    sd = sd or {}
-    return ", ".join(f"{a} {g:.2f}{_pm(sd.get(a), '.2f')} %" for a, g in grade.items()
-                     if g is not None and math.isfinite(g)) or "-"
-
-
-def _pm(sd, fmt: str) -> str:
-    """`` +/- 0.30`` for a finite sd, else nothing."""
-    return f" +/- {sd:{fmt}}" if sd is not None and math.isfinite(sd) else ""
-
-
 def print_plan(out: dict) -> None:
     v, k = out["valid_time_ns"], out["known_time_ns"]
     when_v = "everything" if v >= 2 ** 62 else format_time_ns(v)
@@ -235,11 +224,11 @@ def print_plan(out: dict) -> None:
     for c in out["cuts"]:
         slew = f"{math.degrees(c['slew_start_rad']):7.2f}->{math.degrees(c['slew_end_rad']):7.2f}"
         fmt = ",.1f" if c["tonnes"] >= 100 else ".4g"
-        tonnes = f"{c['tonnes']:{fmt}}{_pm(c.get('tonnes_sd'), fmt)}"
+        tonnes = f"{c['tonnes']:{fmt}}{plus_minus(c.get('tonnes_sd'), fmt)}"
         print(f"  {c['cut']:>3} {c['travel_m']:>10.3f} {slew:>17} {tonnes:>22} "
-              f"{c['assayed_fraction']:>7.2f}  {_fmt_grade(c['grade'], c.get('grade_sd'))}")
+              f"{c['assayed_fraction']:>7.2f}  {format_grades(c['grade'], c.get('grade_sd'))}")
     b = out["bench"]
-    print(f"\n  bench: {b['tonnes']:,.4g} t, {_fmt_grade(b['grade'])} "
+    print(f"\n  bench: {b['tonnes']:,.4g} t, {format_grades(b['grade'])} "
           f"(assayed fraction {b['assayed_fraction']:.2f})")
     if "bounds" in out:
         bad = out["bounds"]["cuts_outside"]

@@ -7,24 +7,13 @@ import json
 import math
 import sys
 
+from common.figures import format_grades, plus_minus
 from common.options import add_bitemporal, add_ledger, describe_ledger
 from schemas.times import format_time_ns, parse_time_ns
 
 from ledger import open_ledger
 from ledger.mirror import ledger_for
 from projector.query import SnapshotStore, project
-
-
-def _fmt_grade(grade: dict[str, float], sd: dict[str, float] | None = None) -> str:
-    """``Fe 62.10 +/- 0.30 %, ...``: each finite grade with its sd (pp) where known."""
-    sd = sd or {}
-    return ", ".join(f"{k} {v:.2f}{_pm(sd.get(k), 2)} %" for k, v in grade.items()
-                     if math.isfinite(v)) or "-"
-
-
-def _pm(sd, decimals: int) -> str:
-    """`` +/- 0.30`` for a finite sd, else nothing."""
-    return f" +/- {sd:,.{decimals}f}" if sd is not None and math.isfinite(sd) else ""
 
 
 def _json_default(value):
@@ -66,8 +55,8 @@ def cmd_project(args: argparse.Namespace) -> int:
     when_v = "everything" if valid is None else format_time_ns(valid)
     when_k = "now" if known is None else format_time_ns(known)
     print(f"pile {state.pile_id} as of {when_v}, as known {when_k}")
-    print(f"  volume {state.volume_m3:,.1f} m3, {state.tonnes:,.1f}{_pm(state.tonnes_sd, 1)} t; "
-          f"grade {_fmt_grade(state.grade, state.grade_sd)} (assayed fraction "
+    print(f"  volume {state.volume_m3:,.1f} m3, {state.tonnes:,.1f}{plus_minus(state.tonnes_sd)} t; "
+          f"grade {format_grades(state.grade, state.grade_sd)} (assayed fraction "
           f"{state.assayed_fraction:.2f}; +/-: one standard deviation)")
     print(f"\n  deposits ({len(state.deposits)})")
     for d in state.deposits:
@@ -77,8 +66,8 @@ def cmd_project(args: argparse.Namespace) -> int:
               f"assayed {d.assayed_fraction:.2f}")
     print(f"\n  cuts ({len(state.cuts)})")
     for c in state.cuts:
-        print(f"    {c.cut_id:<10} {c.tonnes:>10,.1f}{_pm(c.tonnes_sd, 1)} t (belt "
-              f"{c.tonnes_scale:,.1f} t)  {_fmt_grade(c.grade, c.grade_sd)}  assayed "
+        print(f"    {c.cut_id:<10} {c.tonnes:>10,.1f}{plus_minus(c.tonnes_sd)} t (belt "
+              f"{c.tonnes_scale:,.1f} t)  {format_grades(c.grade, c.grade_sd)}  assayed "
               f"{c.assayed_fraction:.2f}  "
               f"residual {c.residual_m3:+.1f} m3")
     unexplained_m3 = state.counters.get("unexplained_loss_mm3", 0) / 1e3

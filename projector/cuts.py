@@ -25,7 +25,7 @@ from projector.repose import tan_repose
 from projector.state import CutRecord, ProjectorState
 
 __all__ = ["journal_rises", "undo_digging_rises", "near_cut", "predict_height",
-           "fit_buried_boundaries", "fit_top_for_cut", "slump_face"]
+           "fit_buried_boundaries", "fit_top_for_cut", "slide_region", "slump_face"]
 
 
 def journal_rises(state: ProjectorState, t_ns: int, cells: np.ndarray,
@@ -148,20 +148,28 @@ def fit_top_for_cut(state: ProjectorState, floor_m: np.ndarray) -> np.ndarray | 
     return np.where(rose, top, np.inf) if rose.any() else None
 
 
+def slide_region(state: ProjectorState, cells: np.ndarray, tan: float
+                 ) -> tuple[slice, slice]:
+    """The block a slide at slope ``tan`` starting from ``cells`` (bool, (nx, ny), some
+    True) may move: their bounding box padded by a flank's run from the stack's top down
+    to its ground, and two cells."""
+    geometry = state.pile.geometry
+    ix, iy = np.nonzero(cells)
+    height = float(np.max(state.stack.surface()) - np.min(state.stack.ground()))
+    pad = int(math.ceil(height / tan / geometry.cell_m)) + 2
+    return (slice(max(0, ix.min() - pad), min(geometry.nx, ix.max() + pad + 1)),
+            slice(max(0, iy.min() - pad), min(geometry.ny, iy.max() + pad + 1)))
+
+
 def slump_face(state: ProjectorState, floor_m: np.ndarray) -> float:
     """Let the face a cut left slide (in place) to the angle of repose
-    (:func:`projector.slump.slump`, mass and composition conserved, over the envelope
-    ``floor_m``'s cells padded by a flank's run); returns the volume moved (m3)."""
-    geometry = state.pile.geometry
+    (:func:`projector.slump.slump`, mass and composition conserved, over
+    :func:`slide_region` of the envelope ``floor_m``'s cells); returns the volume moved (m3)."""
     tan = tan_repose(state) * (1.0 + state.config.relax_slack)
-    top = state.stack.surface()
-    ix, iy = np.nonzero(np.isfinite(floor_m))
-    if ix.size == 0:
+    footprint = np.isfinite(floor_m)
+    if not footprint.any():
         return 0.0
-    height = float(np.max(top) - np.min(state.stack.ground()))
-    pad = int(math.ceil(height / tan / geometry.cell_m)) + 2
-    region = (slice(max(0, ix.min() - pad), min(geometry.nx, ix.max() + pad + 1)),
-              slice(max(0, iy.min() - pad), min(geometry.ny, iy.max() + pad + 1)))
+    region = slide_region(state, footprint, tan)
     state.stack, moved, _raised = slump.slump(state.stack, tan, region)
     state.count("slumps")
     return moved.volume_m3

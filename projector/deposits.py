@@ -101,6 +101,12 @@ class Removal:
         """Total removed volume (m3)."""
         return float(sum(d.volume_m3 for d in self.deposits))
 
+    def flat_cells(self, shape: tuple[int, int]) -> np.ndarray:
+        """Flat indices into ``shape`` (ascending, unique, int64) of the cells material was
+        removed from."""
+        parts = [np.ravel_multi_index((d.ix, d.iy), shape) for d in self.deposits]
+        return np.unique(np.concatenate(parts)) if parts else np.zeros(0, np.int64)
+
     def by_index(self) -> dict[int, DepositRemoval]:
         """The removals keyed by deposit index."""
         return {d.index: d for d in self.deposits}

@@ -73,7 +73,6 @@ from projector.material_fit import close_face, open_face
 from projector.scans import process_scans
 from projector.state import (CutRecord, PassRecord, PendingScan, PileInfo, ProjectorState,
                              around, initial_state, settling_last_pass)
-from projector.summary_sd import footprint_variance
 
 # the config and the state's records are re-exported: callers name them ``F.<name>``, and
 # snapshots pickled before they moved name them ``projector.fold.<name>``
@@ -278,7 +277,8 @@ def _clamp_to_floor(state: ProjectorState, record: CutRecord, floor_m: np.ndarra
         # part above the floor; what the rise put under the floor goes again
         state.stack, _rest = state.stack.clamp(restore)
     record.removals.append(removal)
-    record.footprint_var_m2 = footprint_variance(state.height.variance, removal)
+    record.footprint_var_m2 = state.height.variance.ravel()[
+        removal.flat_cells(state.pile.geometry.shape)]
     record.predicted_m3 = removal.volume_m3
     predicted = state.stack.surface()
     if removal.volume_m3 > 0:

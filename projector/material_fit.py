@@ -26,6 +26,7 @@ import numpy as np
 from scipy import ndimage
 
 from projector import slump
+from projector.cuts import slide_region
 from projector.repose import tan_repose
 from projector.state import CutRecord, ProjectorState
 
@@ -84,6 +85,11 @@ class SlideFit:
     sse_m2: dict[float, float]
 
 
+def _slope(angle_deg: float) -> float:
+    """The slope (rise over run) of ``angle_deg``; 90 deg and steeper: infinite (as cut)."""
+    return math.inf if angle_deg >= 90.0 else math.tan(math.radians(angle_deg))
+
+
 def _relaxed(top_m: np.ndarray, base_m: np.ndarray, cell_m: float, tan: float) -> np.ndarray:
     """``top_m`` slid to slope ``tan`` (an infinite slope: as it stands)."""
     if not math.isfinite(tan):
@@ -137,8 +143,7 @@ def fit_slide_angle(top_m, base_m, seen_m, cell_m: float, repose_deg: float, *,
 
     def surface(angle: float) -> np.ndarray:
         if angle not in surfaces:
-            tan = math.inf if angle >= 90.0 else math.tan(math.radians(angle))
-            surfaces[angle] = _relaxed(top, base, cell_m, tan)
+            surfaces[angle] = _relaxed(top, base, cell_m, _slope(angle))
         return surfaces[angle]
 
     face = np.abs(surface(repose_deg) - top) > change_m
@@ -176,19 +181,7 @@ def prior_tan(state: ProjectorState, tan_rep: float) -> float:
     median = float(np.median(angles))
     if median < math.degrees(math.atan(tan_rep)) + STOOD_DEG:
         return tan_rep
-    return math.inf if median >= 90.0 else math.tan(math.radians(median))
-
-
-def _slide_region(state: ProjectorState, floor_m: np.ndarray, tan: float):
-    """The block a face's slide may move: the envelope ``floor_m``'s cells padded by a
-    flank's run at slope ``tan`` (:func:`projector.cuts.slump_face`'s)."""
-    geometry = state.pile.geometry
-    top = state.stack.surface()
-    ix, iy = np.nonzero(np.isfinite(floor_m))
-    height = float(np.max(top) - np.min(state.stack.ground()))
-    pad = int(math.ceil(height / tan / geometry.cell_m)) + 2
-    return (slice(max(0, ix.min() - pad), min(geometry.nx, ix.max() + pad + 1)),
-            slice(max(0, iy.min() - pad), min(geometry.ny, iy.max() + pad + 1)))
+    return _slope(median)
 
 
 def open_face(state: ProjectorState, record: CutRecord, floor_m: np.ndarray) -> np.ndarray:
@@ -199,7 +192,7 @@ def open_face(state: ProjectorState, record: CutRecord, floor_m: np.ndarray) -> 
     if not np.isfinite(floor_m).any():
         return top
     tan_rep = tan_repose(state) * (1.0 + state.config.relax_slack)
-    region = _slide_region(state, floor_m, tan_rep)
+    region = slide_region(state, np.isfinite(floor_m), tan_rep)
     base = state.stack.ground()[region]
     at_repose = _relaxed(top[region], base, state.pile.geometry.cell_m, tan_rep)
     moved = np.abs(at_repose - top[region]) > 1e-9
@@ -300,8 +293,7 @@ def close_face(state: ProjectorState, next_floor_m: np.ndarray | None = None,
                           repose_deg, change_m=state.margin_m)
     if math.isfinite(fit.angle_deg):
         angle = repose_deg if fit.angle_deg < repose_deg + SNAP_DEG else fit.angle_deg
-        tan = face.tan_repose if angle <= repose_deg else (
-            math.inf if angle >= 90.0 else math.tan(math.radians(angle)))
+        tan = face.tan_repose if angle <= repose_deg else _slope(angle)
         state.slide_fits.append((record.cut_id, angle, fit.cells_seen))
         state.count("faces_fitted")
     else:
@@ -359,12 +351,8 @@ def slide_seen_failure(state: ProjectorState, far: np.ndarray, elevation: np.nda
     if drop.sum() < 4.0 * state.margin_m * far.sum():
         return 0.0
     tan_rep = tan_repose(state, estimate=False) * (1.0 + state.config.relax_slack)
-    ix, iy = np.nonzero(far)
     geometry = state.pile.geometry
-    height = float(np.max(top) - np.min(state.stack.ground()))
-    pad = int(math.ceil(height / tan_rep / geometry.cell_m)) + 2
-    region = (slice(max(0, ix.min() - pad), min(geometry.nx, ix.max() + pad + 1)),
-              slice(max(0, iy.min() - pad), min(geometry.ny, iy.max() + pad + 1)))
+    region = slide_region(state, far, tan_rep)
     stack, stripped_m3 = _strip_flagged(state.stack, region)
     stack, moved, _raised = slump.slump(stack, tan_rep, region)
     lowered = np.clip(top - stack.surface(), 0.0, None)

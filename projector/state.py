@@ -78,7 +78,7 @@ class CutRecord:
     face_cells_predicted: int = 0
     #: the height map's variance (m^2, NaN = never seen) before the cut at the cells of its
     #: envelope removal (``removals[0]``), in ascending flat-index order
-    #: (:func:`projector.summary_sd.footprint_variance`); None: not kept
+    #: (:meth:`projector.deposits.Removal.flat_cells`); None: not kept
     footprint_var_m2: np.ndarray | None = None
 
 

@@ -1,4 +1,4 @@
-"""Standard deviations of a projected pile's and cut's tonnes and grade (issue 42, item 3).
+"""Standard deviations of a projected pile's and cut's tonnes and grade.
 
 The query's side of :mod:`projector.uncertainty`: it gathers what the kernels need from a
 folded state and the grade join, and returns ``{"tonnes_sd": t, "grade_sd": {analyte:
@@ -7,7 +7,7 @@ calls them.  docs/uncertainty.md says how each term is formed and what it leaves
 
 - **Volume.**  The pile: the height map's fused variances over the cells with material
   (never-seen cells: the configured prior).  A cut: the variances the fold kept of its
-  footprint just before it (:func:`footprint_variance`, ``CutRecord.footprint_var_m2``;
+  footprint just before it (``CutRecord.footprint_var_m2``;
   a planned cut, which has none, takes the map's current ones); its floor is the cutting
   envelope's (the machine's kinematics), and what the scans after it saw below that
   floor is its geometry residual, a further volume error.
@@ -31,21 +31,7 @@ from projector.grades import grade_classes
 from projector.uncertainty import (UncertaintyConfig, VolumeVariance, boundary_band_thickness_m,
                                    figure_sd, volume_variance)
 
-__all__ = ["footprint_cells", "footprint_variance", "pile_sd", "cut_sd"]
-
-
-def footprint_cells(removal, shape: tuple[int, int]) -> np.ndarray:
-    """Flat indices (ascending, unique) into ``shape`` of the cells a
-    :class:`projector.deposits.Removal` took material from."""
-    parts = [np.ravel_multi_index((d.ix, d.iy), shape) for d in removal.deposits]
-    return np.unique(np.concatenate(parts)) if parts else np.zeros(0, np.int64)
-
-
-def footprint_variance(variance_m2: np.ndarray, removal) -> np.ndarray:
-    """The height variances (m^2, NaN never seen) at a removal's cells
-    (:func:`footprint_cells` order), a new array: what the fold keeps of a cut."""
-    return np.asarray(variance_m2, np.float64).ravel()[
-        footprint_cells(removal, variance_m2.shape)].copy()
+__all__ = ["pile_sd", "cut_sd"]
 
 
 class _Pieces:
@@ -151,7 +137,7 @@ def _volume(config: UncertaintyConfig, var_m2, mask, area_m2: float) -> VolumeVa
 
 def cut_sd(cut, state, join, config: UncertaintyConfig) -> dict:
     """``{"tonnes_sd", "grade_sd"}`` of one cut record of a folded state (a planned cut's
-    too: a record without ``footprint_var_m2``) (module docstring)."""
+    too: its ``footprint_var_m2`` None) (module docstring)."""
     geometry = state.pile.geometry
     area = geometry.cell_area_m2
     pieces, volume_m3 = _Pieces(join), 0.0
@@ -183,9 +169,9 @@ def _footprint_grid(cut, state) -> tuple[np.ndarray, np.ndarray]:
     fold kept (over its envelope's removal), else (a planned cut: over all its removals)
     the height map's current ones, else never seen."""
     shape = state.pile.geometry.shape
-    kept = getattr(cut, "footprint_var_m2", None)
+    kept = cut.footprint_var_m2
     parts = cut.removals[:1] if kept is not None else cut.removals
-    cells = np.unique(np.concatenate([footprint_cells(r, shape) for r in parts] + [
+    cells = np.unique(np.concatenate([r.flat_cells(shape) for r in parts] + [
         np.zeros(0, np.int64)]))
     var, mask = np.full(shape, np.nan), np.zeros(shape, bool)
     mask.ravel()[cells] = True

@@ -23,7 +23,6 @@ import pytest
 from cli_in_process import run
 from ledger import open_ledger
 from projector.query import grade_inputs, project, summarise
-from projector.summary_sd import footprint_cells
 from projector.uncertainty import UncertaintyConfig
 from services.dashboard import Config, render_ledger
 from test_audit import CUT, PILE, SEED, audit_ledger
@@ -79,7 +78,7 @@ def test_the_pile_and_every_cut_carry_finite_positive_sds(folded):
 def test_the_fold_keeps_each_cut_footprint_variances(folded):
     p, _lots, _assays = folded
     for cut in p.state.cuts:
-        cells = footprint_cells(cut.removals[0], p.geometry.shape)
+        cells = cut.removals[0].flat_cells(p.geometry.shape)
         assert cut.footprint_var_m2 is not None and cut.footprint_var_m2.shape == cells.shape
         kept = cut.footprint_var_m2
         assert (kept[np.isfinite(kept)] > 0).all()
