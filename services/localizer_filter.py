@@ -201,6 +201,9 @@ class LocalizerFilter:
         self._gated_since_ns = 0
         self._last_reading: np.ndarray | None = None
         self.counters = FilterCounters()
+        #: an :class:`services.localizer_smoother.RtsRecorder` (or None): told of every
+        #: prediction and accepted update, for smoothing the run afterwards
+        self.recorder = None
 
     # -- state access -----------------------------------------------------------------
 
@@ -314,6 +317,8 @@ class LocalizerFilter:
         self._ukf.P = make_pd(self._ukf.P)
         self._check_finite(snapshot)
         self.t_ns = t_ns
+        if self.recorder is not None and self._use_gm:
+            self.recorder.transition(math.exp(-dt / self.tuning.gnss_markov_tau_s))
 
     def update_joints(self, reading, t_ns: int | None = None) -> None:
         """Fuse one encoder reading (travel m, slew rad, luff rad).
@@ -358,9 +363,11 @@ class LocalizerFilter:
         # unwrap the slew reading next to the prediction (a reading may wrap at +-pi)
         predicted = self._hx_joints(self._ukf.x)
         z_near = predicted + self._joint_delta(z, predicted)
+        prior = (self._ukf.x.copy(), self._ukf.P.copy())
         self._ukf.update(z_near, R=self._enc_r, hx=self._hx_joints)
         self._ukf.P = make_pd(self._ukf.P)
         self._check_finite(snapshot)
+        self._record(*prior)
         self._last_reading = z.copy()
         self.counters.joint_updates += 1
 
@@ -377,6 +384,12 @@ class LocalizerFilter:
         self.t_ns = t_ns
         self._last_reading = z.copy()
         self.counters.joint_updates += 1
+        self._record(self._ukf.x, self._ukf.P)
+
+    def _record(self, x_prior: np.ndarray, p_prior: np.ndarray) -> None:
+        """Tell the recorder (if any) of an update: the prior given, the current state."""
+        if self.recorder is not None:
+            self.recorder.update(x_prior, p_prior, self._ukf.x, self._ukf.P)
 
     def update_gnss(self, enu_m, cov_m2, t_ns: int | None = None) -> GnssOutcome:
         """Fuse one GNSS fix of the antenna, unless the Mahalanobis gate rejects it.
@@ -441,6 +454,7 @@ class LocalizerFilter:
         c.consecutive_gated = 0
         self._gated_innovation_sum = np.zeros(3)
         c.gnss_accepted += 1
+        self._record(x_prior, p_prior)
         return "accepted"
 
     def _count_gated(self) -> None:

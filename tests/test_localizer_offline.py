@@ -22,7 +22,8 @@ from ledger.memory import MemoryStore
 from schemas.events import Event, decode_payload
 from schemas.jsonl import decode_line
 from schemas.times import NS_PER_S
-from services.localizer_offline import gnss_fixes, localize_run, write_ledger_input
+from services.localizer_offline import (INPUT_TYPES, gnss_fixes, localize_run,
+                                        write_ledger_input)
 from sim.scenario import demo
 
 MACHINE = "bwr1"
@@ -85,6 +86,34 @@ def test_scanner_poses_within_the_demo_localizer_figure(localized):
           f"(east {per_axis[0]:.3f}, north {per_axis[1]:.3f}, up {per_axis[2]:.3f} m); "
           f"bound {RMSE_BOUND_M} m")
     assert rmse <= RMSE_BOUND_M
+
+
+def _scanner_rmse_m(recorded, estimated) -> tuple[float, np.ndarray]:
+    """RMSE (m) of the estimated scanner positions at the true poses' times, and per axis."""
+    t_true, p_true = _scanner_poses(recorded, f"{MACHINE}.poses")
+    t_est, p_est = _scanner_poses(estimated, f"{MACHINE}.localizer")
+    inside = (t_true >= t_est[0]) & (t_true <= t_est[-1])
+    at = np.column_stack([np.interp(t_true[inside], t_est, p_est[:, k]) for k in range(3)])
+    d = at - p_true[inside]
+    return float(np.sqrt(np.mean(np.sum(d ** 2, axis=1)))), np.sqrt(np.mean(d ** 2, axis=0))
+
+
+def test_smoothed_poses_are_closer_than_the_filters_and_as_many(localized):
+    """The ledger input's poses are smoothed over the run (the default); the filter's
+    own (``smooth=False``, what the live service publishes) are further from the truth."""
+    recorded = localized["recorded"]
+    nmea_bytes = (localized["sim"] / "gnss.nmea").read_bytes()
+    inputs = [e for e in recorded if e.type in INPUT_TYPES]
+    filtered = localize_run(inputs, nmea_bytes, machine_id=MACHINE, smooth=False)
+    smoothed = localize_run(inputs, nmea_bytes, machine_id=MACHINE, smooth=True)
+    assert [(e.type, e.valid_time_ns) for e in smoothed] == \
+        [(e.type, e.valid_time_ns) for e in filtered]
+    rmse_f, axes_f = _scanner_rmse_m(recorded, filtered)
+    rmse_s, axes_s = _scanner_rmse_m(recorded, smoothed)
+    print(f"scanner RMSE filtered {rmse_f:.3f} m (e/n/u {np.round(axes_f, 3)}), smoothed "
+          f"{rmse_s:.3f} m (e/n/u {np.round(axes_s, 3)})")
+    assert rmse_s <= 0.85 * rmse_f
+    assert axes_s[1] < axes_f[1]              # along the rail: where a cut's tonnes move
 
 
 def test_every_scan_has_a_localizer_pose_within_the_encoder_period(localized):
