@@ -65,12 +65,15 @@ from projector.kinematics import (MachineGeometry, antenna_jacobian, boom_point_
 from services.localizer_covariance import make_pd, robust_sqrt, symmetrise
 from services.localizer_tuning import FilterTuning
 
-__all__ = ["LocalizerFilter", "Estimate", "FilterCounters", "GnssOutcome", "N_STATE"]
+__all__ = ["LocalizerFilter", "Estimate", "FilterCounters", "GnssOutcome", "N_STATE",
+           "GNSS_ERROR_STATES"]
 
 N_STATE = 9
 _JOINTS = slice(0, 3)
 _BIAS = slice(3, 6)
 _GNSS = slice(6, 9)
+#: the state vector's correlated GNSS error (the states the transition decays)
+GNSS_ERROR_STATES = _GNSS
 
 GnssOutcome = Literal["accepted", "gated", "skipped"]
 

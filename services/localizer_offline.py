@@ -45,7 +45,7 @@ from schemas.events import Event, decode_payload, make_event
 from schemas.jsonl import decode_line, event_line
 from services import gnss
 from services.localizer import Config, Localizer
-from services.localizer_filter import N_STATE
+from services.localizer_filter import GNSS_ERROR_STATES, N_STATE
 from services.localizer_messages import estimate_messages
 from services.localizer_smoother import RtsRecorder
 
@@ -175,7 +175,7 @@ def localize_run(events: Iterable[Event], nmea_bytes: bytes, *, machine_id: str 
     merged = sorted(enumerate([*inputs, *fixes]),
                     key=lambda pair: (pair[1].valid_time_ns, _RANK[pair[1].type], pair[0]))
     published: list = []
-    recorder = RtsRecorder(N_STATE, slice(6, 9)) if smooth else None
+    recorder = RtsRecorder(N_STATE, GNSS_ERROR_STATES) if smooth else None
     publish = published.append if recorder is None else \
         (lambda message: published.append((message, _mark(localizer))))
     localizer = Localizer(config, publish, count, log or _ignore)
