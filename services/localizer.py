@@ -71,8 +71,9 @@ from schemas.events import Event, Malformed, event_from_sample, is_valid_source,
 from schemas.times import NS_PER_S
 from schemas.validate import InvalidEvent, check_event
 from projector.kinematics import MachineGeometry
-from services.localizer_filter import LocalizerFilter
+from services.localizer_filter import GNSS_ERROR_STATES, N_STATE, LocalizerFilter
 from services.localizer_messages import estimate_messages, fix_covariance_m2, fix_enu_m
+from services.localizer_smoother import DEFAULT_SMOOTH_LAG_S, FixedLagSmoother
 from services.localizer_tuning import FilterTuning
 from services.pump import SamplePump
 from services.service import (
@@ -122,6 +123,10 @@ class Config:
         Multiplies the filter's encoder drift figures (1 = encoder set 1 of the thesis).
     antenna_along_boom_m, antenna_up_m : float
         GNSS antenna mount relative to the wheel centre (the schema has no field yet).
+    smooth_lag_s : float
+        Site seconds each estimate is held and smoothed with the measurements after it
+        before it is published (0: published at once, as the filter has it;
+        ``math.inf``: at the end of the run, smoothed over all of it).
     """
 
     site: str = DEFAULT_SITE
@@ -135,6 +140,7 @@ class Config:
     drift_scale: float = 1.0
     antenna_along_boom_m: float = 0.0
     antenna_up_m: float = 0.0
+    smooth_lag_s: float = DEFAULT_SMOOTH_LAG_S
 
     def __post_init__(self) -> None:
         if not is_valid_source(f"{self.machine_id}.localizer") or "/" in self.machine_id:
@@ -142,9 +148,9 @@ class Config:
         if not (self.estimate_period_s >= 0 and self.reorder_hold_s >= 0
                 and self.gnss_sd_m > 0 and 0 < self.gate_probability < 1
                 and self.drift_scale > 0 and math.isfinite(self.antenna_along_boom_m)
-                and math.isfinite(self.antenna_up_m)):
-            raise ValueError("--estimate-period and --reorder-hold must be >= 0, --gnss-sd and "
-                             "--drift-scale > 0, --gate-probability in (0, 1)")
+                and math.isfinite(self.antenna_up_m) and self.smooth_lag_s >= 0):
+            raise ValueError("--estimate-period, --reorder-hold and --smooth-lag must be >= 0, "
+                             "--gnss-sd and --drift-scale > 0, --gate-probability in (0, 1)")
 
     def tuning(self) -> FilterTuning:
         """The filter's noise model for these options."""
@@ -177,6 +183,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="GNSS antenna beyond the wheel centre along the boom, m")
     parser.add_argument("--antenna-up", type=float, default=0.0, metavar="M",
                         help="GNSS antenna mast height, m")
+    parser.add_argument("--smooth-lag", type=float, default=DEFAULT_SMOOTH_LAG_S, metavar="S",
+                        help="site seconds each estimate waits to be smoothed with the "
+                        f"fixes after it (default {DEFAULT_SMOOTH_LAG_S:g}; 0: publish at once)")
 
 
 def config_from_args(args: argparse.Namespace) -> Config:
@@ -186,7 +195,7 @@ def config_from_args(args: argparse.Namespace) -> Config:
                   estimate_period_s=args.estimate_period, reorder_hold_s=args.reorder_hold,
                   gnss_sd_m=args.gnss_sd, gate_probability=args.gate_probability,
                   drift_scale=args.drift_scale, antenna_along_boom_m=args.antenna_along_boom,
-                  antenna_up_m=args.antenna_up)
+                  antenna_up_m=args.antenna_up, smooth_lag_s=args.smooth_lag)
 
 
 class _SeenSeqs:
@@ -307,6 +316,9 @@ class Localizer:
         self.geometry = geometry
         if self.filter is None:
             self.filter = LocalizerFilter(geometry, self.config.tuning())
+            if self.config.smooth_lag_s > 0:
+                self.filter.recorder = FixedLagSmoother(
+                    N_STATE, GNSS_ERROR_STATES, self.config.smooth_lag_s * NS_PER_S)
         else:
             self.filter.set_geometry(geometry)
         self._log("machine declared", machine_id=message.machine_id, l5_m=geometry.l5_m)
@@ -324,7 +336,13 @@ class Localizer:
 
     @property
     def backlog(self) -> int:
-        return len(self._heap)
+        """Measurements waiting in the reorder buffer and estimates held for smoothing."""
+        smoother = self._smoother
+        return len(self._heap) + (smoother.held if smoother is not None else 0)
+
+    @property
+    def _smoother(self) -> FixedLagSmoother | None:
+        return self.filter.recorder if self.filter is not None else None
 
     # -- processing ------------------------------------------------------------------------
 
@@ -347,6 +365,10 @@ class Localizer:
             heapq.heappop(self._heap)
             self._process(kind, t_ns, event, message)
             done += 1
+        smoother = self._smoother
+        if smoother is not None:
+            for (t_ns, g, joint_cov, wheel_cov), state in smoother.due(flush=flush):
+                self._emit(t_ns, g, state[:3], joint_cov, wheel_cov)
         return done
 
     def _process(self, kind: int, t_ns: int, event: Event, message) -> None:
@@ -393,8 +415,16 @@ class Localizer:
         f, g = self.filter, self.geometry
         assert f is not None and g is not None
         e = f.estimate()
-        messages = estimate_messages(self.config.machine_id, g, t_ns, e.joints,
-                                     e.joint_covariance, e.wheel_covariance_m2)
+        self._last_published_ns = t_ns
+        if f.recorder is not None:        # published once smoothed (release)
+            f.recorder.hold((t_ns, g, e.joint_covariance, e.wheel_covariance_m2))
+            return
+        self._emit(t_ns, g, e.joints, e.joint_covariance, e.wheel_covariance_m2)
+
+    def _emit(self, t_ns: int, g: MachineGeometry, joints, joint_cov, wheel_cov) -> None:
+        """Publish one estimate's messages, unless one fails the ledger's checks."""
+        messages = estimate_messages(self.config.machine_id, g, t_ns, joints, joint_cov,
+                                     wheel_cov)
         source = f"{self.config.machine_id}.localizer"
         for m in messages:   # every event must pass the ledger's checks before it leaves
             try:
@@ -407,7 +437,6 @@ class Localizer:
         for m in messages:
             self._publish(m)
             self._count("published")
-        self._last_published_ns = t_ns
 
 
 def main(config: Config, *, stopper: Stopper | None = None) -> int:

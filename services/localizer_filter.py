@@ -204,8 +204,8 @@ class LocalizerFilter:
         self._gated_since_ns = 0
         self._last_reading: np.ndarray | None = None
         self.counters = FilterCounters()
-        #: an :class:`services.localizer_smoother.RtsRecorder` (or None): told of every
-        #: prediction and accepted update, for smoothing the run afterwards
+        #: a :class:`services.localizer_smoother.FixedLagSmoother` (or None): told of
+        #: every prediction and accepted update, for smoothing the estimates
         self.recorder = None
 
     # -- state access -----------------------------------------------------------------
@@ -392,7 +392,7 @@ class LocalizerFilter:
     def _record(self, x_prior: np.ndarray, p_prior: np.ndarray) -> None:
         """Tell the recorder (if any) of an update: the prior given, the current state."""
         if self.recorder is not None:
-            self.recorder.update(x_prior, p_prior, self._ukf.x, self._ukf.P)
+            self.recorder.update(self.t_ns, x_prior, p_prior, self._ukf.x, self._ukf.P)
 
     def update_gnss(self, enu_m, cov_m2, t_ns: int | None = None) -> GnssOutcome:
         """Fuse one GNSS fix of the antenna, unless the Mahalanobis gate rejects it.

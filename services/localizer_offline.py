@@ -16,10 +16,10 @@ events and publishes ``joint_estimate`` and ``frame_transform``.  The same two s
   them), through :class:`services.localizer.Localizer` with the service's
   :class:`~services.localizer.Config` defaults; returns the events it published, as
   source ``<machine>.localizer``, numbered densely from 0 in one epoch and unsigned, as
-  the service's publisher numbers them.  With ``smooth`` (the default of
-  :func:`write_ledger_input`) each estimate's joints are the filter's smoothed over
-  the whole run (:mod:`services.localizer_smoother`: the fixes after a time place it
-  too); its covariances stay the filter's.
+  the service's publisher numbers them.  As the service, it smooths each estimate with
+  the fixes of the next ``Config.smooth_lag_s`` site seconds
+  (:mod:`services.localizer_smoother`); the estimates still held at the run's end are
+  smoothed over the rest of it, as the service does when it stops.
 - :func:`ledger_input_lines` and :func:`write_ledger_input`: the run's ledger input on
   that path: its JSON lines without the simulator's true scanner poses (``frame_transform``
   of source ``<machine>.poses``), each localizer event after the reading it was
@@ -33,21 +33,16 @@ from __future__ import annotations
 
 import bisect
 import json
+import math
 import os
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from pathlib import Path
 
-import numpy as np
-
 from devices import nmea
-from schemas import pb
 from schemas.events import Event, decode_payload, make_event
 from schemas.jsonl import decode_line, event_line
 from services import gnss
 from services.localizer import Config, Localizer
-from services.localizer_filter import GNSS_ERROR_STATES, N_STATE
-from services.localizer_messages import estimate_messages
-from services.localizer_smoother import RtsRecorder
 
 __all__ = ["INPUT_TYPES", "gnss_fixes", "localize_run", "ledger_input_lines",
            "write_ledger_input"]
@@ -124,7 +119,7 @@ def _fix_of(sentence: str, count: Callable[..., None]) -> nmea.Gga | None:
 def localize_run(events: Iterable[Event], nmea_bytes: bytes, *, machine_id: str = "bwr1",
                  config: Config | None = None, epoch: int | None = None,
                  counts: dict[str, int] | None = None,
-                 log: Callable[..., None] | None = None, smooth: bool = False) -> list[Event]:
+                 log: Callable[..., None] | None = None) -> list[Event]:
     """Run :class:`services.localizer.Localizer` over a recorded run.
 
     Parameters
@@ -144,9 +139,6 @@ def localize_run(events: Iterable[Event], nmea_bytes: bytes, *, machine_id: str 
         Filled with the localizer's status counters and the gnss service's (``gnss_`` prefix).
     log : callable(msg, **fields), optional
         The localizer's log lines (default: none).
-    smooth : bool
-        Publish each estimate's joints smoothed over the whole run (the same events, the
-        same covariances) instead of as the filter had them then.
 
     Returns
     -------
@@ -175,48 +167,19 @@ def localize_run(events: Iterable[Event], nmea_bytes: bytes, *, machine_id: str 
     merged = sorted(enumerate([*inputs, *fixes]),
                     key=lambda pair: (pair[1].valid_time_ns, _RANK[pair[1].type], pair[0]))
     published: list = []
-    recorder = RtsRecorder(N_STATE, GNSS_ERROR_STATES) if smooth else None
-    publish = published.append if recorder is None else \
-        (lambda message: published.append((message, _mark(localizer))))
-    localizer = Localizer(config, publish, count, log or _ignore)
+    localizer = Localizer(config, published.append, count, log or _ignore)
     for _arrival, event in merged:
         localizer.handle(event, now_s=0.0)
-        if recorder is not None and localizer.filter is not None \
-                and localizer.filter.recorder is None:
-            localizer.filter.recorder = recorder
-        localizer.release(now_s=0.0, flush=True)
+        localizer.release(now_s=math.inf)   # in time order: every measurement is due now
+    localizer.release(now_s=math.inf, flush=True)
     if counts is not None:
         counts.update(counters)
     if not published:
         raise ValueError(f"the localizer published no estimate for {machine_id} "
                          f"(counters: {dict(sorted(counters.items()))})")
-    if recorder is not None:
-        published = _smoothed(published, recorder.smoothed_states(), machine_id)
     source = f"{machine_id}.localizer"
     return [make_event(m, source=source, epoch=epoch, seq=seq)
             for seq, m in enumerate(published)]
-
-
-def _mark(localizer: Localizer) -> tuple[int, int, object]:
-    """Where a message is published: the index of the filter's last recorded update,
-    the filter's time (UTC ns) and the machine's geometry."""
-    f = localizer.filter
-    return len(f.recorder) - 1, int(f.t_ns), localizer.geometry
-
-
-def _smoothed(published: list, states: np.ndarray, machine_id: str) -> list:
-    """The published messages again, each estimate's from the smoothed ``states``
-    ((updates, n) by update index): ``published`` holds ``(message, mark)`` pairs
-    (:func:`_mark`); an estimate is a ``JointEstimate`` and the frames after it."""
-    out: list = []
-    for message, (index, t_ns, geometry) in published:
-        if not isinstance(message, pb.JointEstimate):
-            continue                         # the frames are made again with the joints
-        out.extend(estimate_messages(
-            machine_id, geometry, t_ns, states[index, :3],
-            np.asarray(message.covariance, float).reshape(3, 3),
-            np.asarray(message.position_covariance_m2, float).reshape(3, 3)))
-    return out
 
 
 def _inputs(events: Iterable[Event], machine_id: str) -> tuple[list[Event], list[int]]:
@@ -307,18 +270,19 @@ def _recorded_inputs(events_path: Path) -> Iterator[Event]:
 
 def write_ledger_input(events_path: str | Path, nmea_path: str | Path, out_path: str | Path,
                        *, machine_id: str = "bwr1",
-                       counts: dict[str, int] | None = None, smooth: bool = True) -> int:
+                       counts: dict[str, int] | None = None,
+                       config: Config | None = None) -> int:
     """Write a run's ledger input on the localizer's path (:func:`ledger_input_lines`).
 
     ``events_path``: the run's ``events.jsonl``; ``nmea_path``: its ``gnss.nmea``;
     ``out_path``: written beside itself, then renamed (never left half written);
-    ``counts``: filled as by :func:`localize_run`; ``smooth``: the poses smoothed over
-    the run (:func:`localize_run`).  Returns how many localizer events were written;
+    ``counts``: filled as by :func:`localize_run`; ``config``: the localizer's options
+    (:func:`localize_run`).  Returns how many localizer events were written;
     ValueError from :func:`localize_run`, OSError from the files.
     """
     events_path, out_path = Path(events_path), Path(out_path)
     localized = localize_run(_recorded_inputs(events_path), Path(nmea_path).read_bytes(),
-                             machine_id=machine_id, counts=counts, smooth=smooth)
+                             machine_id=machine_id, counts=counts, config=config)
     partial = out_path.with_name(out_path.name + ".partial")
     with events_path.open(encoding="utf-8") as src, partial.open("w", encoding="utf-8") as dst:
         for line in ledger_input_lines(src, localized, machine_id=machine_id):

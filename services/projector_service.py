@@ -35,10 +35,11 @@ from schemas.events import decode_payload
 from schemas.jsonl import json_safe
 from schemas.times import NS_PER_S
 from services.ledger_client import LedgerClient, LedgerUnavailable
+from services.localizer_smoother import LIVE_REORDER_S
 from services.service import DEFAULT_SITE, Inbox, ServiceRuntime, Stopper, ZenohOptions
 
 SERVICE = "projector"
-DEFAULT_REORDER_S = 5.0
+DEFAULT_REORDER_S = LIVE_REORDER_S   # the localizer's smoothed poses come late
 DEFAULT_PUBLISH_PERIOD_S = 1.0
 READ_CHUNK = 5_000
 

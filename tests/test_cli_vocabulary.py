@@ -34,7 +34,7 @@ REST_ELSEWHERE: set[tuple[str, ...]] = set()
 
 #: option names that take a time quantity (their help, metavar or name must carry a unit)
 TIMEISH = re.compile(r"duration|every|period|interval|timeout|linger|wait-subscriber|window|"
-                     r"reorder|hold")
+                     r"reorder|hold|lag")
 TIME_UNIT = re.compile(r"\b(s|seconds?|ms|min|minutes?|h|hours?|d|days?|ns|DURATION|S|SECONDS)\b"
                        r"|-s$|90s|1h")
 

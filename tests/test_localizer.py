@@ -315,7 +315,7 @@ def test_service_logic_orders_by_valid_time_and_counts_bad_input():
     def count(name, n=1):
         counts[name] = counts.get(name, 0) + n
 
-    loc = Localizer(Config(reorder_hold_s=1e9), published.append, count,
+    loc = Localizer(Config(reorder_hold_s=1e9, smooth_lag_s=0.0), published.append, count,
                     lambda *a, **k: None)
     t_ns, joints = reclaim_joints(60.0)
     readings, fixes, _cov = sensor_data(SEED + 2, t_ns, joints)
@@ -357,6 +357,56 @@ def test_service_logic_orders_by_valid_time_and_counts_bad_input():
     assert counts["late"] == 1
 
 
+def _localized(smooth_lag_s: float, t_ns, readings, fixes):
+    """The messages a localizer with ``smooth_lag_s`` publishes, and after how many
+    readings each came (its valid times in order, both streams due at once)."""
+    published, after = [], []
+    loc = Localizer(Config(reorder_hold_s=1e9, smooth_lag_s=smooth_lag_s),
+                    lambda m: (published.append(m), after.append(k)), lambda *a, **kw: None,
+                    lambda *a, **kw: None)
+    for seq, msg in enumerate(_declarations()):
+        loc.handle(make_event(msg, source="yard.config", epoch=1, seq=seq), now_s=0.0)
+    for k in range(len(t_ns)):
+        loc.handle(make_event(_reading(t_ns[k], readings[k]), source="bwr1.encoders",
+                              epoch=1, seq=k), now_s=0.0)
+        loc.handle(make_event(_fix(t_ns[k], fixes, k), source="bwr1.gnss", epoch=1, seq=k),
+                   now_s=0.0)
+        loc.release(now_s=0.0)
+    held = loc.backlog
+    k = len(t_ns)     # noqa: F841 - read by the publish callback
+    loc.release(now_s=0.0, flush=True)
+    return published, after, held
+
+
+def test_estimates_wait_the_smoothing_lag_then_go_smoothed_and_the_rest_on_flush():
+    """With a lag, each estimate is published once the filter is that far past it
+    (then a block at a time), with the joints the fixes after it moved; on flush, every
+    held one goes: the same events at the same valid times as without a lag, the newest
+    with the filter's own joints."""
+    print(f"seed {SEED + 5}")
+    t_ns, joints = reclaim_joints(120.0)
+    readings, fixes, _cov = sensor_data(SEED + 5, t_ns, joints)
+    at_once, _after0, held0 = _localized(0.0, t_ns, readings, fixes)
+    lagged, after, held = _localized(20.0, t_ns, readings, fixes)
+    assert held0 == 0 and held > 0
+    def times(ms):
+        return [m.time.seconds * NS + m.time.nanos for m in ms[0::3]]
+    assert times(lagged) == times(at_once) == [int(t) for t in t_ns]
+    for m, k in zip(lagged[0::3], after[0::3]):
+        t = m.time.seconds * NS + m.time.nanos
+        if k < len(t_ns):                                # before the flush
+            assert 20 * NS <= t_ns[k] - t <= 31 * NS     # lag, + a block of lag / 2 + 1 s
+    assert after[0] < len(t_ns) and after[-1] == len(t_ns)
+    joints_of = [np.array([m.travel_m, m.slew_rad, m.luff_rad]) for m in lagged[0::3]]
+    joints_now = [np.array([m.travel_m, m.slew_rad, m.luff_rad]) for m in at_once[0::3]]
+    moved = [np.abs(a - b).max() for a, b in zip(joints_of, joints_now)]
+    assert max(moved) > 1e-4
+    err_lagged = rmse(np.array(joints_of) - joints)
+    err_at_once = rmse(np.array(joints_now) - joints)
+    print(f"joint RMSE: at once {err_at_once:.4f}, lag 20 s {err_lagged:.4f}")
+    assert err_lagged < err_at_once
+
+
 def test_fix_covariance_from_the_message_or_the_default():
     from foxglove_schemas_protobuf.LocationFix_pb2 import LocationFix
 
@@ -377,7 +427,7 @@ def test_fix_covariance_from_the_message_or_the_default():
 def test_reorder_buffer_waits_for_the_other_stream_or_the_hold_time():
     published = []
     counts: dict[str, int] = {}
-    loc = Localizer(Config(reorder_hold_s=2.0), published.append,
+    loc = Localizer(Config(reorder_hold_s=2.0, smooth_lag_s=0.0), published.append,
                     lambda name, n=1: counts.__setitem__(name, counts.get(name, 0) + n),
                     lambda *a, **k: None)
     t_ns, joints = reclaim_joints(5.0)
@@ -461,7 +511,7 @@ def test_localizer_process_over_zenoh():
             config_pub.publish(msg)
         proc = subprocess.Popen(
             [sys.executable, "-m", "stockpile.cli", "service", "localizer", "--site", site,
-             "--connect", endpoint, "--status-period", "1"],
+             "--connect", endpoint, "--status-period", "1", "--smooth-lag", "4"],
             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
             env={**os.environ, "PYTHONUNBUFFERED": "1"})
         assert token_seen.wait(30), "the localizer's liveliness token never appeared"
@@ -479,9 +529,9 @@ def test_localizer_process_over_zenoh():
         for k in range(half):
             enc_pub.publish(_reading(t_ns[k], readings[k]))
             gnss_pub.publish(_fix(t_ns[k], fixes, k))
-        # once estimates arrive the localizer's subscribers surely exist, so a plain put
-        # (no publisher cache to recover it from) reaches it too
-        wait_for(3 * half)
+        # once estimates arrive (held 4 s, then 2 s at a time) the localizer's subscribers
+        # surely exist, so a plain put (no publisher cache to recover it from) reaches it too
+        wait_for(3 * (half - 7))
         other_pub.publish(_reading(t_ns[half], readings[half], machine_id="bwr9"))
         enc_pub.publish(_reading(t_ns[half], [0.0, math.nan, 0.1]))        # NaN joints
         session.put(f"stockpile/{site}/@v1/joint_reading/bwr1.encoders", b"\xff\xfe",
@@ -489,9 +539,10 @@ def test_localizer_process_over_zenoh():
         for k in range(half, n):
             enc_pub.publish(_reading(t_ns[k], readings[k]))
             gnss_pub.publish(_fix(t_ns[k], fixes, k))
+        wait_for(3 * (n - 7))
+        proc.send_signal(signal.SIGTERM)        # the estimates still held go on stopping
         wait_for(3 * n)
         assert len(got) == 3 * n, f"received {len(got)} of {3 * n}"
-        proc.send_signal(signal.SIGTERM)
         _out, err = proc.communicate(timeout=30)
         assert proc.returncode == 0, err
         for s in subs:

@@ -22,8 +22,10 @@ from ledger.memory import MemoryStore
 from schemas.events import Event, decode_payload
 from schemas.jsonl import decode_line
 from schemas.times import NS_PER_S
+from services.localizer import Config
 from services.localizer_offline import (INPUT_TYPES, gnss_fixes, localize_run,
                                         write_ledger_input)
+from services.localizer_smoother import DEFAULT_SMOOTH_LAG_S
 from sim.scenario import demo
 
 MACHINE = "bwr1"
@@ -99,20 +101,21 @@ def _scanner_rmse_m(recorded, estimated) -> tuple[float, np.ndarray]:
 
 
 def test_smoothed_poses_are_closer_than_the_filters_and_as_many(localized):
-    """The ledger input's poses are smoothed over the run (the default); the filter's
-    own (``smooth=False``, what the live service publishes) are further from the truth."""
+    """The ledger input's poses are smoothed as the service smooths them (its default
+    lag); the filter's own (``smooth_lag_s=0``) are further from the truth."""
     recorded = localized["recorded"]
     nmea_bytes = (localized["sim"] / "gnss.nmea").read_bytes()
     inputs = [e for e in recorded if e.type in INPUT_TYPES]
-    filtered = localize_run(inputs, nmea_bytes, machine_id=MACHINE, smooth=False)
-    smoothed = localize_run(inputs, nmea_bytes, machine_id=MACHINE, smooth=True)
+    filtered = localize_run(inputs, nmea_bytes, machine_id=MACHINE,
+                            config=Config(machine_id=MACHINE, smooth_lag_s=0.0))
+    smoothed = localize_run(inputs, nmea_bytes, machine_id=MACHINE)
     assert [(e.type, e.valid_time_ns) for e in smoothed] == \
         [(e.type, e.valid_time_ns) for e in filtered]
     rmse_f, axes_f = _scanner_rmse_m(recorded, filtered)
     rmse_s, axes_s = _scanner_rmse_m(recorded, smoothed)
     print(f"scanner RMSE filtered {rmse_f:.3f} m (e/n/u {np.round(axes_f, 3)}), smoothed "
-          f"{rmse_s:.3f} m (e/n/u {np.round(axes_s, 3)})")
-    assert rmse_s <= 0.85 * rmse_f
+          f"({DEFAULT_SMOOTH_LAG_S:g} s lag) {rmse_s:.3f} m (e/n/u {np.round(axes_s, 3)})")
+    assert rmse_s < rmse_f
     assert axes_s[1] < axes_f[1]              # along the rail: where a cut's tonnes move
 
 

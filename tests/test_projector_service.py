@@ -94,6 +94,7 @@ def test_projector_service_follows_the_ledger_and_rebuilds_on_late_geometry(
         wait_liveliness(router, f"stockpile/{SITE}/@live/ledger/**", 30)
         projector = stockpile("service", "projector", "--pile", PILE, "--site", SITE,
                               "--publish-period-s", "0", "--status-period", "1",
+                              "--reorder-s", "5",    # so the late cut below is late
                               *client_args(endpoint), stderr_path=tmp_path / "projector.log")
         wait_liveliness(router, f"stockpile/{SITE}/@live/projector/**", 60)
         head = LedgerClient(router, SITE).head()["global_seq"]

@@ -10,13 +10,14 @@ import argparse
 from dataclasses import dataclass, field
 
 from common.options import add_duration, add_out
+from services.localizer_smoother import LIVE_REORDER_S
 from services.service import DEFAULT_SITE, ZenohOptions
 
 SERVICE = "dashboard"
 APP_ID = "stockpile-dashboard"
 DEFAULT_EVERY_S = 300.0
 DEFAULT_UPDATE_PERIOD_S = 1.0
-DEFAULT_REORDER_S = 5.0
+DEFAULT_REORDER_S = LIVE_REORDER_S   # the localizer's smoothed poses come late
 DEFAULT_GRPC_PORT = 9876
 DEFAULT_WEB_PORT = 9090
 DEFAULT_DELTA_PP = 0.1
