@@ -61,6 +61,43 @@ def noise_spread(figures: list[dict]) -> list[str]:
     return always
 
 
+def mean_over_draws(figures: list[dict], targets: dict[str, float]) -> bool:
+    """Issue 42's verdicts, per world (scenario and seed) judged on the mean over its
+    draws of the sensors' noise: the pile's tonnes and volume, every cut's tonnes, and
+    every cut's Fe with an exact lab (the ``exact lab`` column).  Prints one line per
+    world and one per scenario; returns whether every world met every target.
+
+    ``targets``: ``pile_pct``, ``volume_pct``, ``cut_pct``, ``fe_pp``.
+    """
+    worlds: dict[tuple[str, int], list[dict]] = {}
+    for f in figures:
+        worlds.setdefault((f["scenario"], f["seed"]), []).append(f)
+    print(f"\n-- the targets on the mean over each world's draws (pile {targets['pile_pct']:g} %, "
+          f"volume {targets['volume_pct']:g} %, each cut {targets['cut_pct']:g} % and "
+          f"{targets['fe_pp']:g} pp Fe with an exact lab)")
+    print(f"{'world':<16} {'draws':>5} {'pile %':>7} {'vol %':>6} {'cuts met':>9} "
+          f"{'worst t %':>9} {'worst Fe pp':>11}  verdict")
+    by_scenario: dict[str, list[bool]] = {}
+    for (scenario, seed), runs in worlds.items():
+        pile = float(np.mean([r["pile_pct"] for r in runs]))
+        volume = float(np.mean([r["volume_pct"] for r in runs]))
+        cut_ids = list(runs[0]["cut_errors"])
+        t_mean = np.array([np.mean([r["cut_errors"].get(k, (math.nan,))[0] for r in runs])
+                           for k in cut_ids])
+        fe_mean = np.array([np.mean([r["cut_exact_fe"].get(k, math.nan) for r in runs])
+                            for k in cut_ids])
+        met = (np.abs(t_mean) <= targets["cut_pct"]) & (np.abs(fe_mean) <= targets["fe_pp"])
+        ok = bool(abs(pile) <= targets["pile_pct"] and abs(volume) <= targets["volume_pct"]
+                  and met.all())
+        by_scenario.setdefault(scenario, []).append(ok)
+        print(f"{scenario + ' seed ' + str(seed):<16} {len(runs):>5} {pile:>+7.2f} {volume:>+6.2f} "
+              f"{f'{int(met.sum())}/{len(cut_ids)}':>9} {np.nanmax(np.abs(t_mean)):>9.2f} "
+              f"{np.nanmax(np.abs(fe_mean)):>11.2f}  {'PASS' if ok else 'MISS'}")
+    for scenario, oks in by_scenario.items():
+        print(f"{scenario}: {sum(oks)} of {len(oks)} worlds meet every target")
+    return all(all(oks) for oks in by_scenario.values())
+
+
 def cut_lots(result: dict, min_share: float = 0.005) -> None:
     """Per cut that took more than one lot (ours or the simulator's, each beyond
     ``min_share`` of its tonnes): each lot's share, ours against the simulator's, and the
