@@ -32,7 +32,6 @@ from __future__ import annotations
 import argparse
 import ast
 import json
-import math
 import pickle
 import sys
 import tempfile
@@ -40,21 +39,17 @@ import time
 from dataclasses import fields
 from pathlib import Path
 
-import numpy as np
-
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "bench"))   # projector_truth
 sys.path.insert(0, str(ROOT))             # before bench/: its projector.py is not the package
 
+from _coverage_tables import FIGURES, print_table, z_rows  # noqa: E402
 from projector_truth import POSES, ledger_input, run_name, simulate  # noqa: E402
 from ledger import open_ledger  # noqa: E402
 from ledger.clock import EventClock  # noqa: E402
 from ledger.importing import import_lines  # noqa: E402
 from projector.query import grade_inputs, project, summarise  # noqa: E402
 from projector.uncertainty import UncertaintyConfig  # noqa: E402
-
-FIGURES = ("cut tonnes", "cut Fe", "pile tonnes", "pile Fe")
-
 
 def parse_set(items: list[str]) -> UncertaintyConfig:
     """An :class:`UncertaintyConfig` from ``NAME=VALUE`` items (a Python literal each)."""
@@ -91,64 +86,8 @@ def folded(scenario: str, seed: int, noise_seed: int | None, out: Path, duration
 def z_scores(kept: tuple, config: UncertaintyConfig) -> dict[str, list[tuple]]:
     """Per figure, ``(label, ours, truth, sd, z)`` of one run's cuts and pile."""
     state, lots, assays, v, k, truth = kept
-    p = summarise(state, lots, assays, valid_time_ns=v, known_time_ns=k, uncertainty=config)
-    out: dict[str, list[tuple]] = {f: [] for f in FIGURES}
-
-    def add(figure, label, ours, true, sd):
-        z = (ours - true) / sd if sd > 0 else math.nan
-        out[figure].append((label, ours, true, sd, z))
-
-    ours = {c.cut_id: c for c in p.cuts}
-    for c in truth["cuts"]:
-        mine = ours.get(c["cut_id"])
-        if mine is None:
-            continue
-        add("cut tonnes", c["cut_id"], mine.tonnes, c["true_tonnes"], mine.tonnes_sd)
-        add("cut Fe", c["cut_id"], mine.grade.get("Fe", math.nan), c["grade"]["Fe"],
-            mine.grade_sd.get("Fe", math.nan))
-    world = truth["world"]
-    add("pile tonnes", "pile", p.tonnes, world["tonnes"], p.tonnes_sd)
-    add("pile Fe", "pile", p.grade.get("Fe", math.nan), world["grade"]["Fe"],
-        p.grade_sd.get("Fe", math.nan))
-    return out
-
-
-def coverage(zs: list[float]) -> dict:
-    """n, share within 1 and 2 sd (%), mean and rms z of finite z values."""
-    z = np.array([v for v in zs if math.isfinite(v)])
-    if z.size == 0:
-        return {"n": 0, "within_1sd_pct": math.nan, "within_2sd_pct": math.nan,
-                "mean_z": math.nan, "rms_z": math.nan}
-    return {"n": int(z.size), "within_1sd_pct": float(np.mean(np.abs(z) <= 1) * 100),
-            "within_2sd_pct": float(np.mean(np.abs(z) <= 2) * 100),
-            "mean_z": float(z.mean()), "rms_z": float(np.sqrt(np.mean(z * z)))}
-
-
-def verdict(c: dict) -> str:
-    if c["n"] == 0:
-        return "-"
-    ok = 60 <= c["within_1sd_pct"] <= 76 and 90 <= c["within_2sd_pct"] <= 98
-    return "PASS" if ok else "MISS"
-
-
-def print_table(scenario: str, rows: dict[str, list[tuple]], runs: int) -> dict:
-    """The coverage table of one scenario; ``rows``: per figure, ``(run, label, ours,
-    truth, sd, z)``."""
-    print(f"\n== {scenario}: {runs} runs")
-    print(f"{'figure':<12} {'n':>5} {'within 1 sd':>12} {'within 2 sd':>12} {'mean z':>8} "
-          f"{'rms z':>7} {'median sd':>10} {'median |err|':>12}  verdict")
-    table = {}
-    for figure in FIGURES:
-        c = coverage([r[5] for r in rows[figure]])
-        sds = [r[4] for r in rows[figure] if math.isfinite(r[4])]
-        c["median_sd"] = float(np.median(sds)) if sds else math.nan
-        errs = [abs(r[2] - r[3]) for r in rows[figure] if math.isfinite(r[2] - r[3])]
-        c["median_abs_err"] = float(np.median(errs)) if errs else math.nan
-        table[figure] = c
-        print(f"{figure:<12} {c['n']:>5} {c['within_1sd_pct']:>11.1f}% "
-              f"{c['within_2sd_pct']:>11.1f}% {c['mean_z']:>+8.2f} {c['rms_z']:>7.2f} "
-              f"{c['median_sd']:>10.3g} {c['median_abs_err']:>12.3g}  {verdict(c)}")
-    return table
+    return z_rows(summarise(state, lots, assays, valid_time_ns=v, known_time_ns=k,
+                            uncertainty=config), truth)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -358,7 +358,7 @@ def _ledger_for_as_of(args) -> tuple[Path, str]:
                   "(once; progress on stderr)", flush=True)
             subprocess.run([sys.executable, "-m", "stockpile.cli", "sim", "--scenario", scenario,
                             "--seed", "1", "--speed", "0", "--scan-events", "truth",
-                            "--duration", str(hours), "--out", str(out)],
+                            "--duration", f"{hours}h", "--out", str(out)],
                            check=True, stdout=subprocess.DEVNULL)
         print(f"  importing into {ledger}", flush=True)
         subprocess.run([sys.executable, "-m", "stockpile.cli", "ledger", "import",
