@@ -18,6 +18,14 @@ the encoder biases and the correlated GNSS error) and publishes, as source
   wheel pose composed with ``MachineDeclared.scanner``; the simulator's scanner pose;
   :mod:`services.localizer_messages`).
 
+Each estimate is held ``--smooth-lag`` site seconds (default
+:data:`services.localizer_smoother.DEFAULT_SMOOTH_LAG_S`) and published with its joints
+smoothed by the measurements since (:class:`services.localizer_smoother.FixedLagSmoother`,
+a block of estimates at a time, so each goes out one to one and a half lags after its
+reading); the covariances are the filter's at the reading.  On shutdown every held
+estimate is published.  ``--smooth-lag 0`` publishes each estimate at once, as the
+filter has it.
+
 Input handling
 --------------
 - Every sample is decoded with :func:`schemas.events.event_from_sample` and checked
