@@ -87,6 +87,9 @@ class AssayRecord:
         The ``assay_id`` this one replaces; ``""`` none.
     recorded_ns : int
         When the ledger learned it (UTC ns): the K it becomes known at.
+    repeatability_pp : dict
+        Analyte -> the lab's stated repeatability, one sd (pp, finite, > 0); an analyte
+        absent takes the configured one.
     """
 
     assay_id: str
@@ -98,6 +101,7 @@ class AssayRecord:
     status: str
     supersedes: str
     recorded_ns: int
+    repeatability_pp: Mapping[str, float] = field(default_factory=dict, hash=False)
 
     def __post_init__(self) -> None:
         for name in ("window_start_ns", "window_end_ns", "recorded_ns"):
@@ -115,6 +119,11 @@ class AssayRecord:
                              f"unknown), got {self.bulk_density_t_m3!r}")
         object.__setattr__(self, "analytes", canonical_grades(
             {str(k): float(v) for k, v in self.analytes.items()}))
+        stated = canonical_grades({str(k): float(v) for k, v in self.repeatability_pp.items()})
+        if not all(math.isfinite(v) and v > 0 for v in stated.values()):
+            raise ValueError(f"assay {self.assay_id!r}: a stated repeatability must be finite "
+                             f"and > 0 pp, got {dict(self.repeatability_pp)!r}")
+        object.__setattr__(self, "repeatability_pp", stated)
 
     @classmethod
     def from_message(cls, msg, recorded_ns: int) -> "AssayRecord":
@@ -137,7 +146,8 @@ class AssayRecord:
                    analytes=grade_from_map(msg.analytes),
                    bulk_density_t_m3=float(getattr(msg, "bulk_density_t_m3", 0.0) or 0.0),
                    status=status, supersedes=str(getattr(msg, "supersedes", "") or ""),
-                   recorded_ns=int(recorded_ns))
+                   recorded_ns=int(recorded_ns),
+                   repeatability_pp=dict(getattr(msg, "repeatability_pp", None) or {}))
 
     @property
     def is_final(self) -> bool:
@@ -203,12 +213,15 @@ class GradeClasses:
     density_t_m3 : ndarray, shape (C,)
         The class's bulk density (NaN: the planned grade, an unknown time, or an assay
         that reported none).
+    lab_sd_pp : ndarray, shape (C, A)
+        The assay's stated repeatability (pp; NaN: not an assay's class, or not stated).
     """
 
     index: np.ndarray
     grade: np.ndarray
     assayed: np.ndarray
     density_t_m3: np.ndarray
+    lab_sd_pp: np.ndarray
 
 
 def grade_classes(lot_id: str, planned_grade: Mapping[str, float],
@@ -239,6 +252,7 @@ def grade_classes(lot_id: str, planned_grade: Mapping[str, float],
     rows = [planned, np.full(n_a, math.nan)]
     assayed = [False, False]
     density = [math.nan, math.nan]
+    stated = [np.full(n_a, math.nan), np.full(n_a, math.nan)]
     mine = [a for a in assays_effective if a.lot_id == lot_id]
     # lowest precedence first: later ones overwrite
     mine.sort(key=lambda a: (a.is_final, a.recorded_ns, a.assay_id))
@@ -252,8 +266,11 @@ def grade_classes(lot_id: str, planned_grade: Mapping[str, float],
                               for j, name in enumerate(analytes)], dtype=np.float64))
         assayed.append(True)
         density.append(a.bulk_density_t_m3 if a.bulk_density_t_m3 > 0 else math.nan)
+        stated.append(np.array([a.repeatability_pp.get(name, math.nan) for name in analytes],
+                               dtype=np.float64))
     return GradeClasses(index, np.stack(rows).reshape(len(rows), n_a), np.array(assayed),
-                        np.array(density, dtype=np.float64))
+                        np.array(density, dtype=np.float64),
+                        np.stack(stated).reshape(len(stated), n_a))
 
 
 def grade_at(lot_id: str, planned_grade: Mapping[str, float],

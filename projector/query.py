@@ -220,12 +220,12 @@ class GradeJoin:
             n_a = len(self.analytes)
             return GradeClasses(np.zeros(np.asarray(times_ns).shape[0], np.int64),
                                 np.full((1, n_a), np.nan), np.zeros(1, bool),
-                                np.array([self.density_default]))
+                                np.array([self.density_default]), np.full((1, n_a), np.nan))
         c = grade_classes(lot_id, planned, self.by_lot.get(lot_id, []), times_ns,
                           self.analytes)
         # grade_classes leaves NaN where no density was reported
         density = np.where(np.isfinite(c.density_t_m3), c.density_t_m3, self.density_default)
-        return GradeClasses(c.index, c.grade, c.assayed, density)
+        return GradeClasses(c.index, c.grade, c.assayed, density, c.lab_sd_pp)
 
     def material(self, lot_id: str, times_ns, volumes_m3):
         """``(tonnes, grade-tonnes (A,), assayed tonnes, graded tonnes)`` of some material

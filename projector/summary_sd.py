@@ -44,6 +44,7 @@ class _Pieces:
         self.assayed: list[np.ndarray] = []
         self.reported: list[np.ndarray] = []
         self._ids: dict[tuple, int] = {}
+        self._stated: dict[int, np.ndarray] = {}     # group -> the lab's stated sd (pp)
 
     def add(self, lot_id: str, times_ns, volumes_m3) -> None:
         """Some material of one lot: deposition times (UTC ns) and volumes (m^3) per cell."""
@@ -55,18 +56,24 @@ class _Pieces:
         if planned is None:    # an undeclared lot: one planned group, default density
             index, assayed = np.zeros(volumes.size, np.int64), np.zeros(1, bool)
             grade, density = np.full((1, len(join.analytes)), np.nan), np.full(1, np.nan)
+            stated = np.full((1, len(join.analytes)), np.nan)
         else:
             c = grade_classes(lot_id, planned, join.by_lot.get(lot_id, []),
                               np.asarray(times_ns), join.analytes)
             index, assayed, grade, density = c.index, c.assayed, c.grade, c.density_t_m3
+            stated = c.lab_sd_pp
         reported = np.isfinite(density)
         rho = np.where(reported, density, join.density_default)
         self.tonnes.append(np.bincount(index, weights=volumes, minlength=len(assayed)) * rho)
-        # an assay is known by its lot, grade and density (bytes: NaN equals itself)
-        self.group.append(np.array([self._id(("assay", lot_id, grade[i].tobytes(),
-                                              density[i].tobytes())
-                                              if assayed[i] else ("lot", lot_id))
-                                    for i in range(len(assayed))], np.int64))
+        # an assay is known by its lot, grade, density and stated repeatability (bytes: NaN
+        # equals itself)
+        groups = [self._id(("assay", lot_id, grade[i].tobytes(), density[i].tobytes(),
+                            stated[i].tobytes()) if assayed[i] else ("lot", lot_id))
+                  for i in range(len(assayed))]
+        for i, g in enumerate(groups):
+            if assayed[i]:
+                self._stated[g] = stated[i]
+        self.group.append(np.array(groups, np.int64))
         self.assayed.append(assayed)
         self.reported.append(reported)
 
@@ -74,12 +81,17 @@ class _Pieces:
         return self._ids.setdefault(key, len(self._ids))
 
     def arrays(self) -> dict:
-        """``tonnes``, ``group``, ``assayed``, ``density_reported`` as :func:`figure_sd`
-        takes them."""
+        """``tonnes``, ``group``, ``assayed``, ``density_reported`` and ``lab_sd_pp`` (a
+        row per group: an assay's stated repeatability, NaN where it states none) as
+        :func:`figure_sd` takes them."""
         cat = (lambda parts, dtype: np.concatenate(parts).astype(dtype) if parts
                else np.zeros(0, dtype))
+        stated = np.full((len(self._ids), len(self.join.analytes)), np.nan)
+        for g, row in self._stated.items():
+            stated[g] = row
         return {"tonnes": cat(self.tonnes, np.float64), "group": cat(self.group, np.int64),
-                "assayed": cat(self.assayed, bool), "density_reported": cat(self.reported, bool)}
+                "assayed": cat(self.assayed, bool), "density_reported": cat(self.reported, bool),
+                "lab_sd_pp": stated}
 
 
 def _lot_diff_pp(join, lower_lot: str, upper_lot: str) -> np.ndarray | None:

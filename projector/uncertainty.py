@@ -378,7 +378,8 @@ def figure_sd(config: UncertaintyConfig, analytes: Sequence[str], *, volume: Vol
     residual_m3 : float
         A cut's geometry residual (m^3, either sign; x ``config.residual_sd_share``: a sd).
     lab_sd_pp : array_like, shape (A,) or (K, A), optional
-        The lab's stated repeatability; default the configured one.
+        The lab's stated repeatability (a row per group); where NaN or not given, the
+        configured one.
 
     Returns
     -------
@@ -394,6 +395,8 @@ def figure_sd(config: UncertaintyConfig, analytes: Sequence[str], *, volume: Vol
                      config.residual_sd_share * abs(float(residual_m3)))
     lab, plan = ([table.get(a, math.nan) for a in analytes]     # NaN: not configured
                  for table in (config.lab_sd_pp, config.planned_sd_pp))
-    sd = grade_sd(t, g, assayed, lab if lab_sd_pp is None else lab_sd_pp, plan,
-                  boundary_tonnes, boundary_grade_diff_pp)
+    if lab_sd_pp is not None:
+        stated = np.asarray(lab_sd_pp, dtype=np.float64)
+        lab = np.where(np.isnan(stated), np.asarray(lab, dtype=np.float64), stated)
+    sd = grade_sd(t, g, assayed, lab, plan, boundary_tonnes, boundary_grade_diff_pp)
     return {"tonnes_sd": t_sd, "grade_sd": {a: float(s) for a, s in zip(analytes, sd)}}

@@ -548,6 +548,10 @@ def _check_assay(m) -> None:
         "out_of_range", "window_start is after window_end",
     )
     _require(m.supersedes != m.assay_id, "out_of_range", "an assay cannot supersede itself")
+    for name, sd in m.repeatability_pp.items():
+        _require(name in m.analytes, "out_of_range",
+                 f"repeatability_pp[{name!r}] names an analyte the assay does not report")
+        _require(0.0 < sd <= 100.0, "out_of_range", f"repeatability_pp[{name!r}] = {sd} pp")
 
 
 def _check_source_key(m) -> None:

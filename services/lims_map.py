@@ -12,7 +12,9 @@ and for CSV ``delimiter``, ``decimal`` mark and ``header_row``), ``[time]`` (``f
 ``[columns]`` (``sample_id``, ``lot``, ``window_start``, ``window_end``, ``status``,
 ``reported_time``; optional ``revision``, ``supersedes``, ``moisture``, ``bulk_density``
 with its unit, ``lab_id``), ``[lab] id``, ``[status]`` (LIMS code -> PROVISIONAL or
-FINAL) and ``[analytes]`` (analyte -> ``{ column, unit }``, unit %, ppm or g/t).
+FINAL) and ``[analytes]`` (analyte -> ``{ column, unit }``, unit %, ppm or g/t, and
+optionally the lab's stated ``repeatability``: one sd in the column's unit, written into
+every assay's ``repeatability_pp``).
 
 The assay id of a result (:func:`assay_id_for`) is the sample id for revision 0 and
 ``<sample>-r<N>`` for revision N > 0; revision N supersedes revision N - 1 (``<sample>`` for
@@ -24,6 +26,7 @@ from __future__ import annotations
 import csv
 import io
 import json
+import math
 import re
 import tomllib
 from calendar import timegm
@@ -73,11 +76,14 @@ _SPACE_RE = re.compile(r"\s*")
 
 @dataclass(frozen=True)
 class AnalyteColumn:
-    """One analyte of the map: its canonical name, its column and the column's unit."""
+    """One analyte of the map: its canonical name, its column, the column's unit, and
+    the lab's stated repeatability (one sd, pp; None: not stated, the site's configured
+    one applies)."""
 
     name: str
     column: str
     unit: str
+    repeatability_pp: float | None = None
 
 
 @dataclass(frozen=True)
@@ -214,9 +220,26 @@ def _analytes_section(doc: dict) -> tuple[AnalyteColumn, ...]:
         name = canonical_name(raw_name, DEFAULT_ANALYTES)
         if name in out:
             raise ValueError(f"analytes.{raw_name} names {name} a second time")
-        column, unit = _column_and_unit(value, f"analytes.{raw_name}", ANALYTE_UNITS, "%")
-        out[name] = AnalyteColumn(name, column, unit)
+        where = f"analytes.{raw_name}"
+        stated = value.get("repeatability") if isinstance(value, dict) else None
+        if isinstance(value, dict):
+            value = {k: v for k, v in value.items() if k != "repeatability"}
+        column, unit = _column_and_unit(value, where, ANALYTE_UNITS, "%")
+        out[name] = AnalyteColumn(name, column, unit, _repeatability_pp(stated, unit, where))
     return tuple(out.values())
+
+
+def _repeatability_pp(value: Any, unit: str, where: str) -> float | None:
+    """An analyte's stated repeatability (in its column's unit) as pp; None if absent."""
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ValueError(f"{where}.repeatability must be a number (one sd, in the column's "
+                         f"unit), got {value!r}")
+    pp = float(Decimal(str(value)) * ANALYTE_UNITS[unit])
+    if not (math.isfinite(pp) and 0 < pp <= 100):
+        raise ValueError(f"{where}.repeatability must be > 0 and at most 100 %, got {value!r}")
+    return pp
 
 
 def _status_section(doc: dict) -> dict[str, str]:
@@ -465,6 +488,8 @@ def row_assay(row: dict, lims: LimsMap) -> tuple[tuple[str, int], Any]:
                    lab_id=(_text_cell(row, col["lab_id"]) if lims.column("lab_id")
                            else lims.lab_id))
     msg.analytes.update(_analytes(row, lims))
+    msg.repeatability_pp.update({a.name: a.repeatability_pp for a in lims.analytes
+                                 if a.repeatability_pp is not None and a.name in msg.analytes})
     if _optional(row, lims, "moisture"):
         msg.moisture_pct = float(_number(row, col["moisture"], lims.decimal))
     if _optional(row, lims, "bulk_density"):

@@ -289,5 +289,6 @@ def lab_assays(sim: Simulation):
     lots = {lot.lot_id: dict(lot.planned_grade()) for lot in sim.scenario.lots}
     assays = [AssayRecord(r.assay_id, r.lot_id, int(r.window_start_ns), int(r.window_end_ns),
                           dict(r.analytes_pct), float(r.bulk_density_t_m3), r.status,
-                          r.supersedes or "", int(r.reported_ns)) for r in sim.lab_results]
+                          r.supersedes or "", int(r.reported_ns),
+                          dict(r.repeatability_pct)) for r in sim.lab_results]
     return lots, assays

@@ -126,6 +126,8 @@ class LabResult:
     lab_id: str
     reported_ns: int
     true_grade_pct: dict[str, float] = field(default_factory=dict)
+    #: the lab's stated repeatability of this result, one sd per analyte (mass %)
+    repeatability_pct: dict[str, float] = field(default_factory=dict)
 
 
 @dataclass
@@ -173,15 +175,22 @@ class LabModel:
             density = float(round(belt.lot.bulk_density_t_m3 * rng.normal(1.0, 0.01), 3))
             out.append(LabResult(assay_id, belt.lot.lot_id, t, stop, measured, moisture, density,
                                  "PROVISIONAL" if provisional else "FINAL", "", self.lab_id,
-                                 stop + delay_ns, truth))
+                                 stop + delay_ns, truth, self.stated(1.0)))
             if provisional:
                 counter[0] += 1
                 final_delay = delay_ns + int(rng.uniform(1.0, 3.0) * NS_PER_H)
                 out.append(LabResult(f"AS-{counter[0]:05d}", belt.lot.lot_id, t, stop,
                                      self._measure(true, rng, 1.0), moisture, density, "FINAL",
-                                     assay_id, self.lab_id, stop + final_delay, truth))
+                                     assay_id, self.lab_id, stop + final_delay, truth,
+                                     self.stated(1.0)))
             t = stop
         return out
+
+    def stated(self, scale: float) -> dict[str, float]:
+        """The repeatability the lab states, ``scale`` times its error sd per analyte
+        (mass %).  It states its method's (``scale`` 1) with every result, a rougher
+        provisional one too, as a laboratory's export gives one figure per method."""
+        return {a: float(sd) * scale for a, sd in zip(ANALYTES, self.error_sd_pct)}
 
     def _measure(self, true: np.ndarray, rng: np.random.Generator, scale: float) -> dict[str, float]:
         sd = np.asarray(self.error_sd_pct) * scale

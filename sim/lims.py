@@ -29,7 +29,7 @@ from zoneinfo import ZoneInfo
 
 from schemas.times import NS_PER_S
 from services.lims_map import assay_id_for
-from sim.grades import ANALYTES, LabResult
+from sim.grades import ANALYTES, LabModel, LabResult
 
 __all__ = ["MAP_TOML", "TIMEZONE", "COLUMNS", "ANALYTE_COLUMNS", "STATUS_CODES",
            "LimsDropWriter", "local_time", "decimal_comma", "write_map"]
@@ -53,6 +53,12 @@ TITLE = "Laboratory results export"
 
 #: The map of these files for ``stockpile service lab --map`` (``docs/lims.example.toml``
 #: is the same map with every key explained).
+def _stated_in_column_unit(analyte: str, factor: Decimal) -> float:
+    """The simulated lab's stated repeatability of a final result (its error sd) in the
+    analyte's column unit."""
+    return float(Decimal(str(LabModel().stated(1.0)[analyte])) * factor)
+
+
 MAP_TOML = f"""\
 [file]
 format = "csv"
@@ -86,8 +92,9 @@ F = "FINAL"
 A = "FINAL"
 
 [analytes]
-""" + "".join(f'{name} = {{ column = "{column}", unit = "{unit}" }}\n'
-              for name, (column, unit, _f) in ANALYTE_COLUMNS.items())
+""" + "".join(f'{name} = {{ column = "{column}", unit = "{unit}", '
+              f'repeatability = {_stated_in_column_unit(name, factor)} }}\n'
+              for name, (column, unit, factor) in ANALYTE_COLUMNS.items())
 
 
 def write_map(path: str | Path) -> Path:

@@ -94,6 +94,8 @@ def assay(r: LabResult):
                    bulk_density_t_m3=r.bulk_density_t_m3, status=getattr(pb, r.status),
                    supersedes=r.supersedes, lab_id=r.lab_id)
     msg.analytes.update(r.analytes_pct)
+    msg.repeatability_pp.update({a: sd for a, sd in r.repeatability_pct.items()
+                                 if a in r.analytes_pct})
     stamp(msg, "window_start", r.window_start_ns)
     stamp(msg, "window_end", r.window_end_ns)
     stamp(msg, "reported_time", r.reported_ns)

@@ -113,10 +113,11 @@ def lot(t_ns: int, lot_id: str = "L1", *, tonnes: float = 50_000.0, grade=None) 
 
 
 def assay(t_ns: int, lot_id: str = "L1", *, assay_id: str = "A1", analytes=None,
-          status: int = pb.FINAL) -> pb.Assay:
+          status: int = pb.FINAL, repeatability=None) -> pb.Assay:
     m = pb.Assay(assay_id=assay_id, lot_id=lot_id, moisture_pct=6.0, bulk_density_t_m3=2.3,
                  lab_id="lab1")
     m.analytes.update({"Fe": 62.1, "SiO2": 4.4, "Al2O3": 2.2} if analytes is None else analytes)
+    m.repeatability_pp.update(repeatability or {})
     m.status = status
     set_timestamp_ns(m.window_start, t_ns - NS_PER_H)
     set_timestamp_ns(m.window_end, t_ns)

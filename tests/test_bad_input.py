@@ -211,6 +211,12 @@ REJECTED = [
                  "planned_grade", id="lot-grade-sum-101"),
     pytest.param(lambda: bad(assay(V0, analytes={"": 5.0})), "analyte_out_of_range",
                  "unnamed", id="assay-unnamed-analyte"),
+    pytest.param(lambda: bad(assay(V0, repeatability={"Fe": 0.0})), "out_of_range",
+                 "repeatability_pp['Fe'] = 0.0", id="assay-repeatability-zero"),
+    pytest.param(lambda: bad(assay(V0, repeatability={"Fe": math.nan})), "non_finite",
+                 "repeatability_pp['Fe']", id="assay-repeatability-nan"),
+    pytest.param(lambda: bad(assay(V0, repeatability={"P": 0.01})), "out_of_range",
+                 "does not report", id="assay-repeatability-of-an-unreported-analyte"),
     # enums: not in the schema, or unspecified where required
     pytest.param(lambda: bad(machine(V0, kind=99)), "unknown_enum", "kind = 99",
                  id="machine-kind-99"),

@@ -77,6 +77,18 @@ def test_an_assay_record_from_a_message():
         AssayRecord.from_message(pb.Assay(assay_id="A", lot_id="L"), 1)
 
 
+def test_an_assay_records_the_labs_stated_repeatability():
+    m = pb.Assay(assay_id="A1", lot_id="L1", analytes={"Fe": 62.5, "SiO2": 4.0}, status=2,
+                 repeatability_pp={"FE": 0.2})
+    a = AssayRecord.from_message(m, 1)
+    assert a.repeatability_pp == {"Fe": 0.2}          # canonical names, as the analytes
+    assert AssayRecord.from_message(pb.Assay(assay_id="A", lot_id="L", status=2),
+                                    1).repeatability_pp == {}
+    for bad in (0.0, -0.1, math.nan, math.inf):
+        with pytest.raises(ValueError, match="stated repeatability must be finite"):
+            AssayRecord("A", "L", 0, 1, {"Fe": 60}, 0, "FINAL", "", 2, {"Fe": bad})
+
+
 # -- which assays count at K ----------------------------------------------------------------
 
 

@@ -102,6 +102,10 @@ def test_analyte_names_and_status_values_are_canonical():
     (("format = \"csv\"", "format = \"csv\"\nencoding = \"klingon\""), "file.encoding"),
     (("[analytes]", "[analytez]"), "map.analytez is not a key"),
     (("[file]", "[file"), "not valid TOML"),
+    (("column = \"p\", unit", "column = \"p\", repeatability = -1, unit"),
+     "analytes.p.repeatability must be > 0"),
+    (("column = \"p\", unit", "column = \"p\", repeatability = \"low\", unit"),
+     "analytes.p.repeatability must be a number"),
 ])
 def test_a_bad_map_is_one_line_naming_the_key(change, names):
     old, new = change
@@ -170,6 +174,23 @@ def test_a_good_row_becomes_the_assay_with_units_converted():
     assert timestamp_ns(a.window_start) == utc("2026-11-20T01:00:00Z")
     assert timestamp_ns(a.window_end) == utc("2026-11-20T01:20:00Z")
     assert timestamp_ns(a.reported_time) == utc("2026-11-20T05:00:00Z")
+
+
+def test_a_stated_repeatability_goes_with_every_assay_in_pp():
+    """``repeatability`` is in the column's unit (ppm / 10,000 = pp), and an assay
+    carries it for the analytes it reports."""
+    lims = L.parse_map(SMALL_MAP.replace('FE = { column = "fe" }',
+                                         'FE = { column = "fe", repeatability = 0.2 }')
+                       .replace('column = "p", unit', 'column = "p", repeatability = 30, unit'))
+    assert [a.repeatability_pp for a in lims.analytes] == [0.2, 0.003, None]
+    no_p = GOOD.replace("S1,", "S2,", 1).replace(",830,", ",,")
+    rows, refused = L.rows_to_assays(f"{HEADER}\n{GOOD}\n{no_p}\n".encode(), lims)
+    assert refused == [] and len(rows) == 2
+    assert dict(rows[0].assay.repeatability_pp) == {"Fe": 0.2, "P": 0.003}
+    assert dict(rows[1].assay.repeatability_pp) == {"Fe": 0.2}
+    # without the key, assays state none (the site's configured one applies)
+    (plain,), _ = L.rows_to_assays(f"{HEADER}\n{GOOD}\n".encode(), small_map())
+    assert dict(plain.assay.repeatability_pp) == {}
 
 
 def test_bad_rows_are_refused_with_line_and_reason_and_good_ones_kept():

@@ -122,6 +122,30 @@ def test_grade_sd_grows_when_no_assay_covers_the_material(folded):
     assert worse_lab.grade_sd["SiO2"] == pytest.approx(p.grade_sd["SiO2"], rel=1e-12)
 
 
+def test_a_lab_stated_repeatability_overrules_the_configured_one(folded):
+    """An assay's stated repeatability takes the place of the configured one for its
+    analytes: stating the configured value changes nothing, a worse Fe one widens Fe's
+    sd alone, and where every assay states its own the configured one no longer
+    matters."""
+    p, lots, assays = folded
+    assert assays and not any(a.repeatability_pp for a in assays)
+
+    def stating(fe_pp: float) -> list:
+        return [dataclasses.replace(a, repeatability_pp={"Fe": fe_pp}) for a in assays]
+    configured = UncertaintyConfig().lab_sd_pp["Fe"]
+    same = _again(p, lots, stating(configured))
+    assert same.grade_sd["Fe"] == pytest.approx(p.grade_sd["Fe"], rel=1e-12)
+    worse = _again(p, lots, stating(1.5))
+    assert worse.grade_sd["Fe"] > 2 * p.grade_sd["Fe"]
+    assert worse.grade_sd["SiO2"] == pytest.approx(p.grade_sd["SiO2"], rel=1e-12)
+    cut, cut_worse = (next(c for c in f.cuts if c.cut_id == CUT) for f in (p, worse))
+    assert cut_worse.grade_sd["Fe"] > cut.grade_sd["Fe"]
+    other = UncertaintyConfig(lab_sd_pp={**UncertaintyConfig().lab_sd_pp, "Fe": 9.0})
+    assert _again(p, lots, stating(1.5), config=other).grade_sd["Fe"] == \
+        pytest.approx(worse.grade_sd["Fe"], rel=1e-12)
+    assert _again(p, lots, assays, config=other).grade_sd["Fe"] > worse.grade_sd["Fe"]
+
+
 def test_stockpile_project_text_and_json(ledger, folded, capsys):
     p, _lots, _assays = folded
     code, out, err = run(capsys, "project", "--ledger", str(ledger), "--pile", PILE)

@@ -263,8 +263,15 @@ class ReclaimCut(_message.Message):
     def __init__(self, pile_id: _Optional[str] = ..., cut_id: _Optional[str] = ..., bench_id: _Optional[str] = ..., machine_id: _Optional[str] = ..., start_time: _Optional[_Union[datetime.datetime, _timestamp_pb2.Timestamp, _Mapping]] = ..., end_time: _Optional[_Union[datetime.datetime, _timestamp_pb2.Timestamp, _Mapping]] = ..., travel_m: _Optional[float] = ..., luff_rad: _Optional[float] = ..., slew_start_rad: _Optional[float] = ..., slew_end_rad: _Optional[float] = ..., tonnes: _Optional[float] = ..., bad_samples: _Optional[int] = ...) -> None: ...
 
 class Assay(_message.Message):
-    __slots__ = ("assay_id", "lot_id", "window_start", "window_end", "analytes", "moisture_pct", "bulk_density_t_m3", "status", "supersedes", "lab_id", "reported_time")
+    __slots__ = ("assay_id", "lot_id", "window_start", "window_end", "analytes", "moisture_pct", "bulk_density_t_m3", "status", "supersedes", "lab_id", "reported_time", "repeatability_pp")
     class AnalytesEntry(_message.Message):
+        __slots__ = ("key", "value")
+        KEY_FIELD_NUMBER: _ClassVar[int]
+        VALUE_FIELD_NUMBER: _ClassVar[int]
+        key: str
+        value: float
+        def __init__(self, key: _Optional[str] = ..., value: _Optional[float] = ...) -> None: ...
+    class RepeatabilityPpEntry(_message.Message):
         __slots__ = ("key", "value")
         KEY_FIELD_NUMBER: _ClassVar[int]
         VALUE_FIELD_NUMBER: _ClassVar[int]
@@ -282,6 +289,7 @@ class Assay(_message.Message):
     SUPERSEDES_FIELD_NUMBER: _ClassVar[int]
     LAB_ID_FIELD_NUMBER: _ClassVar[int]
     REPORTED_TIME_FIELD_NUMBER: _ClassVar[int]
+    REPEATABILITY_PP_FIELD_NUMBER: _ClassVar[int]
     assay_id: str
     lot_id: str
     window_start: _timestamp_pb2.Timestamp
@@ -293,7 +301,8 @@ class Assay(_message.Message):
     supersedes: str
     lab_id: str
     reported_time: _timestamp_pb2.Timestamp
-    def __init__(self, assay_id: _Optional[str] = ..., lot_id: _Optional[str] = ..., window_start: _Optional[_Union[datetime.datetime, _timestamp_pb2.Timestamp, _Mapping]] = ..., window_end: _Optional[_Union[datetime.datetime, _timestamp_pb2.Timestamp, _Mapping]] = ..., analytes: _Optional[_Mapping[str, float]] = ..., moisture_pct: _Optional[float] = ..., bulk_density_t_m3: _Optional[float] = ..., status: _Optional[_Union[AssayStatus, str]] = ..., supersedes: _Optional[str] = ..., lab_id: _Optional[str] = ..., reported_time: _Optional[_Union[datetime.datetime, _timestamp_pb2.Timestamp, _Mapping]] = ...) -> None: ...
+    repeatability_pp: _containers.ScalarMap[str, float]
+    def __init__(self, assay_id: _Optional[str] = ..., lot_id: _Optional[str] = ..., window_start: _Optional[_Union[datetime.datetime, _timestamp_pb2.Timestamp, _Mapping]] = ..., window_end: _Optional[_Union[datetime.datetime, _timestamp_pb2.Timestamp, _Mapping]] = ..., analytes: _Optional[_Mapping[str, float]] = ..., moisture_pct: _Optional[float] = ..., bulk_density_t_m3: _Optional[float] = ..., status: _Optional[_Union[AssayStatus, str]] = ..., supersedes: _Optional[str] = ..., lab_id: _Optional[str] = ..., reported_time: _Optional[_Union[datetime.datetime, _timestamp_pb2.Timestamp, _Mapping]] = ..., repeatability_pp: _Optional[_Mapping[str, float]] = ...) -> None: ...
 
 class Clock(_message.Message):
     __slots__ = ("time",)
