@@ -177,6 +177,24 @@ def test_grade_classes_of_integer_times():
     np.testing.assert_array_equal(density, [math.nan, 2.0, 2.0, math.nan, math.nan, math.nan, math.nan])
 
 
+def test_grade_classes_carry_each_assays_stated_repeatability():
+    """A row per class: NaN for the planned grade and unknown times, and an assay's
+    stated sd per analyte (NaN for an analyte it states none for)."""
+    a = AssayRecord("A", "L1", 10, 20, {"Fe": 61.0, "SiO2": 5.0}, 0.0, "FINAL", "", 100,
+                    {"Fe": 0.2})
+    b = assay("B", 30, 40, 100, Fe=63.0)
+    c = grade_classes("L1", PLAN, [a, b], np.array([5, 15, 35], np.int64), AN)
+    assert c.lab_sd_pp.dtype == np.float64 and c.lab_sd_pp.shape == (4, 3)
+    np.testing.assert_array_equal(c.lab_sd_pp, [[math.nan] * 3, [math.nan] * 3,
+                                                [0.2, math.nan, math.nan], [math.nan] * 3])
+    join = GradeJoin({"L1": PLAN}, [a, b], 1000, 2.0)
+    np.testing.assert_array_equal(join.classes("L1", np.array([15], np.int64)).lab_sd_pp,
+                                  [[math.nan] * 2, [math.nan] * 2, [0.2, math.nan]])
+    none = join.classes("L9", np.array([15, 16], np.int64)).lab_sd_pp   # an undeclared lot
+    assert none.dtype == np.float64 and none.shape == (1, len(join.analytes))
+    assert np.isnan(none).all()
+
+
 def test_grade_classes_of_float_times_mark_unknown_times():
     a = assay("A", 10, 20, 100, Fe=61.0)
     c = grade_classes("L1", PLAN, [a], np.array([math.nan, 15.0, 25.0]), ("Fe",))
