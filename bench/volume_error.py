@@ -179,7 +179,8 @@ def main(argv: list[str] | None = None) -> int:
           f"{float((top - ground).sum() * area):,.2f}), truth {true_v:,.2f} m3, "
           f"error {ours_v - true_v:+.2f} m3 ({100 * (ours_v / true_v - 1):+.3f} %)")
     seen = hm.seen
-    print(f"height map over seen cells: {np.nansum(np.where(seen, elev - truth, 0)) * area:+.2f} m3 "
+    map_m3 = np.nansum(np.where(seen, elev - truth, 0)) * area
+    print(f"height map over seen cells: {map_m3:+.2f} m3 "
           f"as fused, {np.nansum(np.where(seen, centred - truth, 0)) * area:+.2f} m3 centred; "
           f"the stack there {np.sum(np.where(seen, top - truth, 0)) * area:+.2f} m3")
     masks = regions(state, truth)
@@ -198,7 +199,8 @@ def main(argv: list[str] | None = None) -> int:
         margin = (state.config.margin_sigma * np.sqrt(np.nan_to_num(hm.variance, nan=0.0))
                   + state.margin_m)
         lag = top - elev
-    print(f"\nthe follow margin over seen pile cells: mean {np.mean(margin[on_pile]) * 1000:.1f} mm; "
+    print("\nthe follow margin over seen pile cells: mean "
+          f"{np.mean(margin[on_pile]) * 1000:.1f} mm; "
           f"stack - map mean {np.nanmean(lag[on_pile]) * 1000:+.1f} mm "
           f"({np.nansum(lag[on_pile]) * area:+.2f} m3)")
     with np.errstate(invalid="ignore"):
@@ -210,7 +212,7 @@ def main(argv: list[str] | None = None) -> int:
           {**diffs, "stack - map": lag}, area)
 
     # ground: bare cells far from the pile
-    bare = masks["off pile"] | (seen & (truth - ground <= 0.0) )
+    bare = masks["off pile"] | (seen & (truth - ground <= 0.0))
     print(f"\nground: {int(bare.sum()):,} cells true at the ground; height map there mean "
           f"{np.nanmean(elev[bare] - ground) * 1000:+.1f} mm, stack "
           f"{np.mean(top[bare] - ground) * 1000:+.1f} mm")

@@ -76,22 +76,23 @@ What is rejected (set to NaN), and why
    a point along its beam over neighbouring cells, which the fit reduces (see
    docs/design-notes.md).
 
-5. **Returns pulled toward the far neighbour on a grazing run** (``grazing_frac`` > 0;
-   the fold uses ``FoldConfig.grazing_mixed_frac``).  Where the range changes by more
-   than ``jump_m`` from one beam to the next but steadily (a flank or the ground seen at
-   grazing incidence, which test 1 keeps), the footprint of a beam spans both of its
-   neighbours' ranges, and a mixed return lies between its own range and the neighbour's
-   across the larger step (usually the farther one: the steps grow away from the
-   scanner).  Such a return lies beyond the midpoint of its two neighbours toward that
-   neighbour; an unmixed one lies short of it (by half the growth of the step).  So a
-   return of a monotone run, neither of whose steps is a jump of test 1 and one of which
-   is over ``jump_m``, is removed when it lies beyond the midpoint of its neighbours,
-   toward the side of the larger step, by more than ``grazing_frac`` times their mean
-   step (and more than ``mad_k * min_sd_m``, the noise).  Which side's step is larger is
-   judged by the mean step over 8 beams beyond each neighbour, which the mixing of any
-   one return changes little (where those beams are missing: the farther side).  Kept, such returns lie below the surface (they are
-   carried along their beam past it): docs/fidelity.md, "The pile's volume".  The test
-   uses the ranges as they came, before the other rejections.
+5. **Returns mixed on a grazing run** (``grazing_frac`` > 0; the fold uses
+   ``FoldConfig.grazing_mixed_frac``).  Where the range changes by more than ``jump_m``
+   from one beam to the next but steadily (a flank or the ground seen at grazing
+   incidence, which test 1 keeps), a beam's footprint spans its neighbours' ranges, and
+   a mixed return lies between its own range and that of the neighbour across the larger
+   step (usually the farther one: the steps grow away from the scanner, and such a
+   return lies below the surface, carried along its beam past it).  It lies beyond the
+   midpoint of its two neighbours toward that neighbour; an unmixed return lies short of
+   the midpoint (by half the growth of the step).  So a return of a monotone run,
+   neither of whose steps is a jump of test 1 and one of which is over ``jump_m``, is
+   removed when it lies beyond the midpoint of its neighbours, toward the side of the
+   larger step, by more than ``grazing_frac`` times their mean step (and more than
+   ``mad_k * min_sd_m``, the noise).  Which side's step is larger is judged by the mean
+   step over the 8 beams beyond each neighbour, which the mixing of any one return
+   changes little (where those beams are missing: the farther side).  The test uses the
+   ranges as they came, before the other rejections.  Why: docs/fidelity.md, "The
+   pile's volume".
 
 The running medians treat NaN returns by carrying the nearest earlier valid return
 into them (then the nearest later one at the start of a scan) before filtering; that
@@ -188,9 +189,9 @@ def clean_profile(ranges_m, *, jump_m: float = 0.3, jump_ratio: float = 4.0,
         ``fit_beams // 2`` beams on either side, never across a jump (section 4 of the
         module docstring); 1 (default) leaves the returns as they are.
     grazing_frac : float
-        >= 0.  Remove returns of a grazing run that lie farther than the midpoint of
-        their neighbours by more than this fraction of the mean step (section 5 of the
-        module docstring); 0 (default) keeps them.
+        >= 0.  Remove returns of a grazing run that lie beyond the midpoint of their
+        neighbours, toward the larger step, by more than this fraction of their mean
+        step (section 5 of the module docstring); 0 (default) keeps them.
 
     Returns
     -------
@@ -300,10 +301,10 @@ _GRAZING_SPAN = 8
 
 def _pulled_on_grazing_run(r: np.ndarray, d: np.ndarray, jump: np.ndarray, jump_m: float,
                            frac: float, floor_m: float) -> np.ndarray:
-    """Which returns (bool, shape (S, B)) of a grazing run lie farther than the midpoint of
-    their two neighbours by more than ``frac`` times the mean of their two steps and more
-    than ``floor_m`` (test 5 of the module docstring); ``d`` the steps of ``r`` (m, (S,
-    B-1)), ``jump`` the jumps of test 1."""
+    """Which returns (bool, shape (S, B)) of a grazing run lie beyond the midpoint of their
+    two neighbours, toward the larger step, by more than ``frac`` times the mean of their
+    two steps and more than ``floor_m`` (test 5 of the module docstring); ``d`` the steps
+    of ``r`` (m, (S, B-1)), ``jump`` the jumps of test 1."""
     bad = np.zeros(r.shape, dtype=bool)
     s, b = r.shape
     if b < 3:

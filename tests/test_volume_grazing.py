@@ -4,8 +4,9 @@ The simulator's LMS200 (``sim.scanner.ScannerModel``: its own ray casting on a b
 height map and its own mixed-pixel model) scans flat ground from 42 m up, as the demo's
 scanner sees the yard and the far flank while stacking: beyond about 35 deg from nadir
 the range changes by more than 0.3 m a beam (0.68 m at 50 deg), and half of those
-returns are mixed with the farther neighbour, so they lie below the ground.  The truth is the ground's height
-(0 m) at every point, not the projector's code.  docs/fidelity.md, "The pile's volume".
+returns are mixed with the farther neighbour, so they lie below the ground.  The truth
+is the ground's height (0 m) at every point, not the projector's code.
+docs/fidelity.md, "The pile's volume".
 """
 
 from __future__ import annotations
