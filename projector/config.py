@@ -120,6 +120,11 @@ class FoldConfig:
         measured), never across a range jump, before they are georeferenced
         (:func:`projector.profile.clean_profile`, ``fit_beams``): the range noise
         that spreads points along their beams drops by sqrt(3) for 3.
+    grazing_mixed_frac : float
+        On a run of a scan seen at grazing incidence (steps over the jump threshold), a
+        return farther than the midpoint of its two neighbours by more than this fraction
+        of their mean step is a mixed pixel and is dropped
+        (:func:`projector.profile.clean_profile`, ``grazing_frac``; 0: kept).
     ground_reference : bool
         Each scan's height is referenced to the declared ground it sees
         (:func:`projector.scans.reference_ground`): the median offset of the bare-ground
@@ -170,6 +175,7 @@ class FoldConfig:
     cone_smooth_cells: int = 5
     pouring_tail: bool = True
     profile_fit_beams: int = 3
+    grazing_mixed_frac: float = 0.25
     ground_reference: bool = True
     ground_window_s: float = 1.0
     ground_hold_s: float = 5.0

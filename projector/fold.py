@@ -88,7 +88,7 @@ GEOMETRY_TYPES = ("pile_declared", "machine_declared", "stack_started", "stack_e
 #: module paths).  Snapshots are keyed by it as well as by the config, so those of another
 #: version are never used (:class:`projector.query.SnapshotStore`, which reads it from this
 #: module, and ``SnapshotStore.drop_other_versions`` deletes them).
-FOLD_VERSION = 27
+FOLD_VERSION = 28
 
 DEFAULT_CELL_M = 0.25
 DEFAULT_VOXEL_M = 1.0

@@ -76,6 +76,24 @@ What is rejected (set to NaN), and why
    a point along its beam over neighbouring cells, which the fit reduces (see
    docs/design-notes.md).
 
+5. **Returns mixed on a grazing run** (``grazing_frac`` > 0; the fold uses
+   ``FoldConfig.grazing_mixed_frac``).  Where the range changes by more than ``jump_m``
+   from one beam to the next but steadily (a flank or the ground seen at grazing
+   incidence, which test 1 keeps), a beam's footprint spans its neighbours' ranges, and
+   a mixed return lies between its own range and that of the neighbour across the larger
+   step (usually the farther one: the steps grow away from the scanner, and such a
+   return lies below the surface, carried along its beam past it).  It lies beyond the
+   midpoint of its two neighbours toward that neighbour; an unmixed return lies short of
+   the midpoint (by half the growth of the step).  So a return of a monotone run,
+   neither of whose steps is a jump of test 1 and one of which is over ``jump_m``, is
+   removed when it lies beyond the midpoint of its neighbours, toward the side of the
+   larger step, by more than ``grazing_frac`` times their mean step (and more than
+   ``mad_k * min_sd_m``, the noise).  Which side's step is larger is judged by the mean
+   step over the 8 beams beyond each neighbour, which the mixing of any one return
+   changes little (where those beams are missing: the farther side).  The test uses the
+   ranges as they came, before the other rejections.  Why: docs/fidelity.md, "The
+   pile's volume".
+
 The running medians treat NaN returns by carrying the nearest earlier valid return
 into them (then the nearest later one at the start of a scan) before filtering; that
 only changes the medians next to dropouts, never a return's own value.
@@ -140,7 +158,8 @@ def _median_rows(a: np.ndarray) -> np.ndarray:
 
 def clean_profile(ranges_m, *, jump_m: float = 0.3, jump_ratio: float = 4.0,
                   mad_k: float = 5.0, window: int = 7, min_sd_m: float = 0.01,
-                  smooth: bool = False, fit_beams: int = 1) -> np.ndarray:
+                  smooth: bool = False, fit_beams: int = 1,
+                  grazing_frac: float = 0.0) -> np.ndarray:
     """Reject mixed pixels, spikes and isolated outliers of laser profiles.
 
     See the module docstring for the tests and their rationale.
@@ -169,6 +188,10 @@ def clean_profile(ranges_m, *, jump_m: float = 0.3, jump_ratio: float = 4.0,
         value at its own beam of the least-squares line through the kept returns within
         ``fit_beams // 2`` beams on either side, never across a jump (section 4 of the
         module docstring); 1 (default) leaves the returns as they are.
+    grazing_frac : float
+        >= 0.  Remove returns of a grazing run that lie beyond the midpoint of their
+        neighbours, toward the larger step, by more than this fraction of their mean
+        step (section 5 of the module docstring); 0 (default) keeps them.
 
     Returns
     -------
@@ -189,6 +212,8 @@ def clean_profile(ranges_m, *, jump_m: float = 0.3, jump_ratio: float = 4.0,
         raise ValueError(f"window must be odd and >= 3, got {window}")
     if not (jump_m > 0 and jump_ratio > 0 and mad_k > 0 and min_sd_m >= 0):
         raise ValueError("jump_m, jump_ratio, mad_k must be > 0 and min_sd_m >= 0")
+    if not (math.isfinite(grazing_frac) and grazing_frac >= 0):
+        raise ValueError(f"grazing_frac must be finite and >= 0, got {grazing_frac}")
     fit_beams = int(fit_beams)
     if fit_beams < 1 or fit_beams % 2 == 0:
         raise ValueError(f"fit_beams must be odd and >= 1, got {fit_beams}")
@@ -199,6 +224,8 @@ def clean_profile(ranges_m, *, jump_m: float = 0.3, jump_ratio: float = 4.0,
     # 1. jumps: mixed pixels and spikes; 2. isolated outliers
     jump = _jumps(d, window, jump_m, jump_ratio)
     bad = _runs_between_jumps(jump) | _isolated_outliers(r, d, window, mad_k, min_sd_m)
+    if grazing_frac > 0:                                # 5. pulled on a grazing run
+        bad |= _pulled_on_grazing_run(r, d, jump, jump_m, grazing_frac, mad_k * min_sd_m)
     r[bad] = np.nan
     if smooth:                                          # 3. optional 3-median
         r = _median_of_3(r)
@@ -266,6 +293,45 @@ def _isolated_outliers(r: np.ndarray, d: np.ndarray, window: int, mad_k: float,
         far = np.abs(res) > mad_k * sigma
         unexplained = ~(off_line <= mad_k * math.sqrt(6.0) * sigma)     # NaN -> True
         return far & unexplained
+
+
+#: beams over which test 5 judges which side of a return has the larger step
+_GRAZING_SPAN = 8
+
+
+def _pulled_on_grazing_run(r: np.ndarray, d: np.ndarray, jump: np.ndarray, jump_m: float,
+                           frac: float, floor_m: float) -> np.ndarray:
+    """Which returns (bool, shape (S, B)) of a grazing run lie beyond the midpoint of their
+    two neighbours, toward the larger step, by more than ``frac`` times the mean of their
+    two steps and more than ``floor_m`` (test 5 of the module docstring); ``d`` the steps
+    of ``r`` (m, (S, B-1)), ``jump`` the jumps of test 1."""
+    bad = np.zeros(r.shape, dtype=bool)
+    s, b = r.shape
+    if b < 3:
+        return bad
+    left, right = d[:, :-1], d[:, 1:]                    # steps into and out of beam i
+    # the larger step beside beam i, judged by the mean step over the _GRAZING_SPAN
+    # beams beyond each neighbour (from beam i-1-n to i-1 and from i+1 to i+1+n: a
+    # mixed return moves one step at most, which a span's mean divides by n); where a
+    # span is missing (the scan's end, a dropout), the farther neighbour's
+    n = _GRAZING_SPAN
+    outer_l = np.full((s, b - 2), np.nan)
+    outer_r = np.full((s, b - 2), np.nan)
+    if b - 2 > n:
+        outer_l[:, n:] = np.abs(r[:, n:b - 2] - r[:, :b - 2 - n]) / n    # r[i-1] - r[i-1-n]
+        outer_r[:, :-n] = np.abs(r[:, 2 + n:] - r[:, 2:b - n]) / n      # r[i+1+n] - r[i+1]
+    with np.errstate(invalid="ignore"):                 # NaN -> False
+        known = np.isfinite(outer_l) & np.isfinite(outer_r)
+        # +1 where that neighbour's range is larger than beam i's, -1 where smaller;
+        # unknown: the farther neighbour's (+1), the steps grow away from the scanner
+        toward = np.where(known, np.where(outer_r >= outer_l, np.sign(right), -np.sign(left)),
+                          1.0)
+        grazing = ((np.fmax(np.abs(left), np.abs(right)) > jump_m)
+                   & (np.sign(left) == np.sign(right)) & ~jump[:, :-1] & ~jump[:, 1:])
+        excess = (r[:, 1:-1] - 0.5 * (r[:, :-2] + r[:, 2:])) * toward
+        limit = np.maximum(frac * 0.5 * (np.abs(left) + np.abs(right)), floor_m)
+        bad[:, 1:-1] = grazing & (excess > limit)
+    return bad
 
 
 def _median_of_3(r: np.ndarray) -> np.ndarray:

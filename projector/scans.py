@@ -49,7 +49,8 @@ def process_scans(state: ProjectorState, *, until_ns: int | None = None,
         xyz, q = georef.interpolate_poses(t, pose_t, pose_xyz, pose_q,
                                           max_gap_ns=state.config.max_pose_gap_ns)
         ranges = np.stack([s.ranges_m for s in scans])
-        ranges = profile.clean_profile(ranges, fit_beams=state.config.profile_fit_beams)
+        ranges = profile.clean_profile(ranges, fit_beams=state.config.profile_fit_beams,
+                                       grazing_frac=state.config.grazing_mixed_frac)
         increment = (end - start) / (beams - 1)
         points = georef.georeference(ranges, start, increment, xyz, q)
         if state.config.ground_reference:
