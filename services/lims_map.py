@@ -2,8 +2,9 @@
 of one export file turned into ``assay`` messages.
 
 Everything here is pure: :func:`parse_map` reads the map's TOML text, :func:`rows_to_assays`
-turns the bytes of one export file into assays and refused rows.  ``services.lab`` does the
-I/O (the drop folder, the journal, publishing).
+turns the bytes of one export file into assays and refused rows; the cells' times and
+numbers are read by :mod:`services.lims_values` (re-exported here).  ``services.lab`` does
+the I/O (the drop folder, the journal, publishing).
 
 The map's sections (``docs/lims.example.toml`` is a complete map with every key explained;
 ``docs/integration.md`` how to write one): ``[file]`` (``format`` csv or json, ``encoding``,
@@ -29,18 +30,17 @@ import json
 import math
 import re
 import tomllib
-from calendar import timegm
 from dataclasses import dataclass, field
-from datetime import datetime, timedelta, timezone
-from decimal import Decimal, InvalidOperation
+from datetime import timezone
+from decimal import Decimal
 from typing import Any
 from zoneinfo import ZoneInfo, ZoneInfoNotFoundError
 
 from schemas import pb
 from schemas.analytes import DEFAULT_ANALYTES, canonical_name, name_problem
 from schemas.events import make_event, set_timestamp_ns
-from schemas.times import MAX_TIME_NS, MIN_TIME_NS, NS_PER_S
 from schemas.validate import InvalidEvent, check_event
+from services.lims_values import ISO8601, parse_number, parse_time_ns
 
 __all__ = ["FORMATS", "ANALYTE_UNITS", "DENSITY_UNITS", "STATUSES", "ISO8601", "AnalyteColumn",
            "LimsMap", "RowAssay", "RefusedRow", "parse_map", "assay_id_for", "superseded_id",
@@ -56,18 +56,10 @@ DENSITY_UNITS: dict[str, Decimal] = {"t/m3": Decimal(1), "g/cm3": Decimal(1),
                                      "kg/m3": Decimal("0.001")}
 #: The Assay status enum's names a LIMS code may map to.
 STATUSES = ("PROVISIONAL", "FINAL")
-#: The time format name for ISO 8601 (``2026-11-22T14:03:00.5+08:00``, ``T`` or a space,
-#: up to nanoseconds, offset optional).
-ISO8601 = "iso8601"
 
 _REQUIRED_COLUMNS = ("sample_id", "lot", "window_start", "window_end", "status",
                      "reported_time")
 _OPTIONAL_COLUMNS = ("revision", "supersedes", "moisture", "bulk_density", "lab_id")
-_ISO_RE = re.compile(
-    r"(\d{4})-(\d{2})-(\d{2})[T ](\d{2}):(\d{2})(?::(\d{2})(?:[.,](\d{1,9}))?)?"
-    r"\s*(Z|[+-]\d{2}(?::?\d{2})?)?", re.IGNORECASE)
-_NUMBER_RE = {".": re.compile(r"[+-]?(\d+(\.\d*)?|\.\d+)([eE][+-]?\d+)?"),
-              ",": re.compile(r"[+-]?(\d+(,\d*)?|,\d+)([eE][+-]?\d+)?")}
 _SPACE_RE = re.compile(r"\s*")
 
 
@@ -287,7 +279,7 @@ def parse_map(text: str) -> LimsMap:
                    **_time_section(doc))
 
 
-# -- ids, times, numbers ------------------------------------------------------------------
+# -- ids ------------------------------------------------------------------
 
 
 def assay_id_for(sample_id: str, revision: int) -> str:
@@ -298,77 +290,6 @@ def assay_id_for(sample_id: str, revision: int) -> str:
 def superseded_id(sample_id: str, revision: int) -> str:
     """The assay id revision ``revision`` of ``sample_id`` replaces: revision - 1's ("" for 0)."""
     return "" if revision == 0 else assay_id_for(sample_id, revision - 1)
-
-
-def _utc_ns(moment: datetime, frac_ns: int) -> int:
-    """UTC ns of an aware datetime (whole seconds) plus ``frac_ns``."""
-    return timegm(moment.utctimetuple()) * NS_PER_S + frac_ns
-
-
-def parse_time_ns(text: str, time_format: str, tz) -> int:
-    """A time cell -> UTC ns.
-
-    ``time_format`` is :data:`ISO8601` (fraction up to nanoseconds, offset or ``Z``
-    optional) or a strptime format (microseconds at most, ``%z`` optional); a time without
-    an offset is local time in ``tz`` (an ambiguous local time takes its first occurrence).
-    Raises ValueError with a one-line reason.
-    """
-    value = text.strip()
-    if time_format == ISO8601:
-        m = _ISO_RE.fullmatch(value)
-        if not m:
-            raise ValueError(f"time {value!r} is not ISO 8601")
-        year, month, day, hour, minute = (int(m.group(i)) for i in range(1, 6))
-        second = int(m.group(6) or 0)
-        frac_ns = int((m.group(7) or "").ljust(9, "0") or 0)
-        offset = m.group(8)
-        try:
-            moment = datetime(year, month, day, hour, minute, second)
-        except ValueError as exc:
-            raise ValueError(f"time {value!r}: {exc}") from None
-        if offset is None:
-            moment = moment.replace(tzinfo=tz)
-        elif offset.upper() == "Z":
-            moment = moment.replace(tzinfo=timezone.utc)
-        else:
-            digits = offset[1:].replace(":", "")
-            delta = timedelta(hours=int(digits[:2]), minutes=int(digits[2:] or 0))
-            moment = moment.replace(tzinfo=timezone(delta if offset[0] == "+" else -delta))
-    else:
-        try:
-            moment = datetime.strptime(value, time_format)
-        except ValueError:
-            raise ValueError(f"time {value!r} does not match {time_format!r}") from None
-        frac_ns = moment.microsecond * 1000
-        moment = moment.replace(microsecond=0)
-        if moment.tzinfo is None:
-            moment = moment.replace(tzinfo=tz)
-    ns = _utc_ns(moment, frac_ns)
-    if not MIN_TIME_NS <= ns <= MAX_TIME_NS:
-        raise ValueError(f"time {value!r} is out of range")
-    return ns
-
-
-def parse_number(value: Any, decimal: str) -> Decimal:
-    """A number cell -> Decimal: text with ``decimal`` as the decimal mark, or a JSON number.
-
-    Raises ValueError (empty, text that is not a plain number such as ``<0.01``, a boolean).
-    """
-    if isinstance(value, bool) or value is None:
-        raise ValueError(f"{value!r} is not a number")
-    if isinstance(value, (int, Decimal)):
-        number = Decimal(value)
-    else:
-        text = str(value).strip()
-        if not _NUMBER_RE[decimal].fullmatch(text):
-            raise ValueError(f"{text!r} is not a number" if text else "empty")
-        try:
-            number = Decimal(text.replace(",", "."))
-        except InvalidOperation:
-            raise ValueError(f"{text!r} is not a number") from None
-    if not number.is_finite():
-        raise ValueError(f"{value!r} is not a finite number")
-    return number
 
 
 # -- rows -> assays -----------------------------------------------------------------------
