@@ -19,7 +19,7 @@ the encoder biases and the correlated GNSS error) and publishes, as source
   :mod:`services.localizer_messages`).
 
 Each estimate is held ``--smooth-lag`` site seconds (default
-:data:`services.localizer_smoother.DEFAULT_SMOOTH_LAG_S`) and published with its joints
+:data:`services.service.DEFAULT_SMOOTH_LAG_S`) and published with its joints
 smoothed by the measurements since (:class:`services.localizer_smoother.FixedLagSmoother`,
 a block of estimates at a time, so each goes out one to one and a half lags after its
 reading); the covariances are the filter's at the reading.  On shutdown every held
@@ -81,11 +81,12 @@ from schemas.validate import InvalidEvent, check_event
 from projector.kinematics import MachineGeometry
 from services.localizer_filter import GNSS_ERROR_STATES, N_STATE, LocalizerFilter
 from services.localizer_messages import estimate_messages, fix_covariance_m2, fix_enu_m
-from services.localizer_smoother import DEFAULT_SMOOTH_LAG_S, FixedLagSmoother
+from services.localizer_smoother import FixedLagSmoother
 from services.localizer_tuning import FilterTuning
 from services.pump import SamplePump
 from services.service import (
     DEFAULT_SITE,
+    DEFAULT_SMOOTH_LAG_S,
     DEFAULT_STATUS_PERIOD_S,
     Inbox,
     ServiceRuntime,

@@ -32,14 +32,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["FixedLagSmoother", "DEFAULT_SMOOTH_LAG_S", "LIVE_REORDER_S"]
-
-#: site seconds the localizer holds each estimate to smooth it (``--smooth-lag``)
-DEFAULT_SMOOTH_LAG_S = 60.0
-#: site seconds a live fold waits for late geometry (the projector's and dashboard's
-#: ``--reorder-s``): the localizer's estimates trail by up to the smoothing lag and its
-#: block (half the lag), and 30 s more for transport
-LIVE_REORDER_S = 1.5 * DEFAULT_SMOOTH_LAG_S + 30.0
+__all__ = ["FixedLagSmoother"]
 
 
 class FixedLagSmoother:

@@ -35,8 +35,14 @@ from schemas.events import decode_payload
 from schemas.jsonl import json_safe
 from schemas.times import NS_PER_S
 from services.ledger_client import LedgerClient, LedgerUnavailable
-from services.localizer_smoother import LIVE_REORDER_S
-from services.service import DEFAULT_SITE, Inbox, ServiceRuntime, Stopper, ZenohOptions
+from services.service import (
+    DEFAULT_SITE,
+    LIVE_REORDER_S,
+    Inbox,
+    ServiceRuntime,
+    Stopper,
+    ZenohOptions,
+)
 
 SERVICE = "projector"
 DEFAULT_REORDER_S = LIVE_REORDER_S   # the localizer's smoothed poses come late

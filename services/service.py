@@ -59,7 +59,7 @@ from services.stopping import Stopper
 from services.zenoh_config import ZenohOptions, add_zenoh_arguments
 
 __all__ = [
-    "DEFAULT_SITE", "DEFAULT_STATUS_PERIOD_S", "EventPublisher", "Inbox", "ServiceRuntime",
+    "DEFAULT_SITE", "DEFAULT_STATUS_PERIOD_S", "DEFAULT_SMOOTH_LAG_S", "LIVE_REORDER_S", "EventPublisher", "Inbox", "ServiceRuntime",
     "SiteTime", "StatusReporter", "Stopper", "ZenohOptions", "add_service_arguments",
     "declare_ledger_publisher", "log", "parse_logfmt",
 ]
@@ -69,6 +69,13 @@ CERT_CHECK_PERIOD_S = 12 * 3600.0
 
 #: the site id when ``--site`` is not given
 DEFAULT_SITE = "demo"
+
+#: site seconds the localizer holds each estimate to smooth it (its ``--smooth-lag``)
+DEFAULT_SMOOTH_LAG_S = 60.0
+#: site seconds a live fold waits for late geometry (the projector's and the dashboard's
+#: ``--reorder-s``): an estimate trails its reading by up to 1.5 smoothing lags (the lag
+#: and a block of half a lag, ``FixedLagSmoother``'s default), and 30 s more for transport
+LIVE_REORDER_S = 1.5 * DEFAULT_SMOOTH_LAG_S + 30.0
 
 
 def add_service_arguments(parser: argparse.ArgumentParser) -> None:

@@ -25,7 +25,7 @@ from schemas.times import NS_PER_S
 from services.localizer import Config
 from services.localizer_offline import (INPUT_TYPES, gnss_fixes, localize_run,
                                         write_ledger_input)
-from services.localizer_smoother import DEFAULT_SMOOTH_LAG_S
+from services.service import DEFAULT_SMOOTH_LAG_S
 from sim.scenario import demo
 
 MACHINE = "bwr1"

@@ -37,7 +37,7 @@ from replay.mcap_writer import schema_of
 from replay.replay import iter_events
 from schemas import pb
 from schemas.events import EVENT_TYPES, Event, decode_payload, make_event, set_timestamp_ns
-from services.localizer_smoother import DEFAULT_SMOOTH_LAG_S, LIVE_REORDER_S
+from services.service import DEFAULT_SMOOTH_LAG_S, LIVE_REORDER_S
 from cli_in_process import run
 from stockpile.cli import main as stockpile
 from stockpile.yard_demo import SITE_OF_SCENARIO as SITE

@@ -10,8 +10,7 @@ import argparse
 from dataclasses import dataclass, field
 
 from common.options import add_duration, add_out
-from services.localizer_smoother import LIVE_REORDER_S
-from services.service import DEFAULT_SITE, ZenohOptions
+from services.service import DEFAULT_SITE, LIVE_REORDER_S, ZenohOptions
 
 SERVICE = "dashboard"
 APP_ID = "stockpile-dashboard"
