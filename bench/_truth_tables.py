@@ -26,6 +26,15 @@ def fmt_tonnes(tonnes: float) -> str:
     return f"{tonnes:,.1f}" if abs(tonnes) >= 100 else f"{tonnes:.4g}"
 
 
+def by_world(figures: list[dict]) -> dict[tuple[str, int], list[dict]]:
+    """Runs' figures grouped by world (scenario, seed), in the order first met: a world's
+    draws of the sensors' noise together."""
+    worlds: dict[tuple[str, int], list[dict]] = {}
+    for f in figures:
+        worlds.setdefault((f["scenario"], f["seed"]), []).append(f)
+    return worlds
+
+
 def noise_spread(figures: list[dict]) -> list[str]:
     """Per world (scenario and seed) measured with several draws of the sensors' noise:
     each cut's tonnes and Fe error in every draw, their mean and spread (sd), and whether
@@ -36,11 +45,8 @@ def noise_spread(figures: list[dict]) -> list[str]:
     and not others is missed by the luck of the noise, and one every draw misses by the
     world's geometry or the model.  A diagnosis, not a target.
     """
-    worlds: dict[tuple[str, int], list[dict]] = {}
-    for f in figures:
-        worlds.setdefault((f["scenario"], f["seed"]), []).append(f)
     always = []
-    for (scenario, seed), runs in worlds.items():
+    for (scenario, seed), runs in by_world(figures).items():
         if len(runs) < 2:
             continue
         print(f"\n-- {scenario} (seed {seed}): each cut's error over {len(runs)} draws of the "
@@ -75,16 +81,13 @@ def mean_over_draws(figures: list[dict], targets: dict[str, float]) -> bool:
 
     ``targets``: ``pile_pct``, ``volume_pct``, ``cut_pct``, ``fe_pp``.
     """
-    worlds: dict[tuple[str, int], list[dict]] = {}
-    for f in figures:
-        worlds.setdefault((f["scenario"], f["seed"]), []).append(f)
     print(f"\n-- the targets on the mean over each world's draws (pile {targets['pile_pct']:g} %, "
           f"volume {targets['volume_pct']:g} %, each cut {targets['cut_pct']:g} % and "
           f"{targets['fe_pp']:g} pp Fe with an exact lab)")
     print(f"{'world':<16} {'draws':>5} {'pile %':>7} {'vol %':>6} {'cuts met':>9} "
           f"{'worst t %':>9} {'worst Fe pp':>11}  verdict")
     by_scenario: dict[str, list[bool]] = {}
-    for (scenario, seed), runs in worlds.items():
+    for (scenario, seed), runs in by_world(figures).items():
         pile = float(np.mean([r["pile_pct"] for r in runs]))
         volume = float(np.mean([r["volume_pct"] for r in runs]))
         cut_ids = list(runs[0]["cut_errors"])

@@ -129,12 +129,14 @@ def _unknown_keys(table: dict, allowed, where: str) -> None:
                          f"{', '.join(allowed)})")
 
 
-def _column_and_unit(value: Any, where: str, units, default_unit: str) -> tuple[str, str]:
-    """A column given as ``"NAME"`` or ``{ column = "NAME", unit = "U" }``."""
+def _column_and_unit(value: Any, where: str, units, default_unit: str,
+                     extra_keys: tuple[str, ...] = ()) -> tuple[str, str]:
+    """A column given as ``"NAME"`` or ``{ column = "NAME", unit = "U" }`` (and the
+    caller's ``extra_keys``, read by the caller)."""
     if isinstance(value, str) and value.strip():
         return value, default_unit
     if isinstance(value, dict):
-        _unknown_keys(value, ("column", "unit"), where)
+        _unknown_keys(value, ("column", "unit", *extra_keys), where)
         column = _text(value, "column", where)
         unit = _text(value, "unit", where, default_unit)
         if unit not in units:
@@ -213,10 +215,8 @@ def _analytes_section(doc: dict) -> tuple[AnalyteColumn, ...]:
         if name in out:
             raise ValueError(f"analytes.{raw_name} names {name} a second time")
         where = f"analytes.{raw_name}"
+        column, unit = _column_and_unit(value, where, ANALYTE_UNITS, "%", ("repeatability",))
         stated = value.get("repeatability") if isinstance(value, dict) else None
-        if isinstance(value, dict):
-            value = {k: v for k, v in value.items() if k != "repeatability"}
-        column, unit = _column_and_unit(value, where, ANALYTE_UNITS, "%")
         out[name] = AnalyteColumn(name, column, unit, _repeatability_pp(stated, unit, where))
     return tuple(out.values())
 

@@ -358,12 +358,12 @@ def test_service_logic_orders_by_valid_time_and_counts_bad_input():
 
 
 def _localized(smooth_lag_s: float, t_ns, readings, fixes):
-    """The messages a localizer with ``smooth_lag_s`` publishes, and after how many
-    readings each came (its valid times in order, both streams due at once)."""
+    """The messages a localizer with ``smooth_lag_s`` publishes, after which reading each
+    came (``len(t_ns)``: on the flush) and how many estimates were held before the
+    flush (its valid times in order, both streams due at once)."""
     published, after = [], []
-    loc = Localizer(Config(reorder_hold_s=1e9, smooth_lag_s=smooth_lag_s),
-                    lambda m: (published.append(m), after.append(k)), lambda *a, **kw: None,
-                    lambda *a, **kw: None)
+    loc = Localizer(Config(reorder_hold_s=1e9, smooth_lag_s=smooth_lag_s), published.append,
+                    lambda *a, **kw: None, lambda *a, **kw: None)
     for seq, msg in enumerate(_declarations()):
         loc.handle(make_event(msg, source="yard.config", epoch=1, seq=seq), now_s=0.0)
     for k in range(len(t_ns)):
@@ -372,9 +372,10 @@ def _localized(smooth_lag_s: float, t_ns, readings, fixes):
         loc.handle(make_event(_fix(t_ns[k], fixes, k), source="bwr1.gnss", epoch=1, seq=k),
                    now_s=0.0)
         loc.release(now_s=0.0)
+        after += [k] * (len(published) - len(after))
     held = loc.backlog
-    k = len(t_ns)     # noqa: F841 - read by the publish callback
     loc.release(now_s=0.0, flush=True)
+    after += [len(t_ns)] * (len(published) - len(after))
     return published, after, held
 
 
