@@ -16,7 +16,9 @@ poses the product's localizer estimates from the run's encoders and GNSS (its UK
 the process demo: :func:`services.localizer_offline.write_ledger_input`, the ledger
 input ``events-localizer.jsonl`` in the run's folder, the ledger ``<run>-localizer.duckdb``);
 ``truth`` imports the simulator's true poses, a diagnosis of the projector apart from
-the localizer.  Each table's heading names its path.
+the localizer.  ``bench-scale`` takes the true poses unless ``--poses`` says otherwise:
+it is a laboratory pile 1.2 m long, placed by its rig, and a yard's GNSS (decimetres)
+cannot place it.  Each table's heading names its path.
 Truth is the simulator's own world model (its deposition grid and parcels), a different
 method from the projector's scans -> height map -> layer stack.
 
@@ -123,6 +125,8 @@ MATRIX_DRAWS = 3
 #: where the scans' poses come from (``--poses``): the localizer's estimate, or the truth
 POSES = {"localizer": "localizer poses (encoders + GNSS through the UKF)",
          "truth": "true poses (the simulator's, a diagnosis)"}
+#: the scenarios whose runs take another path than the localizer's unless ``--poses`` says
+DEFAULT_POSES = {"bench-scale": "truth"}
 
 
 def run_stockpile(*args: str) -> None:
@@ -338,10 +342,10 @@ def main(argv: list[str] | None = None) -> int:
                     "(stockpile sim --noise-seed); repeatable; a table then gives each cut's "
                     "error over the draws, the seed's own first")
     ap.add_argument("--keep", metavar="DIR", help="keep (and reuse) the runs in DIR")
-    ap.add_argument("--poses", choices=tuple(POSES), default="localizer",
+    ap.add_argument("--poses", choices=tuple(POSES),
                     help="the scanner poses that place the scans: the localizer's estimate "
-                    "from encoders and GNSS (default, a yard's path) or the simulator's "
-                    "true poses (a diagnosis)")
+                    "from encoders and GNSS (a yard's path, the default) or the simulator's "
+                    "true poses (a diagnosis; bench-scale's default, a laboratory pile)")
     ap.add_argument("--matrix", action="store_true",
                     help="issue 42's runs: every material scenario (demo, cohesive, delayed, "
                     f"standing), seeds 1-5, {MATRIX_DRAWS} draws of the sensors' noise "
@@ -365,14 +369,16 @@ def main(argv: list[str] | None = None) -> int:
                 noise_seeds = [1000 * d + seed for d in range(1, MATRIX_DRAWS + 1)] \
                     if args.matrix else [n for n in args.noise_seed or [] if n != seed]
                 for noise_seed in [None, *noise_seeds]:
+                    poses = args.poses or DEFAULT_POSES.get(scenario, "localizer")
                     result = run(scenario, seed, out, args.duration, cut_surfaces=args.explain,
-                                 noise_seed=noise_seed, poses=args.poses)
+                                 noise_seed=noise_seed, poses=poses)
                     figures.append(report(result))
                     if args.explain:
                         explain(result)
         ok = all(f["ok"] for f in figures)
         if len(figures) > 1:
-            print(f"\n(all runs: {POSES[args.poses]})")
+            if args.poses:
+                print(f"\n(all runs: {POSES[args.poses]})")
             summary(figures)
         if args.noise_seed or args.matrix:
             always = noise_spread(figures)
