@@ -6,8 +6,9 @@ storing the same lines, and what this machine's disk and DuckDB allow an append 
    writes and ``stockpile ledger import`` reads), then ours: ``ledger.importing.import_lines``
    from the file into a fresh DuckDB ledger (every check on, batches of 1,000, what the
    command runs), against ``eventsourcing``'s SQLite recorder storing the same lines: each
-   line read, its identity parsed (``json.loads``) and the line stored as the event's
-   state, in batches of 1,000.
+   line read, its identity taken from the line's head with one regular expression (the
+   peer need not parse the body) and the line stored as the event's state, in batches
+   of 1,000.
 6. **The floor** (:func:`section_floor`): the median ``fsync`` of this disk (one is the
    least a durable commit costs), and DuckDB alone appending the yard mix's rows as
    pre-built Arrow tables at batch 1,000 into our table, each batch a transaction, no
@@ -16,8 +17,8 @@ storing the same lines, and what this machine's disk and DuckDB allow an append 
 
 from __future__ import annotations
 
-import json
 import os
+import re
 import statistics
 import time
 import uuid
@@ -34,6 +35,8 @@ from ledger.importing import import_lines
 from schemas.jsonl import event_line
 
 BATCH = 1_000
+#: the head of a canonical line: type, source, epoch and seq, in that order
+_ENVELOPE = re.compile(rb'\{"type":"([^"]+)","source":"([^"]+)","epoch":(\d+),"seq":(\d+),')
 FSYNC_SAMPLES = 100
 
 
@@ -62,13 +65,13 @@ def es_import(lines_path: str, sqlite_path: str) -> tuple[float, int]:
     with open(lines_path, "rb") as lines:
         for line in lines:
             count += 1
-            record = json.loads(line)
-            key = (record["source"], record["epoch"])
+            type_name, source, epoch, seq = _ENVELOPE.match(line).groups()
+            key = (source, epoch)
             oid = ids.get(key)
             if oid is None:
-                oid = ids[key] = uuid.uuid5(ES_NAMESPACE, f"{key[0]}/{key[1]}")
-            stored.append(StoredEvent(originator_id=oid, originator_version=record["seq"],
-                                      topic=record["type"], state=line))
+                oid = ids[key] = uuid.uuid5(ES_NAMESPACE, f"{source.decode()}/{int(epoch)}")
+            stored.append(StoredEvent(originator_id=oid, originator_version=int(seq),
+                                      topic=type_name.decode(), state=line))
             if len(stored) == BATCH:
                 es_append(recorder, stored, BATCH)
                 stored = []
@@ -91,7 +94,7 @@ def section_import(work: Workload, tmp: str, out) -> tuple[float, float]:
     out(f"5. Import of JSON lines: the yard mix, {len(work.events):,} lines, "
         f"{size / 1e6:,.1f} MB, batches of {BATCH:,}")
     out(f"   ours (import_lines into DuckDB, every check on): {ours_r:>10,.0f} lines/s")
-    out(f"   eventsourcing SQLite (identity parsed, line stored): {es_r:>10,.0f} lines/s")
+    out(f"   eventsourcing SQLite (identity from the head, line stored):{es_r:>10,.0f} lines/s")
     out(f"   ratio ours/eventsourcing: {ours_r / es_r:.2f}x")
     out()
     return ours_r, es_r
