@@ -51,7 +51,8 @@ from ledger.head_file import HeadRecorder, reconcile
 from ledger.signing import SigningPolicy, registry_from_rows
 from ledger.records import (EventTally, Gap, Head, LedgerStats, QuarantineEntry, RecordedEvent,
                             VerifyReport)
-from ledger.store import BODY_TYPES, BatchPlan, Key, LedgerStore, StreamState, WriterState
+from ledger.store import (BODY_TYPES, BatchPlan, Key, LedgerStore, StoredKey, StreamState,
+                          WriterState)
 
 SCHEMA_VERSION = "2"
 
@@ -135,9 +136,11 @@ _SELECT_NEXT_GAP_ID = "SELECT coalesce(max(gap_id) + 1, 0) FROM gaps"
 _SELECT_NEXT_QUARANTINE_ID = "SELECT coalesce(max(quarantine_id) + 1, 0) FROM quarantine"
 _WANTED_KEYS = "wanted_keys"
 _KEYS_SCHEMA = pa.schema([("source", pa.string()), ("epoch", pa.int64()), ("seq", pa.int64())])
-_SELECT_WANTED_KEYS = ("SELECT e.source, e.epoch, e.seq, e.global_seq, e.payload_sha256 "
+_SELECT_WANTED_KEYS = ("SELECT e.source, e.epoch, e.seq, e.global_seq, e.payload_sha256, "
+                       "e.type, e.valid_time_ns "
                        f"FROM event_log e JOIN {_WANTED_KEYS} w USING (source, epoch, seq) "
                        "WHERE e.seq BETWEEN ? AND ?")
+_AND_VALID_IN = " AND e.valid_time_ns BETWEEN ? AND ?"
 _NEW_EVENTS = "new_events"
 _INSERT_NEW_EVENTS = f"INSERT INTO event_log SELECT * FROM {_NEW_EVENTS}"
 _FLAG_SEPARATOR = ","
@@ -179,6 +182,10 @@ _OPEN_WRITERS_LOCK = threading.Lock()
 
 #: a writer's default cap on DuckDB's buffer pool, megabytes (docs/operations.md)
 WRITER_MEMORY_LIMIT_MB = 256
+#: how much write-ahead log a writer lets grow before DuckDB checkpoints it into the
+#: database file, megabytes (docs/operations.md)
+WRITER_CHECKPOINT_MB = 256
+_SET_CHECKPOINT_THRESHOLD = f"SET checkpoint_threshold = '{WRITER_CHECKPOINT_MB}MB'"
 
 
 class DuckDBStore(LedgerStore):
@@ -243,6 +250,7 @@ class DuckDBStore(LedgerStore):
                     if not read_only:
                         limit_mb = memory_limit_mb or WRITER_MEMORY_LIMIT_MB
                         self._con.execute(f"SET memory_limit = '{int(limit_mb)}MB'")
+                        self._con.execute(_SET_CHECKPOINT_THRESHOLD)
                         self._create_schema()
                     self._check_schema()
                     self._state, self._analytes = self._load_state()
@@ -334,9 +342,19 @@ class DuckDBStore(LedgerStore):
 
     # -- writing ---------------------------------------------------------------------------
 
-    def _lookup(self, keys: Sequence[Key]) -> dict[Key, tuple[int, bytes]]:
-        if not keys:
-            return {}
+    def _lookup(self, keys: Sequence[Key], valid_span_ns: tuple[int, int] | None = None
+                ) -> dict[Key, StoredKey]:
+        # a resent batch's rows lie in its valid-time span: a filter on it lets the scan skip
+        # most of the log; what is not there (a conflict at another valid time) is looked
+        # up again over the whole log
+        found = self._lookup_in(keys, valid_span_ns) if valid_span_ns else {}
+        missing = [k for k in keys if k not in found] if found else keys
+        if missing:
+            found.update(self._lookup_in(missing, None))
+        return found
+
+    def _lookup_in(self, keys: Sequence[Key], valid_span_ns: tuple[int, int] | None
+                   ) -> dict[Key, StoredKey]:
         wanted = pa.Table.from_arrays([
             pa.array([k[0] for k in keys]),
             pa.array([k[1] for k in keys]),
@@ -348,10 +366,14 @@ class DuckDBStore(LedgerStore):
             cur = self._con.cursor()
             try:
                 cur.register(_WANTED_KEYS, wanted)
-                rows = cur.execute(_SELECT_WANTED_KEYS, [low, high]).fetchall()
+                if valid_span_ns is None:
+                    rows = cur.execute(_SELECT_WANTED_KEYS, [low, high]).fetchall()
+                else:
+                    rows = cur.execute(_SELECT_WANTED_KEYS + _AND_VALID_IN,
+                                       [low, high, *valid_span_ns]).fetchall()
             finally:
                 cur.close()
-        return {(r[0], r[1], r[2]): (r[3], bytes(r[4])) for r in rows}
+        return {(r[0], r[1], r[2]): (r[3], bytes(r[4]), r[5], r[6]) for r in rows}
 
     def _commit(self, plan: BatchPlan) -> None:
         new_analytes = self._new_analytes(plan)
@@ -379,21 +401,23 @@ class DuckDBStore(LedgerStore):
 
     def _insert_rows(self, rows: list[RecordedEvent], bodies: list[str | None]) -> None:
         """INSERT rows into event_log through Arrow (inside the open transaction)."""
+        (global_seq, type_, source, epoch, seq, valid, recorded, payload, payload_sha256,
+         chain_sha256, flags, signer, signature) = zip(*rows)   # one column per field
         batch = pa.Table.from_arrays([     # the types are _EVENT_SCHEMA's
-            pa.array([r.global_seq for r in rows]),
-            pa.array([r.type for r in rows]),
-            pa.array([r.source for r in rows]),
-            pa.array([r.epoch for r in rows]),
-            pa.array([r.seq for r in rows]),
-            pa.array([r.valid_time_ns for r in rows]),
-            pa.array([r.recorded_time_ns for r in rows]),
-            pa.array([r.payload for r in rows]),
-            pa.array([r.payload_sha256 for r in rows]),
-            pa.array([r.chain_sha256 for r in rows]),
-            pa.array([_FLAG_SEPARATOR.join(r.flags) if r.flags else None for r in rows]),
-            pa.array(bodies),
-            pa.array([r.signer for r in rows], pa.string()),
-            pa.array([r.signature for r in rows], pa.binary()),
+            pa.array(global_seq, pa.int64()),
+            pa.array(type_, pa.string()),
+            pa.array(source, pa.string()),
+            pa.array(epoch, pa.int64()),
+            pa.array(seq, pa.int64()),
+            pa.array(valid, pa.int64()),
+            pa.array(recorded, pa.int64()),
+            pa.array(payload, pa.binary()),
+            pa.array(payload_sha256, pa.binary()),
+            pa.array(chain_sha256, pa.binary()),
+            pa.array([_FLAG_SEPARATOR.join(f) if f else None for f in flags], pa.string()),
+            pa.array(bodies, pa.string()),
+            pa.array(signer, pa.string()),
+            pa.array(signature, pa.binary()),
         ], schema=_EVENT_SCHEMA)
         self._con.register(_NEW_EVENTS, batch)
         try:

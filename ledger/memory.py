@@ -15,7 +15,7 @@ from schemas.analytes import AnalyteOptions, AnalytePolicy
 from ledger.clock import SiteClock
 from ledger.records import Gap, QuarantineEntry, RecordedEvent
 from ledger.signing import SigningPolicy
-from ledger.store import BatchPlan, Key, LedgerStore
+from ledger.store import BatchPlan, Key, LedgerStore, StoredKey
 
 
 class MemoryStore(LedgerStore):
@@ -33,12 +33,14 @@ class MemoryStore(LedgerStore):
         self._quarantine: list[QuarantineEntry] = []
         self._recorded: list[int] = []  # recorded time per row, non-decreasing
 
-    def _lookup(self, keys: Sequence[Key]) -> dict[Key, tuple[int, bytes]]:
+    def _lookup(self, keys: Sequence[Key], valid_span_ns: tuple[int, int] | None = None
+                ) -> dict[Key, StoredKey]:
         out = {}
         for key in keys:
             i = self._index.get(key)
             if i is not None:
-                out[key] = (self._rows[i].global_seq, self._rows[i].payload_sha256)
+                row = self._rows[i]
+                out[key] = (row.global_seq, row.payload_sha256, row.type, row.valid_time_ns)
         return out
 
     def _commit(self, plan: BatchPlan) -> None:

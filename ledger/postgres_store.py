@@ -49,7 +49,8 @@ from ledger.errors import (DatabaseError, DataError, IntegrityError, InterfaceEr
                            class_for, disk_full_text, first_line)
 from ledger.records import Gap, LedgerStats, QuarantineEntry, RecordedEvent, VerifyReport
 from ledger.signing import SigningPolicy, registry_from_rows
-from ledger.store import BODY_TYPES, BatchPlan, Key, LedgerStore, StreamState, WriterState
+from ledger.store import (BODY_TYPES, BatchPlan, Key, LedgerStore, StoredKey, StreamState,
+                          WriterState)
 
 #: rows fetched per page of a streamed read
 PAGE_ROWS = 4_096
@@ -367,16 +368,18 @@ class PostgresStore(LedgerStore):
 
     # -- writing ---------------------------------------------------------------------------
 
-    def _lookup(self, keys: Sequence[Key]) -> dict[Key, tuple[int, bytes]]:
+    def _lookup(self, keys: Sequence[Key], valid_span_ns: tuple[int, int] | None = None
+                ) -> dict[Key, StoredKey]:
         if not keys:
             return {}
         with postgres_errors():
             rows = self._all(
-                "SELECT e.source, e.epoch, e.seq, e.global_seq, e.payload_sha256 "
+                "SELECT e.source, e.epoch, e.seq, e.global_seq, e.payload_sha256, e.type, "
+                "e.valid_time_ns "
                 "FROM {s}.event_log e JOIN unnest(%s::text[], %s::bigint[], %s::bigint[]) "
                 "AS w(source, epoch, seq) USING (source, epoch, seq)",
                 [[k[0] for k in keys], [k[1] for k in keys], [k[2] for k in keys]])
-        return {(r[0], r[1], r[2]): (r[3], bytes(r[4])) for r in rows}
+        return {(r[0], r[1], r[2]): (r[3], bytes(r[4]), r[5], r[6]) for r in rows}
 
     def _commit(self, plan: BatchPlan) -> None:
         with postgres_errors(), self._con.transaction():

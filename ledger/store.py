@@ -41,6 +41,8 @@ from ledger.records import (FLAG_UNKNOWN_LOT, AppendOutcome, AppendResult, Gap, 
                             LedgerStats, QuarantineEntry, RecordedEvent, StreamInfo, VerifyReport)
 
 Key = tuple[str, int, int]
+#: what a store answers for a stored key: (global_seq, payload_sha256, type, valid_time_ns)
+StoredKey = tuple[int, bytes, str, int]
 
 #: Types whose decoded body is kept beside the payload (as JSON) for the SQL views.
 BODY_TYPES: frozenset[str] = frozenset({
@@ -248,7 +250,7 @@ class _BatchPlanner:
     # -- the batch --------------------------------------------------------------------
 
     def run(self, batch: Sequence[Event | Malformed],
-            stored: dict[Key, tuple[int, bytes]],
+            stored: dict[Key, StoredKey],
             origins: Sequence[str] | None = None) -> BatchPlan:
         if origins is None:
             for item in batch:
@@ -260,7 +262,7 @@ class _BatchPlanner:
         self.plan.state = self.state
         return self.plan
 
-    def _one(self, item: Event | Malformed, stored: dict[Key, tuple[int, bytes]]) -> None:
+    def _one(self, item: Event | Malformed, stored: dict[Key, StoredKey]) -> None:
         # the hot path of the ledger: keep it flat (every event of every batch runs it)
         if type(item) is not Event:
             if isinstance(item, Malformed):
@@ -268,6 +270,8 @@ class _BatchPlanner:
                 return
             if not isinstance(item, Event):
                 raise InterfaceError(f"append takes Event or Malformed, not {type(item).__name__}")
+        if stored and self._sent_again(item, stored):
+            return
         try:
             message = check_event(item)
         except InvalidEvent as exc:
@@ -343,12 +347,30 @@ class _BatchPlanner:
         plan.bodies.append(body)
         plan.outcomes.append(AppendOutcome("appended", global_seq, None, None, flags))
 
-    def _appended_in_batch(self, key: Key) -> tuple[int, bytes] | None:
-        """(global_seq, payload hash) of ``key`` if this batch appended it (rare path)."""
+    def _appended_in_batch(self, key: Key) -> StoredKey | None:
+        """What a store would answer for ``key`` if this batch appended it (rare path)."""
         for row in reversed(self.plan.rows):
             if (row.source, row.epoch, row.seq) == key:
-                return row.global_seq, row.payload_sha256
+                return row.global_seq, row.payload_sha256, row.type, row.valid_time_ns
         return None
+
+    def _sent_again(self, item: Event, stored: dict[Key, StoredKey]) -> bool:
+        """Record ``item`` as a duplicate if it is a stored event sent again: its key is
+        stored with the same type, valid time and payload bytes.  Such an event is not
+        decoded again (it passed the same checks when it was stored); anything else goes
+        through the full path, which also tells a conflict from a duplicate."""
+        payload = item.payload
+        if type(payload) is not bytes or not _storable_key(item):
+            return False
+        prior = stored.get((item.source, item.epoch, item.seq))
+        if (prior is None or prior[2] != item.type or prior[3] != item.valid_time_ns
+                or prior[1] != sha256(payload).digest()):
+            return False
+        recorded = item.recorded_time_ns
+        if recorded is not None and not is_time_ns(recorded):
+            return False
+        self.plan.outcomes.append(AppendOutcome("duplicate", prior[0]))
+        return True
 
 
 def _storable_key(item: Event) -> bool:
@@ -358,20 +380,28 @@ def _storable_key(item: Event) -> bool:
             and 0 <= epoch <= MAX_COUNTER and 0 <= seq <= MAX_COUNTER)
 
 
-def keys_to_look_up(state: WriterState, batch: Iterable[Event | Malformed]) -> list[Key]:
-    """Keys of a batch that may already be stored (so their payload hash is needed).
+def keys_to_look_up(state: WriterState, batch: Iterable[Event | Malformed]
+                    ) -> tuple[list[Key], tuple[int, int] | None]:
+    """Keys of a batch that may already be stored (so their payload hash is needed), and
+    the span of those events' valid times (ns; None when none is a 64-bit integer).
 
     Only keys a store can hold are looked up: an epoch or seq outside [0, 2^63) is never
-    stored (the planner quarantines it as ``bad_identity``).
+    stored (the planner quarantines it as ``bad_identity``).  The span is a hint: a
+    duplicate was stored at its own valid time, so a store can look there first.
     """
     keys = []
+    low = high = None
     for item in batch:
         if not isinstance(item, Event) or not _storable_key(item):
             continue
         stream = state.streams.get((item.source, item.epoch))
         if stream is not None and stream.is_stored(item.seq):
             keys.append((item.source, item.epoch, item.seq))
-    return keys
+            valid = item.valid_time_ns
+            if is_time_ns(valid):
+                low = valid if low is None or valid < low else low
+                high = valid if high is None or valid > high else high
+    return keys, (None if low is None else (low, high))
 
 
 class LedgerStore(abc.ABC):
@@ -426,7 +456,8 @@ class LedgerStore(abc.ABC):
         batch = list(batch)
         with self._lock:
             self._check_writable()
-            stored = self._lookup(keys_to_look_up(self._state, batch)) if batch else {}
+            keys, valid_span_ns = keys_to_look_up(self._state, batch)
+            stored = self._lookup(keys, valid_span_ns) if keys else {}
             if origins is not None and len(origins) != len(batch):
                 raise InterfaceError(f"{len(origins)} origins for {len(batch)} events")
             plan = _BatchPlanner(self._state, self.clock, self.signing,
@@ -583,8 +614,11 @@ class LedgerStore(abc.ABC):
     # -- what a backend provides ------------------------------------------------------------
 
     @abc.abstractmethod
-    def _lookup(self, keys: Sequence[Key]) -> dict[Key, tuple[int, bytes]]:
-        """``key -> (global_seq, payload_sha256)`` for stored events among ``keys``."""
+    def _lookup(self, keys: Sequence[Key], valid_span_ns: tuple[int, int] | None = None
+                ) -> dict[Key, StoredKey]:
+        """``key -> (global_seq, payload_sha256, type, valid_time_ns)`` for the stored events
+        among ``keys``.  ``valid_span_ns`` (first, last) is where most of them are likely to
+        lie in valid time; every stored key is answered whatever its valid time."""
 
     @abc.abstractmethod
     def _commit(self, plan: BatchPlan) -> None:

@@ -29,6 +29,7 @@ from ledger.clock import EventClock, ManualClock
 from ledger.records import FLAG_UNKNOWN_LOT, Gap, QuarantineEntry, RecordedEvent, VerifyReport
 from ledger.signing import SigningPolicy
 from ledger.store import LedgerStore
+from ledger.testing_resend import ResendContract
 from ledger.testing_signing import SigningContract, rechained
 from ledger.testing_stats import StatsContract
 from ledger.verifying import CHAIN_MISMATCH
@@ -191,7 +192,7 @@ def tampered_side(quarantine: list[QuarantineEntry], gaps: list[Gap],
     return quarantine, gaps
 
 
-class LedgerStoreContract(SigningContract, StatsContract):
+class LedgerStoreContract(ResendContract, SigningContract, StatsContract):
     """Behaviour every :class:`~ledger.store.LedgerStore` backend must show."""
 
     #: whether the backend keeps data across ``reopen``

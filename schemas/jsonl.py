@@ -31,6 +31,7 @@ from google.protobuf import json_format
 from google.protobuf.message import Message
 
 from schemas.events import EVENT_TYPES, Event, Malformed, decode_payload
+from schemas.json_body import parse_body
 from schemas.validate import shown
 
 _ENVELOPE_INT_FIELDS = ("epoch", "seq", "valid_time_ns")
@@ -187,7 +188,10 @@ def _decode(raw: bytes, prefix: str) -> Event | Malformed:
     if not isinstance(body, dict):
         return Malformed(raw=raw, reason=f"malformed: {prefix}body must be a JSON object", **ident)
     try:
-        message = json_format.ParseDict(body, EVENT_TYPES[type_name]())
+        cls = EVENT_TYPES[type_name]
+        message = parse_body(body, cls)
+        if message is None:     # a shape the fast path leaves to json_format
+            message = json_format.ParseDict(body, cls())
         payload = message.SerializeToString(deterministic=True)
     except RecursionError:
         return Malformed(raw=raw, reason=f"too_deep: {prefix}body nested too deeply", **ident)

@@ -219,8 +219,34 @@ def check_event(event: Event) -> Message:
 
 
 def _tuple_getter(paths: list[str]):
+    """A callable giving the values at the dotted ``paths`` as one tuple, in order.
+
+    Paths that share a sub-message (``rotation.x``, ``rotation.w``) are read through it
+    once: each read of a sub-message makes a new Python object for it.
+    """
     if not paths:
         return lambda message: ()
+    groups: list[tuple[str, list[str]]] = []    # (sub-message path, leaf names), in order
+    for path in paths:
+        parent, _, leaf = path.rpartition(".")
+        if groups and groups[-1][0] == parent:
+            groups[-1][1].append(leaf)
+        else:
+            groups.append((parent, [leaf]))
+    if len(groups) == 1 and not groups[0][0] or len(paths) == 1:
+        return _flat_getter(paths)
+    steps = [(operator.attrgetter(parent) if parent else None, _flat_getter(leaves))
+             for parent, leaves in groups]
+
+    def getter(message):
+        values: tuple = ()
+        for sub, leaves in steps:
+            values += leaves(sub(message) if sub is not None else message)
+        return values
+    return getter
+
+
+def _flat_getter(paths: list[str]):
     getter = operator.attrgetter(*paths)
     if len(paths) == 1:
         return lambda message: (getter(message),)
@@ -275,24 +301,36 @@ class _CompiledChecks:
             for path, value in zip(self.double_paths, values):
                 if not math.isfinite(value):
                     raise InvalidEvent("non_finite", f"{self.name}.{path} is not finite")
-        for path, items in zip(self.repeated_paths, self.get_repeated(message)):
-            if items and not math.isfinite(sum(items)):
-                for index, value in enumerate(items):
-                    if not math.isfinite(value):
-                        raise InvalidEvent("non_finite", f"{self.name}.{path}[{index}] is not finite")
-        for path, mapping in zip(self.map_paths, self.get_maps(message)):
-            for key, value in mapping.items():
-                if not math.isfinite(value):
-                    raise InvalidEvent("non_finite", f"{self.name}.{path}[{key!r}] is not finite")
-        for (path, allowed, enum_name), value in zip(self.enum_paths, self.get_enums(message)):
-            if value not in allowed:
-                raise InvalidEvent("unknown_enum", f"{self.name}.{path} = {value} is not a {enum_name}")
+        if self.repeated_paths:     # (most types have none: skip the getter's call)
+            self._check_repeated(message)
+        if self.map_paths:
+            self._check_maps(message)
+        if self.enum_paths:
+            self._check_enums(message)
         for path, ts in zip(self.timestamp_paths, self.get_timestamps(message)):
             nanos = ts.nanos
             if not 0 <= nanos < NS_PER_S or not is_time_ns(ts.seconds * NS_PER_S + nanos):
                 raise InvalidEvent(
                     "out_of_range",
                     f"{self.name}.{path} is not a timestamp between 1677-09-21 and 2262-04-11")
+
+    def _check_repeated(self, message: Message) -> None:
+        for path, items in zip(self.repeated_paths, self.get_repeated(message)):
+            if items and not math.isfinite(sum(items)):
+                for index, value in enumerate(items):
+                    if not math.isfinite(value):
+                        raise InvalidEvent("non_finite", f"{self.name}.{path}[{index}] is not finite")
+
+    def _check_maps(self, message: Message) -> None:
+        for path, mapping in zip(self.map_paths, self.get_maps(message)):
+            for key, value in mapping.items():
+                if not math.isfinite(value):
+                    raise InvalidEvent("non_finite", f"{self.name}.{path}[{key!r}] is not finite")
+
+    def _check_enums(self, message: Message) -> None:
+        for (path, allowed, enum_name), value in zip(self.enum_paths, self.get_enums(message)):
+            if value not in allowed:
+                raise InvalidEvent("unknown_enum", f"{self.name}.{path} = {value} is not a {enum_name}")
 
 
 @lru_cache(maxsize=None)

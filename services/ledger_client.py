@@ -335,7 +335,7 @@ class RemoteLedger(LedgerStore):
         except ValueError as exc:
             raise LedgerQueryError(f"{what}: {exc}") from None
 
-    def _lookup(self, keys):  # pragma: no cover - a read-only store never appends
+    def _lookup(self, keys, valid_span_ns=None):  # pragma: no cover - read-only: never appends
         raise InterfaceError("a remote ledger is read-only")
 
     def _commit(self, plan):  # pragma: no cover - a read-only store never appends
