@@ -77,6 +77,7 @@ def test_a_new_ledger_starts_a_sidecar_and_each_batch_moves_it(tmp_path):
         assert read_head(path).global_seq == -1
         for b in range(3):
             store.append([joint_event("s", b * 10 + i, b * 10 + i) for i in range(10)])
+            store.flush_head()
             sidecar = read_head(path)
             head = store.head()
             assert (sidecar.global_seq, sidecar.chain_sha256) == (head.global_seq,
@@ -180,6 +181,7 @@ HOLDER = textwrap.dedent(f"""
     store = open_ledger(sys.argv[1], ManualClock(1_000))
     for b in range(1, 4):
         store.append([joint_event("copy.src", b * {BATCH} + i, i) for i in range({BATCH})])
+    store.flush_head()              # the sidecar records the last batch (written on a thread)
     print("ready", flush=True)
     sys.stdin.readline()
 """)
@@ -213,3 +215,18 @@ def test_a_copy_taken_without_its_wal_fails_verify(tmp_path):
                    str(copy / "yard.duckdb"))
     assert refused.returncode == 2 and "went backwards" in refused.stderr
     json.loads(head_path(copy / "yard.duckdb").read_text())    # untouched, still readable
+
+
+def test_closing_the_store_waits_for_the_last_heads_sidecar(tmp_path):
+    """The sidecar is written on a thread of its own: however fast batches come, closing
+    the store leaves it at the last committed head (and it never leads the database)."""
+    path = tmp_path / "burst.duckdb"
+    store = open_ledger(path, ManualClock(1_000))
+    for b in range(20):
+        store.append([joint_event("burst.src", b * 5 + i, b * 5 + i) for i in range(5)])
+        sidecar = read_head(path)
+        assert sidecar.global_seq <= store.head().global_seq
+    head = store.head()
+    store.close()
+    sidecar = read_head(path)
+    assert (sidecar.global_seq, sidecar.chain_sha256) == (head.global_seq, head.chain_sha256)
