@@ -30,7 +30,8 @@ from eventsourcing.persistence import StoredEvent
 from bench._ledger_systems import ES_NAMESPACE, Workload, batches, es_append, es_recorder
 from ledger import ManualClock, open_ledger
 from ledger.chain import GENESIS
-from ledger.duckdb_store import _DDL, _EVENT_SCHEMA, _SET_CHECKPOINT_THRESHOLD
+from ledger.duckdb_sql import _DDL, _EVENT_SCHEMA
+from ledger.duckdb_store import _SET_CHECKPOINT_THRESHOLD
 from ledger.importing import import_lines
 from schemas.jsonl import event_line
 

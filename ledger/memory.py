@@ -15,7 +15,8 @@ from schemas.analytes import AnalyteOptions, AnalytePolicy
 from ledger.clock import SiteClock
 from ledger.records import Gap, QuarantineEntry, RecordedEvent
 from ledger.signing import SigningPolicy
-from ledger.store import BatchPlan, Key, LedgerStore, StoredKey
+from ledger.store import LedgerStore
+from ledger.writer_state import BatchPlan, Key, StoredKey
 
 
 class MemoryStore(LedgerStore):

@@ -49,8 +49,9 @@ from ledger.errors import (DatabaseError, DataError, IntegrityError, InterfaceEr
                            class_for, disk_full_text, first_line)
 from ledger.records import Gap, LedgerStats, QuarantineEntry, RecordedEvent, VerifyReport
 from ledger.signing import SigningPolicy, registry_from_rows
-from ledger.store import (BODY_TYPES, BatchPlan, Key, LedgerStore, StoredKey, StreamState,
-                          WriterState)
+from ledger.store import LedgerStore
+from ledger.writer_state import (BODY_TYPES, BatchPlan, Key, StoredKey, StreamState,
+                                 WriterState)
 
 #: rows fetched per page of a streamed read
 PAGE_ROWS = 4_096

@@ -36,7 +36,7 @@ TARGET = 0.90
 MODULES: dict[str, tuple[str, list[str]]] = {
     "chain": ("ledger/chain.py", ["ledger.chain.*"]),
     "append planner + state": ("ledger/store.py", [
-        "ledger.store.xǁStreamStateǁ*", "ledger.store.x__int64_or_none__mutmut_*",
+        "ledger.writer_state.xǁStreamStateǁ*", "ledger.store.x__int64_or_none__mutmut_*",
         "ledger.store.x__split_reason__mutmut_*", "ledger.store.xǁ_BatchPlannerǁ*",
         "ledger.store.x_keys_to_look_up__mutmut_*"] + [
         f"ledger.store.xǁLedgerStoreǁ{name}__mutmut_*"
