@@ -213,8 +213,8 @@ class HeadRecorder:
 
     :meth:`record` hands the thread the newest committed head and returns; the thread
     writes the newest head it has been given (a burst of batches is one write).  The
-    sidecar therefore never leads the database, and trails it by at most the write in
-    flight.  :meth:`flush` waits until the last head given is written; :meth:`close`
+    sidecar therefore never leads the database, and trails it only until the thread's
+    next write.  :meth:`flush` waits until the last head given is written; :meth:`close`
     flushes and stops the thread.  A failed write is logged, not raised: the batch is
     committed, and a database ahead of its sidecar is brought forward on the next open.
     """
@@ -273,7 +273,7 @@ class HeadRecorder:
     def _write(self, head: Head) -> None:
         try:
             write_head(self.ledger_path, head)
-        except OSError as exc:
+        except Exception as exc:  # noqa: BLE001 - logged: the thread must outlive any failure
             if not self.failing:
                 emit("ledger", "warning", "cannot write the head sidecar (the batch is "
                      "committed; a lost tail after it would go undetected until it is written)",
