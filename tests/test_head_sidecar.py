@@ -230,3 +230,24 @@ def test_closing_the_store_waits_for_the_last_heads_sidecar(tmp_path):
     store.close()
     sidecar = read_head(path)
     assert (sidecar.global_seq, sidecar.chain_sha256) == (head.global_seq, head.chain_sha256)
+
+
+def test_a_failed_sidecar_write_is_logged_and_the_next_batch_writes_it(tmp_path, capsys):
+    """A sidecar that cannot be written (here a directory stands in its place) does not
+    fail the append; it is logged once, and once the path is writable again the next
+    batch brings the sidecar to the head."""
+    path = tmp_path / "blocked.duckdb"
+    with open_ledger(path, ManualClock(1_000)) as store:
+        store.append([joint_event("b.src", 0, 0)])
+        store.flush_head()
+        head_path(path).unlink()
+        head_path(path).mkdir()                   # os.replace onto a directory fails
+        store.append([joint_event("b.src", 1, 1)])
+        store.flush_head()
+        assert store.head().global_seq == 1       # the batch is committed
+        assert "cannot write the head sidecar" in capsys.readouterr().err
+        head_path(path).rmdir()
+        store.append([joint_event("b.src", 2, 2)])
+        store.flush_head()
+        sidecar = read_head(path)
+        assert (sidecar.global_seq, sidecar.chain_sha256) == (2, store.head().chain_sha256)
