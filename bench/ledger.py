@@ -1,15 +1,13 @@
 """Ledger benchmark: our ledger on DuckDB and on PostgreSQL beside Python ``eventsourcing``.
 
 Run it from the project root with the project's virtualenv::
-
     .venv/bin/python bench/ledger.py              # full run, several minutes on 2 cores
     .venv/bin/python bench/ledger.py --quick      # smoke test, well under a minute
     .venv/bin/python bench/ledger.py --events-1m 300000 --seed 7
     .venv/bin/python bench/ledger.py --no-postgres   # DuckDB and SQLite columns only
     make bench                                    # same as the first line
 
-What it measures (all inputs are pre-built before any clock starts; building
-protobufs is not what we measure):
+What it measures (every input is pre-built before any clock starts):
 
 1. **Append throughput** (events/s) at batch sizes 1, 100, 1,000 and 10,000 for
    two workloads:
