@@ -353,12 +353,6 @@ class DuckDBStore(LedgerStore):
                 found.update(json.loads(body).get("analytes", {}))
         return found - self._analytes
 
-    def flush_head(self) -> None:
-        """Wait until the head sidecar records the last committed batch (it is written on
-        a thread of its own after each commit; closing the store waits for it too)."""
-        if self._head_recorder is not None:
-            self._head_recorder.flush()
-
     def checkpoint(self) -> Head:
         """Write everything committed into the database file (DuckDB's CHECKPOINT, which
         empties the WAL); return the head the file then holds."""
@@ -486,8 +480,6 @@ class DuckDBStore(LedgerStore):
 
     def _close(self) -> None:
         try:
-            if self._head_recorder is not None:
-                self._head_recorder.close()
             with backend_errors():
                 self._con.close()
         finally:

@@ -8,9 +8,8 @@ Beside ``yard.duckdb`` the writer keeps ``yard.duckdb.head``, one JSON line::
 ``global_seq`` and ``chain_sha256`` are the head after the last committed batch,
 ``recorded_time_ns`` that row's recorded time (site clock, ns; null for an empty
 ledger), ``written_ns`` the wall-clock UTC ns the sidecar was written.  It is written
-after every batch that moved the head (by :class:`HeadRecorder`'s thread, the newest
-head it has been given), atomically: a temporary file, fsync, rename over the old one,
-fsync of the directory.
+after every batch that moved the head, atomically: a temporary file, fsync, rename over
+the old one, fsync of the directory.
 
 On opening a ledger for writing, :func:`reconcile` compares the database's head with
 its sidecar:
@@ -31,7 +30,6 @@ from __future__ import annotations
 
 import json
 import os
-import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -208,72 +206,23 @@ def compare(store: LedgerStore, ledger_path: str | os.PathLike[str]) -> tuple[bo
 
 
 class HeadRecorder:
-    """Writes the sidecar after each committed batch that moved the head, on a thread of
-    its own, so that an append does not wait for the sidecar's two fsyncs.
+    """Writes the sidecar after each committed batch that moved the head.
 
-    :meth:`record` hands the thread the newest committed head and returns; the thread
-    writes the newest head it has been given (a burst of batches is one write).  The
-    sidecar therefore never leads the database, and trails it only until the thread's
-    next write.  :meth:`flush` waits until the last head given is written; :meth:`close`
-    flushes and stops the thread.  A failed write is logged, not raised: the batch is
-    committed, and a database ahead of its sidecar is brought forward on the next open.
+    A failed write is logged, not raised: the batch is committed, and a database ahead
+    of its sidecar is brought forward on the next open.
     """
 
     def __init__(self, ledger_path: str | os.PathLike[str], head: Head) -> None:
         self.ledger_path = ledger_path
-        self.last_seq = head.global_seq     # the head last given to the thread
+        self.last_seq = head.global_seq
         self.failing = False
-        self._ready = threading.Condition()
-        self._pending: Head | None = None
-        self._writing = False
-        self._stopping = False
-        self._thread: threading.Thread | None = None
 
     def record(self, head: Head) -> None:
-        with self._ready:
-            if head.global_seq == self.last_seq and not self.failing:
-                return
-            self.last_seq = head.global_seq
-            self._pending = head
-            if self._thread is None:
-                self._thread = threading.Thread(target=self._run, name="head-sidecar",
-                                                daemon=True)
-                self._thread.start()
-            self._ready.notify_all()
-
-    def flush(self) -> None:
-        """Wait until the last head given to :meth:`record` is written (or failed)."""
-        with self._ready:
-            while self._pending is not None or self._writing:
-                self._ready.wait()
-
-    def close(self) -> None:
-        """Write the last head given, then stop the thread."""
-        with self._ready:
-            self._stopping = True
-            self._ready.notify_all()
-        if self._thread is not None:
-            self._thread.join()
-
-    def _run(self) -> None:
-        while True:
-            with self._ready:
-                while self._pending is None and not self._stopping:
-                    self._ready.wait()
-                if self._pending is None:
-                    return
-                head, self._pending, self._writing = self._pending, None, True
-            try:
-                self._write(head)
-            finally:
-                with self._ready:
-                    self._writing = False
-                    self._ready.notify_all()
-
-    def _write(self, head: Head) -> None:
+        if head.global_seq == self.last_seq and not self.failing:
+            return
         try:
             write_head(self.ledger_path, head)
-        except Exception as exc:  # noqa: BLE001 - logged: the thread must outlive any failure
+        except OSError as exc:
             if not self.failing:
                 emit("ledger", "warning", "cannot write the head sidecar (the batch is "
                      "committed; a lost tail after it would go undetected until it is written)",
@@ -281,3 +230,4 @@ class HeadRecorder:
             self.failing = True
             return
         self.failing = False
+        self.last_seq = head.global_seq
