@@ -1,9 +1,9 @@
 """Ledger benchmark: our ledger on DuckDB and on PostgreSQL beside Python ``eventsourcing``.
 
 Run it from the project root with the project's virtualenv::
+
     .venv/bin/python bench/ledger.py              # full run, several minutes on 2 cores
     .venv/bin/python bench/ledger.py --quick      # smoke test, well under a minute
-    .venv/bin/python bench/ledger.py --events-1m 300000 --seed 7
     .venv/bin/python bench/ledger.py --no-postgres   # DuckDB and SQLite columns only
     make bench                                    # same as the first line
 
