@@ -27,10 +27,11 @@ import duckdb
 import pyarrow as pa
 from eventsourcing.persistence import StoredEvent
 
-from bench._ledger_systems import ES_NAMESPACE, Workload, batches, es_append, es_recorder
+from bench._ledger_systems import ES_NAMESPACE, Workload, batches, es_recorder
 from ledger import ManualClock, open_ledger
 from ledger.chain import GENESIS
-from ledger.duckdb_sql import _DDL, _EVENT_SCHEMA
+from ledger.duckdb_sql import (_BEGIN, _COMMIT, _DDL, _EVENT_SCHEMA, _INSERT_NEW_EVENTS,
+                               _NEW_EVENTS)
 from ledger.duckdb_store import _SET_CHECKPOINT_THRESHOLD
 from ledger.importing import import_lines
 from schemas.jsonl import event_line
@@ -74,10 +75,10 @@ def es_import(lines_path: str, sqlite_path: str) -> tuple[float, int]:
             stored.append(StoredEvent(originator_id=oid, originator_version=int(seq),
                                       topic=type_name.decode(), state=line))
             if len(stored) == BATCH:
-                es_append(recorder, stored, BATCH)
+                recorder.insert_events(stored)
                 stored = []
     if stored:
-        es_append(recorder, stored, BATCH)
+        recorder.insert_events(stored)
     seconds = time.perf_counter() - start
     datastore.close()
     return seconds, count
@@ -144,11 +145,11 @@ def duckdb_floor(work: Workload, path: str) -> float:
             con.execute(statement)
         start = time.perf_counter()
         for table in tables:
-            con.execute("BEGIN TRANSACTION")
-            con.register("floor_rows", table)
-            con.execute("INSERT INTO event_log SELECT * FROM floor_rows")
-            con.unregister("floor_rows")
-            con.execute("COMMIT")
+            con.execute(_BEGIN)           # the store's own statements
+            con.register(_NEW_EVENTS, table)
+            con.execute(_INSERT_NEW_EVENTS)
+            con.unregister(_NEW_EVENTS)
+            con.execute(_COMMIT)
         seconds = time.perf_counter() - start
     finally:
         con.close()
