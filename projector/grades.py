@@ -215,6 +215,8 @@ class GradeClasses:
         that reported none).
     lab_sd_pp : ndarray, shape (C, A)
         The assay's stated repeatability (pp; NaN: not an assay's class, or not stated).
+    window_ns : ndarray, shape (C, 2), int64, or None
+        The assay's sampling window (start, end; UTC ns; 0, 0: not an assay's class).
     """
 
     index: np.ndarray
@@ -222,6 +224,7 @@ class GradeClasses:
     assayed: np.ndarray
     density_t_m3: np.ndarray
     lab_sd_pp: np.ndarray
+    window_ns: np.ndarray | None = None
 
 
 def grade_classes(lot_id: str, planned_grade: Mapping[str, float],
@@ -253,6 +256,7 @@ def grade_classes(lot_id: str, planned_grade: Mapping[str, float],
     assayed = [False, False]
     density = [math.nan, math.nan]
     stated = [np.full(n_a, math.nan), np.full(n_a, math.nan)]
+    windows = [(0, 0), (0, 0)]
     mine = [a for a in assays_effective if a.lot_id == lot_id]
     # lowest precedence first: later ones overwrite
     mine.sort(key=lambda a: (a.is_final, a.recorded_ns, a.assay_id))
@@ -268,9 +272,11 @@ def grade_classes(lot_id: str, planned_grade: Mapping[str, float],
         density.append(a.bulk_density_t_m3 if a.bulk_density_t_m3 > 0 else math.nan)
         stated.append(np.array([a.repeatability_pp.get(name, math.nan) for name in analytes],
                                dtype=np.float64))
+        windows.append((a.window_start_ns, a.window_end_ns))
     return GradeClasses(index, np.stack(rows).reshape(len(rows), n_a), np.array(assayed),
                         np.array(density, dtype=np.float64),
-                        np.stack(stated).reshape(len(stated), n_a))
+                        np.stack(stated).reshape(len(stated), n_a),
+                        np.array(windows, dtype=np.int64))
 
 
 def grade_at(lot_id: str, planned_grade: Mapping[str, float],

@@ -225,7 +225,7 @@ class GradeJoin:
                           self.analytes)
         # grade_classes leaves NaN where no density was reported
         density = np.where(np.isfinite(c.density_t_m3), c.density_t_m3, self.density_default)
-        return GradeClasses(c.index, c.grade, c.assayed, density, c.lab_sd_pp)
+        return GradeClasses(c.index, c.grade, c.assayed, density, c.lab_sd_pp, c.window_ns)
 
     def material(self, lot_id: str, times_ns, volumes_m3):
         """``(tonnes, grade-tonnes (A,), assayed tonnes, graded tonnes)`` of some material

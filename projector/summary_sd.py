@@ -30,6 +30,8 @@ import numpy as np
 from projector.grades import grade_classes
 from projector.uncertainty import (UncertaintyConfig, VolumeVariance, boundary_band_thickness_m,
                                    figure_sd, volume_variance)
+from projector.window_drift import BINS, drift_rate_pp2_s, part_variance_pp2, window_histogram
+from schemas.times import NS_PER_S
 
 __all__ = ["pile_sd", "cut_sd"]
 
@@ -45,6 +47,8 @@ class _Pieces:
         self.reported: list[np.ndarray] = []
         self._ids: dict[tuple, int] = {}
         self._stated: dict[int, np.ndarray] = {}     # group -> the lab's stated sd (pp)
+        self._hist: dict[int, np.ndarray] = {}       # assayed group -> tonnes per window bin
+        self._window_s: dict[int, float] = {}        # assayed group -> its window (s)
 
     def add(self, lot_id: str, times_ns, volumes_m3) -> None:
         """Some material of one lot: deposition times (UTC ns) and volumes (m^3) per cell."""
@@ -73,9 +77,17 @@ class _Pieces:
         for i, g in enumerate(groups):
             if assayed[i]:
                 self._stated[g] = stated[i]
+                self._add_window(g, c.window_ns[i], np.asarray(times_ns)[index == i],
+                                 (volumes * rho[index])[index == i])
         self.group.append(np.array(groups, np.int64))
         self.assayed.append(assayed)
         self.reported.append(reported)
+
+    def _add_window(self, group: int, window_ns, times_ns, tonnes) -> None:
+        start, end = (int(v) for v in window_ns)
+        hist = window_histogram(times_ns, tonnes, start, end)
+        self._hist[group] = self._hist.get(group, 0.0) + hist
+        self._window_s[group] = (end - start) / NS_PER_S
 
     def _id(self, key: tuple) -> int:
         return self._ids.setdefault(key, len(self._ids))
@@ -92,6 +104,37 @@ class _Pieces:
         return {"tonnes": cat(self.tonnes, np.float64), "group": cat(self.group, np.int64),
                 "assayed": cat(self.assayed, bool), "density_reported": cat(self.reported, bool),
                 "lab_sd_pp": stated}
+
+    def drift_var_pp2(self, drift_pp2_s: np.ndarray) -> np.ndarray:
+        """Per group (K, A): the variance of its pieces' grade about its window's
+        (:func:`projector.window_drift.part_variance_pp2`; 0 for a planned group)."""
+        k = len(self._ids)
+        hist, width = np.zeros((k, BINS)), np.zeros(k)
+        for g, h in self._hist.items():
+            hist[g], width[g] = h, self._window_s[g]
+        return part_variance_pp2(hist, width, drift_pp2_s)
+
+
+def drift_rate(join, config: UncertaintyConfig) -> np.ndarray:
+    """The belt's drift rate inside a window (pp^2/s, per analyte), estimated from the
+    effective assays of every lot (:func:`projector.window_drift.drift_rate_pp2_s`; each
+    assay's stated repeatability, else the configured one); 0 where it cannot be
+    estimated (no lot with two assays), so the term then adds nothing."""
+    assays = [a for lot in sorted(join.by_lot) for a in join.by_lot[lot]]
+    n_a = len(join.analytes)
+    if len(assays) < 2 or not config.window_drift:
+        return np.zeros(n_a)
+    configured = [config.lab_sd_pp.get(name, math.nan) for name in join.analytes]
+    grade = np.array([[a.analytes.get(name, math.nan) for name in join.analytes]
+                      for a in assays]).reshape(len(assays), n_a)
+    lab = np.array([[a.repeatability_pp.get(name, configured[j])
+                     for j, name in enumerate(join.analytes)] for a in assays]).reshape(
+        len(assays), n_a)
+    rate = drift_rate_pp2_s(np.array([a.window_start_ns for a in assays]) / NS_PER_S,
+                            np.array([a.window_end_ns for a in assays]) / NS_PER_S,
+                            grade, np.nan_to_num(lab, nan=0.0),
+                            np.array([a.lot_id for a in assays]))
+    return np.nan_to_num(rate, nan=0.0)
 
 
 def _lot_diff_pp(join, lower_lot: str, upper_lot: str) -> np.ndarray | None:
@@ -116,7 +159,8 @@ def _figure(config: UncertaintyConfig, join, pieces: _Pieces, volume: VolumeVari
     diff = np.array([d for _v, d in boundaries], np.float64).reshape(len(boundaries), n_a)
     return figure_sd(config, join.analytes, volume=volume, volume_m3=max(volume_m3, 0.0),
                      boundary_tonnes=bt, boundary_grade_diff_pp=diff,
-                     residual_m3=residual_m3, **p)
+                     residual_m3=residual_m3,
+                     drift_var_pp2=pieces.drift_var_pp2(drift_rate(join, config)), **p)
 
 
 def pile_sd(state, join, config: UncertaintyConfig) -> dict:
@@ -167,7 +211,7 @@ def cut_sd(cut, state, join, config: UncertaintyConfig) -> dict:
     for lower, upper in zip(order, order[1:]):
         (lo_info, lo_m), (hi_info, hi_m) = removed[lower], removed[upper]
         diff = _lot_diff_pp(join, lo_info.lot_id, hi_info.lot_id)
-        both = (lo_m > 0) & (hi_m > 0)
+        both = (lo_m > 0) & (hi_m > 0) & (np.maximum(lo_m, hi_m) >= config.boundary_sliver_m)
         if diff is not None and both.any():
             band = boundary_band_thickness_m(-lo_m[both], np.zeros(int(both.sum())), hi_m[both],
                                              config.boundary_band_m)

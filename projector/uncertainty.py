@@ -259,18 +259,20 @@ def boundary_band_thickness_m(lower_bottom_m, boundary_m, upper_top_m, band_m: f
 
 
 def grade_sd(tonnes, group, assayed, lab_sd_pp, planned_sd_pp, boundary_tonnes=(),
-             boundary_grade_diff_pp=None) -> np.ndarray:
+             boundary_grade_diff_pp=None, drift_var_pp2=None) -> np.ndarray:
     """Sd (pp) per analyte of the grade of a mixture of pieces.
 
-    Three independent terms in quadrature: (a) assayed pieces, the lab's error, one per
-    assay window (``group``), sd ``lab_sd_pp``; (b) pieces graded from planned grades, one
-    error per group (a lot), sd ``planned_sd_pp``; (c) per buried boundary ``b``, the
-    ``boundary_tonnes[b]`` within its band could belong to either lot: the true boundary
-    lies anywhere in the band (uniform), so the tonnes given to the wrong lot are uniform
-    in ``+-t_b / 2`` (sd ``t_b / (2 sqrt 3)``) and move the grade by that x ``diff_b / T``;
-    boundaries independent.  (a), (b): :func:`weighted_mean_sd` over all pieces (``T``
-    t).  Left out: the lab's bias, sampling error within a window, correlation between
-    groups.
+    Independent terms in quadrature: (a) assayed pieces, the lab's error, one per
+    assay window (``group``), sd ``lab_sd_pp``; (d) with it, the drift of the belt's grade
+    inside the window: the pieces of a window hold part of its material, whose grade
+    differs from the window's by the variance ``drift_var_pp2``
+    (:func:`projector.window_drift.part_variance_pp2`); (b) pieces graded from planned
+    grades, one error per group (a lot), sd ``planned_sd_pp``; (c) per buried boundary
+    ``b``, the ``boundary_tonnes[b]`` within its band could belong to either lot: the true
+    boundary lies anywhere in the band (uniform), so the tonnes given to the wrong lot are
+    uniform in ``+-t_b / 2`` (sd ``t_b / (2 sqrt 3)``) and move the grade by that x
+    ``diff_b / T``; boundaries independent.  (a), (b), (d): :func:`weighted_mean_sd` over
+    all pieces (``T`` t).  Left out: the lab's bias, correlation between groups.
 
     Parameters
     ----------
@@ -284,6 +286,9 @@ def grade_sd(tonnes, group, assayed, lab_sd_pp, planned_sd_pp, boundary_tonnes=(
     boundary_tonnes, boundary_grade_diff_pp : array_like, shape (B,) and (B, A)
         Tonnes within each boundary's band (t), and the upper lot's grade less the
         lower's (pp; None when B is 0).
+    drift_var_pp2 : array_like, shape (K, A), optional
+        Per group, the variance (pp^2, >= 0) of its pieces' grade about its window's
+        (assayed groups only; NaN: unknown, taken as 0).  None: no drift term.
 
     Returns
     -------
@@ -303,6 +308,13 @@ def grade_sd(tonnes, group, assayed, lab_sd_pp, planned_sd_pp, boundary_tonnes=(
                          f"K >= {k}, one A, got {lab.shape} and {plan.shape}")
     lab, plan = (np.broadcast_to(a, (k, n_a)) if a.ndim == 1 else a for a in (lab, plan))
     per_group = np.where((n_assayed > 0)[:, None], lab[:k], plan[:k])
+    if drift_var_pp2 is not None:
+        drift = np.asarray(drift_var_pp2, dtype=np.float64)
+        if drift.ndim != 2 or drift.shape[0] < k or drift.shape[1] != n_a or (drift < 0).any():
+            raise ValueError(f"drift_var_pp2 must have shape (K, A), K >= {k}, A {n_a}, "
+                             f">= 0 or NaN; got {drift.shape}")
+        drift = np.where((n_assayed > 0)[:, None], np.nan_to_num(drift[:k], nan=0.0), 0.0)
+        per_group = np.sqrt(per_group ** 2 + drift)
     var = weighted_mean_sd(t, g, per_group) ** 2
     bt = np.asarray(boundary_tonnes, dtype=np.float64)
     diff = np.asarray(boundary_grade_diff_pp if bt.size else np.zeros((0, n_a)), float)
@@ -331,6 +343,8 @@ class UncertaintyConfig:
     boundary_band_m, residual_sd_share : float
         Half-width (m) of the band about a buried boundary whose lot is uncertain; the
         share of a cut's geometry residual (m^3) taken as its volume sd.
+    window_drift : bool
+        Whether the grade adds the belt's drift inside each assay window (term (d)).
     """
 
     corr_cells: int = 20
@@ -343,13 +357,15 @@ class UncertaintyConfig:
     planned_sd_pp: Mapping[str, float] = field(hash=False, default_factory=lambda: {
         "Fe": 2.5, "SiO2": 1.2, "Al2O3": 0.25, "P": 0.01, "LOI": 0.4})
     boundary_band_m: float = 0.06
+    boundary_sliver_m: float = 0.12
     residual_sd_share: float = 0.5
+    window_drift: bool = True
 
     def __post_init__(self) -> None:
         _block_ids((1, 1), self.corr_cells)
         _finite_nonneg("corr_share", self.corr_share, 1.0)
         for name in ("unseen_sd_m", "density_repeat_rel", "density_default_rel",
-                     "boundary_band_m", "residual_sd_share"):
+                     "boundary_band_m", "boundary_sliver_m", "residual_sd_share"):
             _finite_nonneg(name, getattr(self, name))
         for name in ("lab_sd_pp", "planned_sd_pp"):   # read-only, checked
             table = {str(k): _finite_nonneg(f"{name}[{k}]", v)
@@ -360,7 +376,7 @@ class UncertaintyConfig:
 def figure_sd(config: UncertaintyConfig, analytes: Sequence[str], *, volume: VolumeVariance,
               volume_m3: float, tonnes, group, assayed, density_reported,
               boundary_tonnes=(), boundary_grade_diff_pp=None, residual_m3: float = 0.0,
-              lab_sd_pp=None) -> dict:
+              lab_sd_pp=None, drift_var_pp2=None) -> dict:
     """The sds of a pile's or a cut's tonnes and grade.
 
     Parameters
@@ -380,6 +396,8 @@ def figure_sd(config: UncertaintyConfig, analytes: Sequence[str], *, volume: Vol
     lab_sd_pp : array_like, shape (A,) or (K, A), optional
         The lab's stated repeatability (a row per group); where NaN or not given, the
         configured one.
+    drift_var_pp2 : array_like, shape (K, A), optional
+        As :func:`grade_sd` (ignored unless ``config.window_drift``).
 
     Returns
     -------
@@ -398,5 +416,6 @@ def figure_sd(config: UncertaintyConfig, analytes: Sequence[str], *, volume: Vol
     if lab_sd_pp is not None:
         stated = np.asarray(lab_sd_pp, dtype=np.float64)
         lab = np.where(np.isnan(stated), np.asarray(lab, dtype=np.float64), stated)
-    sd = grade_sd(t, g, assayed, lab, plan, boundary_tonnes, boundary_grade_diff_pp)
+    sd = grade_sd(t, g, assayed, lab, plan, boundary_tonnes, boundary_grade_diff_pp,
+                  drift_var_pp2 if config.window_drift else None)
     return {"tonnes_sd": t_sd, "grade_sd": {a: float(s) for a, s in zip(analytes, sd)}}

@@ -122,6 +122,17 @@ def test_grade_sd_grows_when_no_assay_covers_the_material(folded):
     assert worse_lab.grade_sd["SiO2"] == pytest.approx(p.grade_sd["SiO2"], rel=1e-12)
 
 
+def test_the_window_drift_widens_a_cut_more_than_the_pile(folded):
+    """A cut holds a few seconds of each window, the pile whole windows: the drift inside
+    a window adds to the cut's grade sd more than to the pile's, and nothing once off."""
+    p, lots, assays = folded
+    off = _again(p, lots, assays, config=UncertaintyConfig(window_drift=False))
+    cut, cut_off = (next(c for c in f.cuts if c.cut_id == CUT) for f in (p, off))
+    assert cut.grade_sd["Fe"] > cut_off.grade_sd["Fe"]
+    assert cut.grade_sd["Fe"] / cut_off.grade_sd["Fe"] > p.grade_sd["Fe"] / off.grade_sd["Fe"]
+    assert cut.tonnes_sd == pytest.approx(cut_off.tonnes_sd, rel=1e-12)
+
+
 def test_a_lab_stated_repeatability_overrules_the_configured_one(folded):
     """An assay's stated repeatability takes the place of the configured one for its
     analytes: stating the configured value changes nothing, a worse Fe one widens Fe's
@@ -220,3 +231,35 @@ def test_the_dashboard_draws_one_sd_bands(ledger, folded, tmp_path):
     (v, s, hi), (_v, _s, mid) = rrd.scalars("/series/pile/tonnes_t/known_then_hi")[-1], \
         rrd.scalars("/series/pile/tonnes_t/known_then")[-1]
     assert hi - mid == pytest.approx(p.tonnes_sd, rel=1e-9)
+
+
+def _two_lot_cut(lower_m, upper_m):
+    """A cut of 4 cells that took ``lower_m`` of lot A's deposit and ``upper_m`` of lot B's
+    above it in each, and the join that grades both lots from their plans."""
+    from types import SimpleNamespace
+
+    from projector.deposits import DepositInfo, DepositRemoval, Removal
+    from projector.grid import GridGeometry
+    from projector.query import GradeJoin
+    from projector.summary_sd import cut_sd
+
+    geometry = GridGeometry(0.0, 0.0, 1.0, 2, 2)
+    ix, iy = np.array([0, 0, 1, 1]), np.array([0, 1, 0, 1])
+    parts = tuple(DepositRemoval(k, DepositInfo(k, f"p{k}", lot, 0), 4 * m, ix, iy,
+                                 np.full(4, m), np.zeros(4, np.int64))
+                  for k, lot, m in ((1, "A", lower_m), (2, "B", upper_m)))
+    cut = SimpleNamespace(removals=(Removal(parts),), footprint_var_m2=np.full(4, 1e-4),
+                          residual_m3=0.0)
+    state = SimpleNamespace(pile=SimpleNamespace(geometry=geometry), height=None)
+    join = GradeJoin({"A": {"Fe": 58.0}, "B": {"Fe": 64.0}}, [], 0, 2.4)
+    return lambda config: cut_sd(cut, state, join, config)["grade_sd"]["Fe"]
+
+
+def test_a_boundary_between_slivers_carries_no_band():
+    """Slid material lies in thin slivers of every deposit: a boundary counts only where
+    one side is at least ``boundary_sliver_m`` thick."""
+    config = UncertaintyConfig()
+    for lower, upper, counted in ((0.05, 0.05, False), (0.01, 0.5, True), (0.5, 0.01, True)):
+        sd = _two_lot_cut(lower, upper)
+        without = sd(dataclasses.replace(config, boundary_band_m=0.0))
+        assert (sd(config) > without + 1e-6) is counted, (lower, upper)
