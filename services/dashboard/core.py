@@ -139,7 +139,11 @@ class Dashboard:
         tracker.projection.advance()
         state = tracker.projection.summary()
         if state.geometry is None:
+            # nothing to draw (the pile not declared yet): not due again before a reason
+            # (its declaration is one) or ``every_s`` of valid time, as after an update
             tracker.reasons.clear()
+            self.last_update_seq = tracker.seq
+            self.last_update_valid_ns = self.next_valid_ns()
             return False
         v = self.next_valid_ns()
         self.out.update_v = v

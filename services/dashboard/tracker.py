@@ -67,7 +67,7 @@ class PileTracker:
         self.cut_msgs: dict[str, Any] = {}
         self.assays_by_id: dict[str, Any] = {}
         self.grade_range: dict[str, list[float]] = {}
-        #: why the next update is due now ("cut", "assay", "lot", "pass", "end")
+        #: why the next update is due now ("cut", "assay", "lot", "pass", "pile", "end")
         self.reasons: set[str] = set()
         self.assay_version = 0
         #: the surface and voxels must be redrawn (a geometry record since the last redraw)
@@ -103,6 +103,9 @@ class PileTracker:
             self.latest_scan = record   # decoded only if it is still the latest at an update
         elif kind == "machine_declared":
             self._on_machine(decode_payload(kind, record.payload))
+        elif kind == "pile_declared":
+            if decode_payload(kind, record.payload).pile_id == self.pile_id:
+                self.reasons.add("pile")
         elif kind == "reclaim_cut":
             return self._on_cut(decode_payload(kind, record.payload))
         elif kind == "assay":
