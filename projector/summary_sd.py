@@ -14,9 +14,14 @@ calls them.  docs/uncertainty.md says how each term is formed and what it leaves
 - **Pieces.**  The material's grade classes (:func:`projector.grades.grade_classes`), in
   groups that share one error: one per assay (keyed by the lot and the assay's grade
   and density) for assayed material, one per lot for material graded from its plan.
+  An assayed group also carries the belt's drift inside its window
+  (:mod:`projector.window_drift`): how its tonnes spread over the window's time, and the
+  drift's rate estimated from successive assays of each lot (:func:`drift_rate`).
 - **Buried boundaries.**  Between consecutive deposits of different lots: the material
   within ``UncertaintyConfig.boundary_band_m`` of the boundary, wherever both deposits
-  hold material (a cut: both lost some), its grade difference the lots' planned one.
+  hold material (a cut: both lost some, and one at least ``boundary_sliver_m``: slid
+  material lies in thin slivers of every deposit), its grade difference the lots'
+  planned one.
 
 Units: m, m^2, m^3, tonnes, t/m^3, mass % (sds of grades in percentage points, pp).
 """
