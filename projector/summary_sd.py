@@ -79,11 +79,12 @@ class _Pieces:
         groups = [self._id(("assay", lot_id, grade[i].tobytes(), density[i].tobytes(),
                             stated[i].tobytes()) if assayed[i] else ("lot", lot_id))
                   for i in range(len(assayed))]
+        times, cell_tonnes = np.asarray(times_ns), volumes * rho[index]
         for i, g in enumerate(groups):
             if assayed[i]:
                 self._stated[g] = stated[i]
-                self._add_window(g, c.window_ns[i], np.asarray(times_ns)[index == i],
-                                 (volumes * rho[index])[index == i])
+                mine = index == i
+                self._add_window(g, c.window_ns[i], times[mine], cell_tonnes[mine])
         self.group.append(np.array(groups, np.int64))
         self.assayed.append(assayed)
         self.reported.append(reported)
@@ -127,7 +128,7 @@ def drift_rate(join, config: UncertaintyConfig) -> np.ndarray:
     estimated (no lot with two assays), so the term then adds nothing."""
     assays = [a for lot in sorted(join.by_lot) for a in join.by_lot[lot]]
     n_a = len(join.analytes)
-    if len(assays) < 2 or not config.window_drift:
+    if len(assays) < 2:
         return np.zeros(n_a)
     configured = [config.lab_sd_pp.get(name, math.nan) for name in join.analytes]
     grade = np.array([[a.analytes.get(name, math.nan) for name in join.analytes]
@@ -165,7 +166,8 @@ def _figure(config: UncertaintyConfig, join, pieces: _Pieces, volume: VolumeVari
     return figure_sd(config, join.analytes, volume=volume, volume_m3=max(volume_m3, 0.0),
                      boundary_tonnes=bt, boundary_grade_diff_pp=diff,
                      residual_m3=residual_m3,
-                     drift_var_pp2=pieces.drift_var_pp2(drift_rate(join, config)), **p)
+                     drift_var_pp2=(pieces.drift_var_pp2(drift_rate(join, config))
+                                    if config.window_drift else None), **p)
 
 
 def pile_sd(state, join, config: UncertaintyConfig) -> dict:

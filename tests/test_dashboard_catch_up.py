@@ -2,9 +2,8 @@
 
 A dashboard started for a pile the ledger has not declared (yet) has no geometry to log.
 It must still wait for a reason or ``every_s`` of valid time between attempts, as after
-an update: a summary of the whole fold at every record made a restarted dashboard's
-catch-up quadratic in the records read (a fault test's yard: 33,000 records, 90 s).
-The records are the small yard's (``test_audit``), fed as the live catch-up feeds them.
+an update, and not summarise the whole fold at every record.  The records are the small
+yard's (``test_audit``), fed as the live catch-up feeds them.
 """
 
 from __future__ import annotations
