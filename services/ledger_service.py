@@ -105,7 +105,7 @@ from services.zenoh_config import reader_endpoints
 
 SERVICE = "ledger"
 DEFAULT_BATCH_SIZE = 2_000
-DEFAULT_BATCH_INTERVAL_S = 0.05
+DEFAULT_BATCH_INTERVAL_S = 0.02
 DEFAULT_QUEUE_SIZE = 200_000
 DEFAULT_CHUNK_BYTES = 1 << 20
 DEFAULT_CHECKPOINT_EVERY_S = 3600.0
@@ -142,7 +142,8 @@ class Config:
     batch_size : int
         Most events per append (one transaction).
     batch_interval_s : float
-        Longest time the first event of a batch waits for more, seconds.
+        Longest time the first event of a batch waits for more, seconds, counted from
+        its arrival (a batch the writer takes late waits only for what is queued).
     queue_size : int
         Samples held between Zenoh and the writer; a full queue blocks Zenoh.
     history : bool
@@ -278,12 +279,16 @@ class Writer:
         self.batches = 0
 
     def _take_batch(self) -> tuple[list, bool]:
-        """Block for the first sample, then gather until size or time bound."""
+        """Block for the first sample, then gather until size or time bound (the window
+        counted from the first sample's arrival)."""
         first = next_sample(self.samples, self.store)
         if first is _STOP:
             return [], True
         batch = [first]
-        deadline = time.monotonic() + self.config.batch_interval_s
+        # the window runs from the first sample's arrival (a sample tuple's last item): a
+        # sample that queued while the writer committed waits no longer than the window
+        arrived = first[-1] if isinstance(first, tuple) else time.monotonic()
+        deadline = arrived + self.config.batch_interval_s
         stop = False
         while len(batch) < self.config.batch_size:
             remaining = deadline - time.monotonic()
