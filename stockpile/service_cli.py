@@ -113,8 +113,8 @@ SERVICE_MODULES: dict[str, Service] = {
     "projector": Service(_services_projector_service, "projector",
                          "follow the ledger service and keep a live projection of one pile"),
     "dashboard": Service(_services_dashboard, "dashboard",
-                         "follow the ledger service and log one pile to Rerun (web viewer, "
-                         ".rrd)"),
+                         "follow the ledger service and log one or more piles to Rerun "
+                         "(web viewer, .rrd)"),
     "hq": Service(_services_hq_service, "ledger",
                   "the head office: mirror every site's ledger from its queryables"),
     "recorder": Service(_replay_record, "ledger",

@@ -1,13 +1,21 @@
 """The operators' Rerun dashboard: live (``stockpile service dashboard``) and offline.
 
-``stockpile service dashboard --pile ID [--serve] [--rrd PATH]`` follows the ledger
-service over Zenoh exactly like the projector service (a catch-up read of everything
-committed, then every committed head; :class:`services.projector_service.LiveProjection`
+``stockpile service dashboard --pile ID [--pile ID ...] [--serve] [--rrd PATH]`` follows
+the ledger service over Zenoh exactly like the projector service (a catch-up read of
+everything committed, then every committed head; :class:`services.projector_service.LiveProjection`
 folds it) and logs the pile to Rerun: ``--serve`` hosts a gRPC server on loopback and
 the Rerun web viewer for operators' browsers, ``--rrd`` archives the same stream to a
 file.  ``stockpile dashboard --ledger PATH --rrd OUT`` renders a finished ledger
 offline through the same code (records in global order, as the live service would
 have seen them).
+
+Several piles (``--pile`` repeated, both commands; a blending yard's two beds) share one
+process, one reading of the ledger and one recording, each pile with its own fold,
+tracker and update cadence (:class:`~services.dashboard.piles.PileSet`).  With one pile
+the entities are the paths below; with several, every entity of a pile is under
+``/piles/<id>`` (``/piles/<id>/site/pile/surface/Fe``, ``/piles/<id>/log``,
+``/piles/<id>/cuts/table``, ...; :class:`Config`), ledger-wide lines (gaps, quarantine)
+go to every pile's log and the blueprint has a tab per pile.
 
 Timelines come from the data, never the wall clock: ``valid_time`` (timestamp, the
 pile's valid time V of the update) and ``ledger_seq`` (sequence, the ledger's global
@@ -60,16 +68,17 @@ The package's interface (the service registry in ``stockpile.service_cli`` and t
 
 - :func:`add_arguments`, :func:`config_from_args`, :class:`Config`: the service's options
 - :func:`main` ``(config, *, stopper=None)``: the live service
-- :func:`register`: the ``stockpile dashboard`` command; :func:`render_ledger` and
-  :class:`RenderResult`: the offline renderer it runs
-- :class:`Dashboard`: records in, Rerun out; :func:`blueprint`: the default layout
+- :func:`register`: the ``stockpile dashboard`` command; :func:`render_ledger` (one pile),
+  :func:`render_piles` (several) and :class:`RenderResult`: the offline renderer it runs
+- :class:`Dashboard`: records in, Rerun out; :class:`PileSet`: several piles' dashboards
+  on one recording; :func:`blueprint`: the default layout
 
 Modules: ``config`` (options), ``tracker`` (what the records said), ``history`` (the
 pile over time), ``cuts`` (reclaim cuts and the planned bench), ``scene`` (the 3D pile,
 machines, scan, status), ``pose`` (the reclaimer geometry drawn), ``style`` (colours,
-blueprint, series styles), ``recorder`` (logging at the data's time), ``core`` (the
-:class:`Dashboard`), ``viewer`` (recording sinks and the web viewer), ``offline`` and
-``live`` (the two commands).
+blueprint, series styles), ``recorder`` (logging at the data's time and the piles'
+prefixes), ``core`` (the :class:`Dashboard`), ``piles`` (:class:`PileSet`), ``viewer``
+(recording sinks and the web viewer), ``offline`` and ``live`` (the two commands).
 """
 
 from __future__ import annotations
@@ -77,8 +86,9 @@ from __future__ import annotations
 from services.dashboard.config import Config, add_arguments, config_from_args
 from services.dashboard.core import Dashboard
 from services.dashboard.live import main
-from services.dashboard.offline import RenderResult, register, render_ledger
+from services.dashboard.offline import RenderResult, register, render_ledger, render_piles
+from services.dashboard.piles import PileSet
 from services.dashboard.style import blueprint
 
-__all__ = ["Config", "add_arguments", "config_from_args", "main", "render_ledger", "register",
-           "Dashboard", "RenderResult", "blueprint"]
+__all__ = ["Config", "add_arguments", "config_from_args", "main", "render_ledger",
+           "render_piles", "register", "Dashboard", "PileSet", "RenderResult", "blueprint"]

@@ -31,7 +31,21 @@ class Config:
     Attributes
     ----------
     pile_id : str or None
-        The pile (offline: None = the only pile the ledger declares).
+        The first (or only) pile of :attr:`piles` (offline: None = the only pile the
+        ledger declares).  Given alone it is the one pile; given with ``piles`` it must be
+        their first.
+    piles : tuple of str
+        The piles shown, one :class:`~services.dashboard.core.Dashboard` each (own fold,
+        tracker and update cadence) on one recording, fed the records read once
+        (``--pile`` repeated).  Entity paths: with one pile they are the paths of the
+        package docstring (``/site/...``, ``/series/...``, ``/log``, ``/cuts/table``,
+        ...); with several, every entity of a pile, without exception, is under
+        ``/piles/<id>`` (:func:`services.dashboard.recorder.entity_prefix`: ``<id>``
+        escaped as one entity-path part), e.g. ``/piles/A/site/pile/surface/Fe``,
+        ``/piles/A/series/pile/tonnes_t/known_then``, ``/piles/A/log``,
+        ``/piles/A/cuts/table``, ``/piles/A/status``; lines about the whole ledger
+        (gaps, quarantined input) go to every pile's log, and the blueprint has one tab
+        per pile.
     serve : bool
         Host a gRPC server and the web viewer on loopback.
     rrd : str or None
@@ -88,8 +102,19 @@ class Config:
     status_period_s: float = 5.0
     plan_machine: str | None = None
     plan_cuts: int = 10
+    piles: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
+        piles = tuple(self.piles) or ((self.pile_id,) if self.pile_id is not None else ())
+        if self.piles and self.pile_id is not None and self.pile_id != piles[0]:
+            raise ValueError(f"pile_id {self.pile_id!r} is not the first of piles {piles}")
+        for i, pile in enumerate(piles):
+            if not isinstance(pile, str) or not pile.strip():
+                raise ValueError("--pile must name a pile")
+            if pile in piles[:i]:
+                raise ValueError(f"--pile {pile} is given twice")
+        self.piles = piles
+        self.pile_id = piles[0] if piles else None
         if self.every_s <= 0:
             raise ValueError("--every must be positive")
         if self.update_period_s < 0 or self.reorder_s < 0 or self.geometry_period_s < 0:
@@ -133,7 +158,10 @@ def add_common_arguments(parser: argparse.ArgumentParser) -> None:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """``stockpile service dashboard`` options (the shared ones are added by service_cli)."""
-    parser.add_argument("--pile", dest="pile_id", required=True, help="pile id to show")
+    parser.add_argument("--pile", dest="piles", action="append", required=True,
+                        metavar="PILE_ID",
+                        help="pile id to show; repeat it to show several piles in one "
+                        "recording, each under /piles/<id> (one pile: the usual paths)")
     add_common_arguments(parser)
     add_duration(parser, "--every", default=DEFAULT_EVERY_S,
                  help="valid (site) time between history points while catching up, with a "
@@ -147,7 +175,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def config_from_args(args: argparse.Namespace) -> Config:
     """The live service's :class:`Config` from its parsed arguments."""
-    return Config(pile_id=args.pile_id, site=args.site, zenoh=ZenohOptions.from_args(args),
+    return Config(piles=tuple(args.piles), site=args.site, zenoh=ZenohOptions.from_args(args),
                   serve=args.serve, rrd=args.out, grpc_port=args.grpc_port,
                   web_port=args.web_port, every_s=args.every,
                   update_period_s=args.update_period_s,

@@ -22,7 +22,7 @@ from schemas.times import NS_PER_S
 from services.dashboard.config import Config
 from services.dashboard.cuts import CutLog
 from services.dashboard.history import History, HistoryPoint
-from services.dashboard.recorder import Recorder, rr
+from services.dashboard.recorder import Recorder, entity_prefix, rr
 from services.dashboard.scene import PileScene, log_machines, log_scan, log_status
 from services.dashboard.style import blueprint, log_series_styles
 from services.dashboard.tracker import GEOMETRY_TYPES, PileTracker
@@ -43,12 +43,21 @@ class Dashboard:
     offline : bool
         The blueprint (with the camera on the pile) goes with the sinks, once; live it is
         re-sent when the pile is first known or analytes are added.
+    layout : object or None
+        Several piles on one recording: what sends the blueprint of them all (its
+        ``send_blueprint(make_active=...)``, :class:`services.dashboard.piles.PileSet`);
+        None: this pile's own.
+
+    Its entities are under :func:`~services.dashboard.recorder.entity_prefix` of the pile
+    among ``config.piles`` (none when it is the only one).
     """
 
-    def __init__(self, rec, pile_id: str, config: Config, *, offline: bool = False) -> None:
+    def __init__(self, rec, pile_id: str, config: Config, *, offline: bool = False,
+                 layout=None) -> None:
         self.rec, self.pile_id, self.config = rec, pile_id, config
+        self.layout = layout
         self.tracker = PileTracker(pile_id, int(config.reorder_s * NS_PER_S))
-        self.out = Recorder(rec, self.tracker)
+        self.out = Recorder(rec, self.tracker, entity_prefix(pile_id, config.piles))
         self.history = History(self.out, self.tracker, int(config.every_s * NS_PER_S))
         self.cuts = CutLog(self.out, self.tracker, config)
         self.scene = PileScene(self.out, self.tracker, config)
@@ -66,7 +75,7 @@ class Dashboard:
         self._blueprint_analytes: tuple[str, ...] = ()
         self._last_3d_wall = -math.inf
         self._joined_version = 0
-        rec.log("/site", rr().ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+        self.out.log("/site", rr().ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
 
     # -- what has been read ----------------------------------------------------------------
 
@@ -219,11 +228,18 @@ class Dashboard:
         new = [a for a in analytes if a not in self._blueprint_analytes]
         first = not self._blueprint_analytes
         self._blueprint_analytes = tuple(analytes)
-        log_series_styles(self.rec, new, first=first)
+        log_series_styles(self.rec, new, first=first, prefix=self.out.prefix)
         if not first and not self.offline:
             self._send_blueprint(make_active=False)
 
-    def _pile_box(self):
+    @property
+    def blueprint_analytes(self) -> tuple[str, ...]:
+        """The analytes the series are styled for (the blueprint's), Fe before any."""
+        return self._blueprint_analytes or ("Fe",)
+
+    def pile_box(self):
+        """``(origin_x_m, origin_y_m, width_m, length_m, ground_z_m)`` of the pile, or None
+        before it is declared (the 3D camera's aim)."""
         pile = self.projection.state.pile
         if pile is None:
             return None
@@ -231,9 +247,11 @@ class Dashboard:
         return (g.origin_x_m, g.origin_y_m, g.length_x_m, g.length_y_m, pile.ground_z_m)
 
     def _send_blueprint(self, *, make_active: bool) -> None:
-        self.rec.send_blueprint(blueprint(self._blueprint_analytes or ("Fe",),
-                                          self.config.analyte, layers=self.config.layers,
-                                          pile=self._pile_box()),
+        if self.layout is not None:
+            self.layout.send_blueprint(make_active=make_active)
+            return
+        self.rec.send_blueprint(blueprint(self.blueprint_analytes, self.config.analyte,
+                                          layers=self.config.layers, pile=self.pile_box()),
                                 make_active=make_active, make_default=True)
 
 

@@ -4,8 +4,10 @@
 order, to a :class:`~services.dashboard.core.Dashboard` exactly as the live service
 would have seen them (updates at recorded-time boundaries), logs the ledger's gaps and
 quarantined input as they became known, then "as known now" at the head and, with
-``--plan-machine``, the next bench's plan.  :func:`register` adds the command,
-:func:`cmd_dashboard` runs it.
+``--plan-machine``, the next bench's plan.  :func:`render_piles` renders several piles
+(``--pile`` repeated) into one recording the same way, the ledger read once and each
+pile's entities under ``/piles/<id>`` (:class:`~services.dashboard.piles.PileSet`; a plan
+takes a single pile).  :func:`register` adds the command, :func:`cmd_dashboard` runs it.
 """
 
 from __future__ import annotations
@@ -13,9 +15,9 @@ from __future__ import annotations
 import argparse
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Sequence
 
 from common.options import (add_duration, add_ledger, add_progress, describe_ledger,
                             is_ledger_url)
@@ -26,7 +28,8 @@ from projector.query import CANONICAL_ANALYTES
 from schemas.analytes import canonical_grades
 from schemas.events import decode_payload
 from services.dashboard.config import DEFAULT_EVERY_S, READ_CHUNK, Config, add_common_arguments
-from services.dashboard.core import Dashboard, feed, rebuild_from
+from services.dashboard.core import Dashboard, rebuild_from
+from services.dashboard.piles import PileSet
 from services.dashboard.viewer import WebViewer, close_recording, make_recording
 from services.service import Stopper, log
 
@@ -101,30 +104,53 @@ def render_ledger(path: str, pile_id: str | None, config: Config, *,
                   progress: Callable[[int, int], None] | None = None,
                   recording_id: str | None = None, keep_serving: Stopper | None = None
                   ) -> RenderResult:
-    """Render a finished ledger to Rerun (``config.rrd`` and/or ``config.serve``).
+    """Render one pile of a finished ledger to Rerun (``config.rrd`` and/or
+    ``config.serve``; ``pile_id`` None: the only pile the ledger declares).
 
     Raises ValueError for a missing ledger or an unknown pile.
     """
+    return render_piles(path, (pile_id,) if pile_id else (), config, progress=progress,
+                        recording_id=recording_id, keep_serving=keep_serving)[0]
+
+
+def render_piles(path: str, pile_ids: Sequence[str], config: Config, *,
+                 progress: Callable[[int, int], None] | None = None,
+                 recording_id: str | None = None, keep_serving: Stopper | None = None
+                 ) -> list[RenderResult]:
+    """Render piles of a finished ledger to one Rerun recording, reading it once; returns
+    a result per pile, in order (``pile_ids`` empty: the only pile the ledger declares;
+    ``config.piles`` is replaced by them).
+
+    Raises ValueError for a missing ledger, an unknown or repeated pile, or
+    ``config.plan_machine`` with several piles.
+    """
     if not is_ledger_url(path) and not Path(path).exists():
         raise ValueError(f"no ledger at {path}")
+    pile_ids = tuple(pile_ids)
+    if pile_ids:
+        config = replace(config, pile_id=pile_ids[0], piles=pile_ids)   # checks repeats
+        if config.plan_machine and len(pile_ids) > 1:
+            raise ValueError("--plan-machine plans one pile: give a single --pile")
     with open_ledger(path, read_only=True) as store:
         head = store.head()
         if head.global_seq < 0:
             raise ValueError(f"the ledger {describe_ledger(path)} is empty")
-        pile_id = pile_id or single_pile(store)
-        piles = _pile_boxes(store)
-        if pile_id not in piles:
-            raise ValueError(f"pile {pile_id!r} is not declared in {describe_ledger(path)}")
+        pile_ids = pile_ids or (single_pile(store),)
+        config = replace(config, pile_id=pile_ids[0], piles=pile_ids)
+        boxes = _pile_boxes(store)
+        for pile_id in pile_ids:
+            if pile_id not in boxes:
+                raise ValueError(f"pile {pile_id!r} is not declared in {describe_ledger(path)}")
         analytes = _analytes(store)
         rec, uri = make_recording(config, analytes, recording_id=recording_id,
-                                  pile=piles[pile_id])
+                                  pile=boxes[pile_ids[0]], boxes=boxes)
         viewer = None
         try:
             viewer = WebViewer(config, uri) if config.serve and uri else None
             url = viewer.url if viewer else None
             if url:
                 log("dashboard", "web viewer", url=url, grpc=uri)
-            result = _render(store, head, pile_id, rec, config, progress, url, str(path))
+            results = _render(store, head, rec, config, progress, url, str(path))
             if keep_serving is not None and config.serve:
                 log("dashboard", "serving until interrupted", url=url)
                 keep_serving.wait()
@@ -132,13 +158,14 @@ def render_ledger(path: str, pile_id: str | None, config: Config, *,
             if viewer is not None:
                 viewer.close()
             close_recording(rec)
-    return result
+    return results
 
 
-def _render(store, head, pile_id: str, rec, config: Config, progress, url,
-            ledger_path: str = "") -> RenderResult:
-    """Feed every record of ``store`` to a :class:`Dashboard` (the body of render_ledger)."""
-    dash = Dashboard(rec, pile_id, config, offline=True)
+def _render(store, head, rec, config: Config, progress, url,
+            ledger_path: str = "") -> list[RenderResult]:
+    """Feed every record of ``store`` to the dashboards of ``config.piles`` (the body of
+    render_piles)."""
+    piles = PileSet(rec, config, offline=True)
     source = StoreSource(store, head.global_seq)
     gaps, quarantine = store.gaps(), store.quarantine()
     seen: set = set()
@@ -148,39 +175,41 @@ def _render(store, head, pile_id: str, rec, config: Config, progress, url,
         if progress is not None and n % PROGRESS_EVERY == 0:
             progress(n, total)
 
-    def rebuild() -> None:
+    def rebuild(dash: Dashboard) -> None:
         rebuild_from(source, dash)
 
     records = 0
     for chunk_start in range(0, total, READ_CHUNK * 4):
         chunk = list(store.read(chunk_start, min(total, chunk_start + READ_CHUNK * 4)))
-        records += feed(dash, chunk, rebuild=rebuild,
-                        on_record=lambda n, base=records: on_record(base + n))
+        records += piles.feed(chunk, rebuild=rebuild,
+                              on_record=lambda n, base=records: on_record(base + n))
         if gaps or quarantine:
-            _log_gaps_and_quarantine(dash, gaps, quarantine, seen, dash.known_ns)
-    if dash.projection.stale:
-        rebuild()
-    dash.projection.advance(everything=True)
-    dash.reasons.add("end")
-    dash.update()   # everything read (a no-op when the last update already had it all)
-    _log_gaps_and_quarantine(dash, gaps, quarantine, seen, dash.known_ns)
-    dash.flush_known_now()
+            _log_gaps_and_quarantine(piles, gaps, quarantine, seen, piles.known_ns)
+    for dash in piles:
+        if dash.projection.stale:
+            rebuild(dash)
+        dash.projection.advance(everything=True)
+        dash.reasons.add("end")
+        dash.update()   # everything read (a no-op when the last update already had it all)
+    _log_gaps_and_quarantine(piles, gaps, quarantine, seen, piles.known_ns)
+    piles.flush_known_now()
     planned = 0
     if config.plan_machine:
-        plan = make_plan(plan_args(ledger_path, pile_id, config.plan_machine,
+        plan = make_plan(plan_args(ledger_path, config.pile_id, config.plan_machine,
                                    cuts=config.plan_cuts), store)
-        planned = dash.log_plan(plan)
+        planned = piles.first.log_plan(plan)
     if progress is not None:
         progress(total, total)
-    state = dash.last_state
-    return RenderResult(pile_id, records, dash.updates, len(dash.points), dash.rebuilds,
-                        head.global_seq, dash.known_ns,
-                        float(state.tonnes) if state is not None else math.nan,
-                        config.rrd, url, planned)
+    return [RenderResult(dash.pile_id, records, dash.updates, len(dash.points), dash.rebuilds,
+                         head.global_seq, dash.known_ns,
+                         float(dash.last_state.tonnes) if dash.last_state is not None
+                         else math.nan, config.rrd, url, planned)
+            for dash in piles]
 
 
-def _log_gaps_and_quarantine(dash: Dashboard, gaps, quarantine, seen: set, known_ns: int) -> None:
-    """Log gaps and quarantined input the ledger knew by ``known_ns`` (each once)."""
+def _log_gaps_and_quarantine(dash, gaps, quarantine, seen: set, known_ns: int) -> None:
+    """Log gaps and quarantined input the ledger knew by ``known_ns`` (each once) with
+    ``dash.log_text`` (a :class:`Dashboard`, or a :class:`PileSet`: every pile's log)."""
     for g in gaps:
         key = ("gap", g.gap_id, g.closed_recorded_ns is not None and g.closed_recorded_ns <= known_ns)
         if g.opened_recorded_ns > known_ns or key in seen:
@@ -218,25 +247,26 @@ def _progress_printer(bar: Progress) -> Callable[[int, int], None]:
 
 
 def cmd_dashboard(args: argparse.Namespace) -> int:
-    """``stockpile dashboard``: render, print a one-line summary."""
+    """``stockpile dashboard``: render, print a one-line summary per pile."""
     if not args.out and not args.serve:
         raise ValueError("give --out OUT.rrd and/or --serve")
-    config = Config(pile_id=args.pile, serve=args.serve, rrd=args.out, grpc_port=args.grpc_port,
-                    web_port=args.web_port, every_s=args.every,
+    config = Config(piles=tuple(args.pile or ()), serve=args.serve, rrd=args.out,
+                    grpc_port=args.grpc_port, web_port=args.web_port, every_s=args.every,
                     analyte=args.analyte, layers=args.layers, layer_step_m=args.layer_step_m,
                     delta_threshold_pp=args.delta_threshold_pp, reorder_s=args.reorder_s,
                     plan_machine=args.plan_machine, plan_cuts=args.plan_cuts)
     t0 = time.monotonic()
     stopper = Stopper() if args.serve else None
     with progress_bar(unit="records", desc="dashboard", enabled=enabled_from_args(args)) as bar:
-        result = render_ledger(args.ledger, args.pile, config, progress=_progress_printer(bar),
-                               keep_serving=stopper)
-    print(f"dashboard: pile {result.pile_id}: {result.records:,} records, {result.updates} "
-          f"updates, {result.history_points} history points, {result.rebuilds} rebuilds, "
-          f"{result.tonnes_t:,.1f} t at the end"
-          + (f", {result.planned_cuts} planned cuts" if args.plan_machine else "")
-          + (f" -> {result.rrd}" if result.rrd else "")
-          + f" ({time.monotonic() - t0:.1f} s)")
+        results = render_piles(args.ledger, config.piles, config,
+                               progress=_progress_printer(bar), keep_serving=stopper)
+    for result in results:   # a line per pile
+        print(f"dashboard: pile {result.pile_id}: {result.records:,} records, {result.updates} "
+              f"updates, {result.history_points} history points, {result.rebuilds} rebuilds, "
+              f"{result.tonnes_t:,.1f} t at the end"
+              + (f", {result.planned_cuts} planned cuts" if args.plan_machine else "")
+              + (f" -> {result.rrd}" if result.rrd else "")
+              + f" ({time.monotonic() - t0:.1f} s)")
     return 0
 
 
@@ -247,7 +277,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description="Render a finished ledger offline to the operators' Rerun dashboard: the "
         "same entities, timelines and blueprint as `stockpile service dashboard`.")
     add_ledger(p, help="opened read-only")
-    p.add_argument("--pile", help="pile id (default: the only pile the ledger declares)")
+    p.add_argument("--pile", action="append", metavar="ID",
+                   help="pile id (default: the only pile the ledger declares); repeat it to "
+                   "show several piles in one recording, each under /piles/<id>")
     add_common_arguments(p)
     add_duration(p, "--every", default=DEFAULT_EVERY_S,
                  help="valid (site) time between history points, with a unit (default 5min)")

@@ -1,7 +1,8 @@
 """Logging at the data's time: :class:`Recorder` wraps the Rerun recording stream and sets
 its two timelines from the tracker, never from the wall clock: ``valid_time`` (timestamp,
-V) and ``ledger_seq`` (sequence, K).  Also :func:`rr` (the deferred ``rerun`` import) and
-:func:`iso` (a time for people, to the second).
+V) and ``ledger_seq`` (sequence, K), and puts every path under the pile's prefix
+(:func:`entity_prefix`).  Also :func:`rr` (the deferred ``rerun`` import) and :func:`iso`
+(a time for people, to the second).
 """
 
 from __future__ import annotations
@@ -20,6 +21,19 @@ def rr():
     return rerun
 
 
+#: the root of the piles' entities when a recording shows several piles
+PILES_ROOT = "/piles"
+
+
+def entity_prefix(pile_id: str, piles) -> str:
+    """The prefix of a pile's entity paths: ``""`` when ``piles`` (the piles of the
+    recording) are this one pile or fewer, else ``/piles/<id>`` (the id escaped as one
+    entity-path part)."""
+    if len(tuple(piles)) <= 1:
+        return ""
+    return f"{PILES_ROOT}/{rr().escape_entity_path_part(str(pile_id))}"
+
+
 def iso(ns: int) -> str:
     """UTC ns as ISO-8601, truncated to the second."""
     return format_time_ns(int(ns) // NS_PER_S * NS_PER_S)
@@ -35,11 +49,17 @@ class Recorder:
         Its ``valid_ns`` and ``seq`` are the default time of what is logged.
     update_v : int or None
         V of the update being logged (the default valid time while it is set), ns.
+    prefix : str
+        Put before every entity path logged (:func:`entity_prefix`; ``""``: none).
     """
 
-    def __init__(self, rec, tracker) -> None:
-        self.rec, self.tracker = rec, tracker
+    def __init__(self, rec, tracker, prefix: str = "") -> None:
+        self.rec, self.tracker, self.prefix = rec, tracker, prefix
         self.update_v: int | None = None
+
+    def path(self, path: str) -> str:
+        """The entity path logged for ``path`` (under :attr:`prefix`)."""
+        return self.prefix + path
 
     def at(self, valid_ns: int | None = None, seq: int | None = None) -> None:
         """Set the time of what is logged next (default: the update's V, or the newest
@@ -50,13 +70,13 @@ class Recorder:
         self.rec.set_time("ledger_seq", sequence=int(self.tracker.seq if seq is None else seq))
 
     def log(self, path: str, entity, **kwargs) -> None:
-        """``rec.log`` (at the time last set)."""
-        self.rec.log(path, entity, **kwargs)
+        """``rec.log`` (at the time last set) under the prefix."""
+        self.rec.log(self.prefix + path, entity, **kwargs)
 
     def series(self, path: str, value: float) -> None:
         """A scalar at the time last set (nothing for None or a non-finite value)."""
         if value is not None and math.isfinite(value):
-            self.rec.log(path, rr().Scalars(float(value)))
+            self.rec.log(self.prefix + path, rr().Scalars(float(value)))
 
     def band(self, path: str, value: float, sd: float | None) -> None:
         """A figure's one-sd band at the time last set: ``<path>_hi`` and ``<path>_lo``
@@ -70,4 +90,5 @@ class Recorder:
         """A line of ``/log`` at :meth:`at` ``(valid_ns, seq)``."""
         rerun = rr()
         self.at(valid_ns, seq)
-        self.rec.log("/log", rerun.TextLog(text, level=getattr(rerun.TextLogLevel, level)))
+        self.rec.log(self.prefix + "/log",
+                     rerun.TextLog(text, level=getattr(rerun.TextLogLevel, level)))

@@ -4,6 +4,7 @@ series' names and colours.
 - :func:`colour_map`: grades -> RGB, blue low to red high, grey for no grade
 - :func:`lot_colour`: a stable colour per lot (the deposit boundaries)
 - :func:`blueprint`: the 3D pile beside the time series, the log and the documents
+  (:func:`piles_blueprint`: several piles, a tab each)
 - :func:`log_series_styles`: the static names and colours of the ``/series/...`` entities
 """
 
@@ -58,55 +59,98 @@ def _eye(pile: tuple[float, float, float, float, float]):
 
 def blueprint(analytes: Iterable[str], analyte: str = "Fe", *, layers: bool = False,
               pile: tuple[float, float, float, float, float] | None = None):
-    """The default layout: 3D pile | time series and logs.
+    """The default layout of one pile: 3D pile | time series and logs.
 
     ``pile = (origin_x_m, origin_y_m, width_m, length_m, ground_z_m)`` aims the 3D camera at
     the declared footprint (from the far side of the rail, looking down on the pile).
     """
+    return _with_time_panel(_pile_layout(analytes, analyte, layers=layers, pile=pile))
+
+
+def piles_blueprint(piles: Iterable[tuple[str, str, Iterable[str], tuple | None]],
+                    analyte: str = "Fe", *, layers: bool = False):
+    """The default layout of several piles: one tab per pile, each the layout of
+    :func:`blueprint` over the pile's entities; ``piles``: ``(pile_id, prefix, analytes,
+    box)`` each (``prefix``: :func:`services.dashboard.recorder.entity_prefix`, ``box``
+    as :func:`blueprint`'s ``pile``)."""
+    import rerun.blueprint as rrb   # deferred: rerun is heavy
+
+    return _with_time_panel(rrb.Tabs(*[
+        _pile_layout(analytes, analyte, layers=layers, pile=box, prefix=prefix,
+                     name=f"Pile {pile_id}") for pile_id, prefix, analytes, box in piles]))
+
+
+def recording_blueprint(config, analytes: Iterable[str], *,
+                        pile: tuple[float, float, float, float, float] | None = None,
+                        boxes: dict[str, tuple] | None = None):
+    """The blueprint a recording of ``config.piles`` (a :class:`Config`) starts with: one
+    pile's :func:`blueprint` (``pile``: its footprint), or several piles'
+    :func:`piles_blueprint` (``boxes``: their footprints by pile id, when known)."""
+    from services.dashboard.recorder import entity_prefix
+
+    analytes = tuple(analytes)
+    if len(config.piles) <= 1:
+        return blueprint(analytes, config.analyte, layers=config.layers, pile=pile)
+    boxes = boxes or {}
+    return piles_blueprint([(p, entity_prefix(p, config.piles), analytes, boxes.get(p))
+                            for p in config.piles], config.analyte, layers=config.layers)
+
+
+def _with_time_panel(root):
+    import rerun.blueprint as rrb   # deferred: rerun is heavy
+
+    return rrb.Blueprint(root, rrb.TimePanel(timeline="valid_time"), collapse_panels=True)
+
+
+def _pile_layout(analytes: Iterable[str], analyte: str, *, layers: bool,
+                 pile: tuple[float, float, float, float, float] | None, prefix: str = "",
+                 name: str | None = None):
+    """One pile's 3D view beside its time series and logs (its entities under ``prefix``;
+    ``name``: the container's, and the start of the 3D view's)."""
     import rerun.blueprint as rrb   # deferred: rerun is heavy
 
     eye = _eye(pile) if pile is not None else None
     everything = rrb.TimeAxis(view_range=rrb.TimeRange(start=rrb.TimeRangeBoundary.infinite(),
                                                        end=rrb.TimeRangeBoundary.infinite()))
 
-    def series(name: str, origin: str):
-        return rrb.TimeSeriesView(name=name, origin=origin, axis_x=everything)
+    def series(title: str, origin: str):
+        return rrb.TimeSeriesView(name=title, origin=prefix + origin, axis_x=everything)
 
     analytes = list(analytes) or [analyte]
     shown = analyte if analyte in analytes else analytes[0]
-    hidden = {f"/site/pile/surface/{a}": rrb.EntityBehavior(visible=False)
+    hidden = {f"{prefix}/site/pile/surface/{a}": rrb.EntityBehavior(visible=False)
               for a in analytes if a != shown}
-    hidden["/site/pile/voxels"] = rrb.EntityBehavior(visible=False)
+    hidden[f"{prefix}/site/pile/voxels"] = rrb.EntityBehavior(visible=False)
     if not layers:
-        hidden["/site/pile/layers"] = rrb.EntityBehavior(visible=False)
-    return rrb.Blueprint(
-        rrb.Horizontal(
-            rrb.Vertical(
-                rrb.Spatial3DView(name=f"Pile: surface coloured by {shown} (blue low, red high)",
-                                  origin="/site", overrides=hidden, eye_controls=eye),
-                rrb.Tabs(rrb.TextLogView(name="Log", origin="/log"),
-                         rrb.TextDocumentView(name="Cuts", origin="/cuts"),
-                         rrb.TextDocumentView(name="Status", origin="/status"),
-                         rrb.TextDocumentView(name="Legend", origin="/legend")),
-                row_shares=[3, 1]),
-            rrb.Vertical(
-                series("Pile tonnes (t)", "/series/pile/tonnes_t"),
-                series(f"Pile {shown} (%)", f"/series/pile/grade_pct/{shown}"),
-                series("Cuts: tonnes (t), geometry vs belt scale", "/series/cuts/tonnes_t"),
-                series(f"Cuts: {shown} (%) at the end vs known now",
-                       f"/series/cuts/grade_pct/{shown}"),
-                series("Assayed fraction", "/series/pile/assayed_fraction"),
-            ),
-            column_shares=[3, 2]),
-        rrb.TimePanel(timeline="valid_time"),
-        collapse_panels=True)
+        hidden[f"{prefix}/site/pile/layers"] = rrb.EntityBehavior(visible=False)
+    return rrb.Horizontal(
+        rrb.Vertical(
+            rrb.Spatial3DView(name=f"{name or 'Pile'}: surface coloured by {shown} (blue low, "
+                              "red high)", origin=f"{prefix}/site", overrides=hidden,
+                              eye_controls=eye),
+            rrb.Tabs(rrb.TextLogView(name="Log", origin=f"{prefix}/log"),
+                     rrb.TextDocumentView(name="Cuts", origin=f"{prefix}/cuts"),
+                     rrb.TextDocumentView(name="Status", origin=f"{prefix}/status"),
+                     rrb.TextDocumentView(name="Legend", origin=f"{prefix}/legend")),
+            row_shares=[3, 1]),
+        rrb.Vertical(
+            series("Pile tonnes (t)", "/series/pile/tonnes_t"),
+            series(f"Pile {shown} (%)", f"/series/pile/grade_pct/{shown}"),
+            series("Cuts: tonnes (t), geometry vs belt scale", "/series/cuts/tonnes_t"),
+            series(f"Cuts: {shown} (%) at the end vs known now",
+                   f"/series/cuts/grade_pct/{shown}"),
+            series("Assayed fraction", "/series/pile/assayed_fraction"),
+        ),
+        column_shares=[3, 2], name=name)
 
 
-def log_series_styles(rec, analytes: Iterable[str], *, first: bool) -> None:
+def log_series_styles(rec, analytes: Iterable[str], *, first: bool, prefix: str = "") -> None:
     """Log the static names and colours of the time series (``rec``: a RecordingStream):
     the pile's and the cuts' own (``first``: the first time) and those of each of
-    ``analytes`` (newly known)."""
+    ``analytes`` (newly known); every path under ``prefix``."""
     import rerun as rr   # deferred: rerun is heavy
+
+    rec = _Prefixed(rec, prefix)
 
     if first:
         styles = {"/series/pile/tonnes_t/known_then": ("as known then", BLUE),
@@ -149,3 +193,13 @@ def _log_bands(rr, rec, path: str, name: str, *, points: bool = False) -> None:
         style = (rr.SeriesPoints(names=label, colors=[BAND], marker_sizes=[2.0]) if points
                  else rr.SeriesLines(names=label, colors=[BAND], widths=[0.5]))
         rec.log(f"{path}_{side}", style, static=True)
+
+
+class _Prefixed:
+    """``log`` of a RecordingStream with every entity path under ``prefix``."""
+
+    def __init__(self, rec, prefix: str) -> None:
+        self.rec, self.prefix = rec, prefix
+
+    def log(self, path: str, entity, **kwargs) -> None:
+        self.rec.log(self.prefix + path, entity, **kwargs)

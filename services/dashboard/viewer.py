@@ -16,7 +16,7 @@ from urllib.parse import quote
 
 from services.dashboard.config import APP_ID, Config
 from services.dashboard.recorder import rr
-from services.dashboard.style import blueprint
+from services.dashboard.style import recording_blueprint
 
 LOOPBACK = "127.0.0.1"
 #: seconds for the gRPC server / the web viewer to accept connections
@@ -25,8 +25,10 @@ VIEWER_START_S = 20.0
 
 
 def make_recording(config: Config, analytes: Iterable[str] = ("Fe", "SiO2", "Al2O3", "P", "LOI"),
-                   *, recording_id: str | None = None, pile=None):
-    """A RecordingStream with our sinks (file and/or loopback gRPC server) and blueprint.
+                   *, recording_id: str | None = None, pile=None, boxes=None):
+    """A RecordingStream with our sinks (file and/or loopback gRPC server) and blueprint
+    (:func:`~services.dashboard.style.recording_blueprint`: ``pile``, the one pile's
+    footprint; ``boxes``, several piles' footprints by id).
 
     Returns ``(rec, grpc_uri or None)``.  The log time and log tick timelines are disabled:
     the timelines come from the data.
@@ -35,7 +37,7 @@ def make_recording(config: Config, analytes: Iterable[str] = ("Fe", "SiO2", "Al2
     rec = rerun.RecordingStream(APP_ID, recording_id=recording_id)
     rerun.set_log_time_enabled(False, recording=rec)
     rerun.set_log_tick_enabled(False, recording=rec)
-    bp = blueprint(analytes, config.analyte, layers=config.layers, pile=pile)
+    bp = recording_blueprint(config, analytes, pile=pile, boxes=boxes)
     sinks = []
     uri = None
     if config.serve:
