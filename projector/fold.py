@@ -71,8 +71,8 @@ from projector.kinematics import Reclaimer
 from projector.layers import DepositInfo, LayerStack
 from projector.material_fit import close_face, open_face
 from projector.scans import process_scans
-from projector.state import (CutRecord, PassRecord, PendingScan, PileInfo, ProjectorState,
-                             around, initial_state, settling_last_pass)
+from projector.state import (CutRecord, PassRecord, PendingScan, PileInfo, PoseTrack,
+                             ProjectorState, around, initial_state, settling_last_pass)
 
 # the config and the state's records are re-exported: callers name them ``F.<name>``, and
 # snapshots pickled before they moved name them ``projector.fold.<name>``
@@ -88,7 +88,7 @@ GEOMETRY_TYPES = ("pile_declared", "machine_declared", "stack_started", "stack_e
 #: module paths).  Snapshots are keyed by it as well as by the config, so those of another
 #: version are never used (:class:`projector.query.SnapshotStore`, which reads it from this
 #: module, and ``SnapshotStore.drop_other_versions`` deletes them).
-FOLD_VERSION = 28
+FOLD_VERSION = 29
 
 DEFAULT_CELL_M = 0.25
 DEFAULT_VOXEL_M = 1.0
@@ -203,15 +203,18 @@ def _on_frame_transform(state: ProjectorState, event, msg) -> None:
     if msg.parent_frame_id != "site" or not msg.child_frame_id.endswith("/scanner"):
         return
     t = timestamp_ns(msg.timestamp)
-    if state.pose_t_ns and t <= state.pose_t_ns[-1]:
-        if t < state.pose_t_ns[-1]:
+    track = state.poses.get(msg.child_frame_id)
+    if track is None:
+        track = state.poses[msg.child_frame_id] = PoseTrack()
+    if track.t_ns and t <= track.t_ns[-1]:
+        if t < track.t_ns[-1]:
             state.count("poses_out_of_order")
         return
-    state.pose_t_ns.append(t)
-    state.pose_xyz.append((msg.translation.x, msg.translation.y, msg.translation.z))
-    state.pose_q.append((msg.rotation.x, msg.rotation.y, msg.rotation.z, msg.rotation.w))
-    if len(state.pose_t_ns) > 4096:  # keep the recent track only
-        del state.pose_t_ns[:2048], state.pose_xyz[:2048], state.pose_q[:2048]
+    track.t_ns.append(t)
+    track.xyz.append((msg.translation.x, msg.translation.y, msg.translation.z))
+    track.q.append((msg.rotation.x, msg.rotation.y, msg.rotation.z, msg.rotation.w))
+    if len(track.t_ns) > 4096:  # keep the recent track only
+        del track.t_ns[:2048], track.xyz[:2048], track.q[:2048]
     if len(state.pending) >= state.config.scan_batch:
         process_scans(state)
 
@@ -221,7 +224,8 @@ def _on_scan(state: ProjectorState, event, msg) -> None:
         return
     state.pending.append(PendingScan(timestamp_ns(msg.timestamp),
                                      np.asarray(msg.ranges, np.float64),
-                                     float(msg.start_angle), float(msg.end_angle)))
+                                     float(msg.start_angle), float(msg.end_angle),
+                                     msg.frame_id))
     if len(state.pending) >= 2 * state.config.scan_batch:
         process_scans(state)
 

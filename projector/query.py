@@ -476,8 +476,8 @@ def _pack(state: F.ProjectorState) -> bytes:
 
 def _unpack(blob: bytes) -> F.ProjectorState:
     """The state :func:`_pack` packed.  Its arrays are views of the decompressed frames (no
-    copy, read-only: the stack's are immutable anyway), but for the height map's, which the
-    fold updates in place and so are copied."""
+    copy, read-only: the stack's are immutable anyway), but for those the fold updates in
+    place, which are copied: the height map's and the open face's first sightings."""
     if not blob.startswith(SNAPSHOT_MAGIC):
         raise ValueError("not a snapshot of this layout")
     offset = len(SNAPSHOT_MAGIC)
@@ -492,6 +492,8 @@ def _unpack(blob: bytes) -> F.ProjectorState:
     state = pickle.loads(parts[0], buffers=parts[1:])
     if state.height is not None:
         state.height = state.height.copy()
+    if getattr(state, "face_sightings", None) is not None:
+        state.face_sightings = tuple(a.copy() for a in state.face_sightings)
     return state
 
 

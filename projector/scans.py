@@ -29,24 +29,24 @@ __all__ = ["process_scans", "reference_ground", "refresh_crossed"]
 
 def process_scans(state: ProjectorState, *, until_ns: int | None = None,
                   final: bool = False) -> None:
-    """Fuse the waiting scans that have a pose after them (all up to ``until_ns``, UTC
-    ns); ``final``: drop those that have none (at a query's end)."""
+    """Fuse the waiting scans that have a pose of their own scanner after them (all up to
+    ``until_ns``, UTC ns); ``final``: drop those that have none (at a query's end)."""
     ready = _ready_scans(state, until_ns, final)
     if not ready:
         return
-    by_beams: dict[tuple[int, float, float], list[PendingScan]] = {}
-    for scan in ready:
-        by_beams.setdefault((scan.ranges_m.size, scan.start_angle_rad, scan.end_angle_rad),
-                            []).append(scan)
-    pose_t = np.asarray(state.pose_t_ns, np.int64)
-    pose_xyz = np.asarray(state.pose_xyz, np.float64)
-    pose_q = np.asarray(state.pose_q, np.float64)
-    for (beams, start, end), scans in by_beams.items():
+    by_beams: dict[tuple[str, int, float, float], list[PendingScan]] = {}
+    for frame, scan in ready:
+        by_beams.setdefault((frame, scan.ranges_m.size, scan.start_angle_rad,
+                             scan.end_angle_rad), []).append(scan)
+    for (frame, beams, start, end), scans in by_beams.items():
         if beams < 2:
             state.count("scans_unusable", len(scans))
             continue
+        track = state.poses[frame]
         t = np.asarray([s.t_ns for s in scans], np.int64)
-        xyz, q = georef.interpolate_poses(t, pose_t, pose_xyz, pose_q,
+        xyz, q = georef.interpolate_poses(t, np.asarray(track.t_ns, np.int64),
+                                          np.asarray(track.xyz, np.float64),
+                                          np.asarray(track.q, np.float64),
                                           max_gap_ns=state.config.max_pose_gap_ns)
         ranges = np.stack([s.ranges_m for s in scans])
         ranges = profile.clean_profile(ranges, fit_beams=state.config.profile_fit_beams,
@@ -61,21 +61,37 @@ def process_scans(state: ProjectorState, *, until_ns: int | None = None,
         state.count("points_fused", len(points))
         if len(points) == 0:
             continue
-        _fuse_batch(state, heightmap.rasterize(state.pile.geometry, points), int(t.max()))
+        obs = heightmap.rasterize(state.pile.geometry, points)
+        if obs.ix.size == 0:     # a scanner that saw only another pile, or the ground
+            continue
+        _fuse_batch(state, obs, int(t.max()))
+
+
+def track_frame(state: ProjectorState, frame_id: str) -> str | None:
+    """The pose track that places a scan of ``frame_id``: its own, or with one scanner in
+    the yard the only track there is (a scan and its poses that name the frame
+    differently); None: no pose of it yet."""
+    if frame_id in state.poses:
+        return frame_id
+    if len(state.poses) == 1:
+        return next(iter(state.poses))
+    return None
 
 
 def _ready_scans(state: ProjectorState, until_ns: int | None,
-                 final: bool) -> list[PendingScan]:
-    """Take the waiting scans that have a pose after them out of ``state.pending``; those
-    that never will (up to ``until_ns``, all when ``final``, or waiting longer than
-    ``max_scan_wait_ns``) are dropped (counted ``scans_without_pose``)."""
+                 final: bool) -> list[tuple[str, PendingScan]]:
+    """Take the waiting scans that have a pose of their own scanner after them out of
+    ``state.pending``, each with its track's frame; those that never will (up to
+    ``until_ns``, all when ``final``, or waiting longer than ``max_scan_wait_ns``) are
+    dropped (counted ``scans_without_pose``)."""
     if not state.pending or state.pile is None:
         return []
-    last_pose = state.pose_t_ns[-1] if state.pose_t_ns else None
     ready, waiting = [], []
     for scan in state.pending:
+        frame = track_frame(state, scan.frame_id)
+        last_pose = state.poses[frame].t_ns[-1] if frame is not None else None
         if last_pose is not None and scan.t_ns <= last_pose:
-            ready.append(scan)
+            ready.append((frame, scan))
         elif final or (until_ns is not None and scan.t_ns <= until_ns
                        and (last_pose is None or scan.t_ns < last_pose)) \
                 or (last_pose is not None

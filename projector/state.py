@@ -91,6 +91,22 @@ class PendingScan:
     ranges_m: np.ndarray
     start_angle_rad: float
     end_angle_rad: float
+    #: the scanner's frame (``LaserScan.frame_id``): the pose track that places it
+    frame_id: str = ""
+
+
+@dataclass
+class PoseTrack:
+    """One scanner's recent poses in the site frame (``FrameTransform`` site ->
+    ``<machine>/scanner``): times (UTC ns, increasing), translations (m) and rotations
+    (quaternions x, y, z, w)."""
+
+    t_ns: list[int] = field(default_factory=list)
+    xyz: list[tuple[float, float, float]] = field(default_factory=list)
+    q: list[tuple[float, float, float, float]] = field(default_factory=list)
+
+    def copy(self) -> "PoseTrack":
+        return PoseTrack(list(self.t_ns), list(self.xyz), list(self.q))
 
 
 @dataclass
@@ -107,9 +123,9 @@ class ProjectorState:
     stack: LayerStack | None = None
     cuts: list[CutRecord] = field(default_factory=list)
     assays: list[AssayRecord] = field(default_factory=list)
-    pose_t_ns: list[int] = field(default_factory=list)
-    pose_xyz: list[tuple[float, float, float]] = field(default_factory=list)
-    pose_q: list[tuple[float, float, float, float]] = field(default_factory=list)
+    #: each scanner's pose track, by its frame (``<machine>/scanner``): a yard's scanners
+    #: place their own scans
+    poses: dict[str, PoseTrack] = field(default_factory=dict)
     pending: list[PendingScan] = field(default_factory=list)
     flagged_loss_m3: float = 0.0
     #: recent rises of the stack's top, ``(t_ns, flat cell indices, top before (m))``
@@ -153,8 +169,8 @@ class ProjectorState:
             height=None if self.height is None else self.height.copy(),
             stack=None if self.stack is None else self.stack.copy(),
             cuts=[replace(c, removals=list(c.removals)) for c in self.cuts],
-            assays=list(self.assays), pose_t_ns=list(self.pose_t_ns),
-            pose_xyz=list(self.pose_xyz), pose_q=list(self.pose_q),
+            assays=list(self.assays),
+            poses={frame: track.copy() for frame, track in self.poses.items()},
             pending=list(self.pending), counters=dict(self.counters),
             rises_journal=list(self.rises_journal), slide_fits=list(self.slide_fits),
             face_sightings=(None if self.face_sightings is None

@@ -324,6 +324,13 @@ def test_a_packed_state_unpacks_to_the_same_arrays_and_a_foreign_file_is_refused
         np.testing.assert_array_equal(back.height.grid.layers[name], layer)
         assert back.height.grid.layers[name].flags.writeable    # the fold updates them
     assert [c.cut_id for c in back.cuts] == [c.cut_id for c in state.cuts]
+    # an open face's first sightings are updated in place by the fold after a snapshot
+    # (projector.material_fit.note_sightings): they come back writeable too
+    state.face_sightings = (np.full((3, 2), np.nan), np.arange(6.0).reshape(3, 2))
+    back = _unpack(_pack(state))
+    for a, b in zip(back.face_sightings, state.face_sightings):
+        np.testing.assert_array_equal(a, b)
+        assert a.flags.writeable
     # empty arrays' buffers, first, between and last, come back as they went (an empty
     # buffer has no frame), on one thread and on several
     from types import SimpleNamespace
