@@ -13,10 +13,12 @@ from pathlib import Path
 
 import zenoh
 
+from schemas.times import parse_time_ns
 from security.event_keys import load_signing_key
 from services.service import Stopper, log
 from services.zenoh_config import DEFAULT_LISTEN, add_zenoh_arguments, config_from_args
 from sim.adapters import ADAPTER_MODES, RealDevices
+from sim.live import live_start, milestones
 from sim.publish import ZenohSink
 from sim.pty import PtyDevice
 from sim.runner import Simulation
@@ -41,12 +43,57 @@ def load_source_keys(directory: str | Path) -> dict:
             for path in sorted(folder.glob("*.sign.key"))}
 
 
+def site_time_ns(text: str) -> int:
+    """argparse type: an absolute site time, ISO-8601 or integer UTC ns (as ``--valid-time``)."""
+    try:
+        return parse_time_ns(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def unix_seconds(text: str) -> float:
+    """argparse type: a finite wall-clock time, Unix seconds."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number of Unix seconds: {text!r}") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"not a finite number of Unix seconds: {text!r}")
+    return value
+
+
+def check_live(args: argparse.Namespace, scenario) -> None:
+    """One-line usage errors for ``--live-at`` and ``--live-wall`` (before anything opens)."""
+    fail = args._parser.error
+    if args.live_wall is not None and args.live_at is None:
+        fail("--live-wall needs --live-at")
+    if args.live_wall is not None and not args.speed > 0:
+        fail("--live-wall paces the run: it needs --speed > 0")
+    if args.live_at is None:
+        return
+    if args.adapters != "sim":
+        fail("--live-at runs with --adapters sim only")
+    end_ns = milestones(scenario, args.seed, _duration_h(args))["end_ns"]
+    try:
+        live_start(scenario, end_ns, args.live_at, args.live_wall, args.speed)
+    except ValueError as exc:
+        fail(f"--live-at: {exc}")
+
+
+def _duration_h(args: argparse.Namespace) -> float | None:
+    return None if args.duration is None else args.duration / 3600.0
+
+
 def run_sim(args: argparse.Namespace) -> int:
     scenario = scenario_by_name(args.scenario)
     if args.assay_window is not None:
         if not (args.assay_window > 0 and math.isfinite(args.assay_window)):
             raise ValueError(f"--assay-window must be > 0 seconds, got {args.assay_window}")
         scenario = replace(scenario, assay_window_s=args.assay_window)
+    if args.milestones:
+        print(json.dumps(milestones(scenario, args.seed, _duration_h(args))), flush=True)
+        return 0
+    check_live(args, scenario)
     out = Path(args.out or f"sim-out/{args.scenario}-seed{args.seed}")
     sinks: list = []
     ptys: dict[str, object] = {}
@@ -67,7 +114,10 @@ def run_sim(args: argparse.Namespace) -> int:
               flush=True)
         if args.wait_subscriber:
             print(f"waiting up to {args.wait_subscriber:g} s for a subscriber ...", flush=True)
-            if not sink.wait_for_subscriber("clock", "sim.clock", args.wait_subscriber):
+            # the run's first event after its start: the clock, or an encoder reading
+            first = (("clock", scenario.yard_sources()["clock"]) if scenario.emits_clock
+                     else ("joint_reading", f"{scenario.machine_id}.encoders"))
+            if not sink.wait_for_subscriber(*first, args.wait_subscriber):
                 raise OSError("no zenoh subscriber matched the site's events in time")
         for key in args.wait_live:
             print(f"waiting up to {args.wait_live_timeout:g} s for {key} ...", flush=True)
@@ -87,8 +137,13 @@ def run_sim(args: argparse.Namespace) -> int:
                          cut_surfaces=args.truth_cut_surfaces, noise_seed=args.noise_seed,
                          signing_keys=keys, adapters=args.adapters, devices=devices,
                          progress=lambda line: print(f"  {line}", file=sys.stderr, flush=True))
-        duration_h = None if args.duration is None else args.duration / 3600.0
-        stats = sim.run(duration_h=duration_h, speed=args.speed, idle_speed=args.idle_speed)
+        if args.live_at is not None:
+            print(f"fast-forwarding to the live moment {args.live_at} (UTC ns)"
+                  + ("" if args.live_wall is None else f", live at wall {args.live_wall:.3f}"),
+                  flush=True)
+        stats = sim.run(duration_h=_duration_h(args), speed=args.speed,
+                        idle_speed=args.idle_speed, live_at_ns=args.live_at,
+                        live_wall_s=args.live_wall)
         for pty in ptys.values():  # the devices go quiet: their readers see the end
             pty.close()
         if session is not None:
@@ -145,6 +200,9 @@ def _print_summary(stats, out: Path) -> None:
     print(f"done: {stats.site_s / 3600:.2f} site h in {stats.wall_s:.1f} s wall "
           f"({stats.events:,} events = {stats.events / max(stats.wall_s, 1e-9):,.0f}/s; "
           f"{stats.scans:,} scans, {stats.gga:,} GGA sentences)")
+    if stats.live_at_ns is not None:
+        print(f"  live from {stats.live_at_ns} (UTC ns) after a {stats.fast_forward_wall_s:.1f} s "
+              f"fast-forward; {stats.live_late_s:.3f} s late")
     if stats.late_events:
         print(f"  pacing: {stats.late_events:,} events handled > 5 ms behind schedule "
               f"(largest lag {stats.max_lag_s:.2f} s real); device bytes and clock events "
@@ -230,10 +288,28 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    "(e.g. stockpile/demo/@live/scanner/**; repeatable)")
     p.add_argument("--wait-live-timeout", type=float, default=60.0, metavar="S",
                    help="how long --wait-live waits, seconds (default 60)")
+    p.add_argument("--live-at", type=site_time_ns, metavar="T",
+                   help="live mode: the world as a plain run of the same scenario and seed, "
+                   "fast-forwarded (no sensors, nothing published) to site time T "
+                   "(ISO-8601 or integer UTC ns, between the start and the end), then paced "
+                   "at --speed with the scenario's live sensor rates; every source starts a "
+                   "new epoch (T's second) at seq 0 and the declarations are not repeated")
+    p.add_argument("--live-wall", type=unix_seconds, metavar="UNIX_S",
+                   help="with --live-at and --speed: the wall-clock time (Unix seconds) site "
+                   "time T happens at; the run waits for it after the fast-forward, then maps "
+                   "site time t to UNIX_S + (t - T) / speed (without --idle-speed) and keeps "
+                   "to it (behind, it catches up rather than moving its schedule on), so runs "
+                   "given the same T and UNIX_S keep in step; reached late, it starts at once "
+                   "and says how late on stderr")
+    p.add_argument("--milestones", action="store_true",
+                   help="print the run's timetable as one JSON object (UTC ns: start_ns, "
+                   "stacking_end_ns, survey_end_ns, reclaim_start_ns, first_cut_start_ns = "
+                   "null as the first cut is planned on the true pile, default_end_ns, "
+                   "end_ns with --duration) and exit without simulating")
     p.add_argument("--linger", type=float, default=0.0, metavar="S",
                    help="with --zenoh: after the run keep publishing caches up for S seconds or "
                    "until SIGTERM (a ledger can still recover missed events)")
     add_zenoh_arguments(p, listen_default=DEFAULT_LISTEN)
-    p.set_defaults(func=run_sim)
+    p.set_defaults(func=run_sim, _parser=p)
 
 

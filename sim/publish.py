@@ -34,14 +34,23 @@ class Sink(Protocol):
 
 class Producer:
     """One event source with its epoch and next sequence number; with ``key``, every event
-    it emits is signed with that key."""
+    it emits is signed with that key.  A ``muted`` producer emits nothing and counts
+    nothing (a live run before its live moment) until :meth:`restart`."""
 
     def __init__(self, source: str, epoch: int, sinks: list[Sink],
                  key: SigningKey | None = None) -> None:
         self.source, self.epoch, self.sinks, self.key = source, epoch, sinks, key
         self.seq = 0
+        self.muted = False
 
-    def emit(self, message: Message) -> Event:
+    def restart(self, epoch: int) -> None:
+        """Start afresh as a restarted device does: a new ``epoch`` from seq 0, unmuted."""
+        self.epoch, self.seq, self.muted = int(epoch), 0, False
+
+    def emit(self, message: Message) -> Event | None:
+        """Number (and sign) ``message`` and hand it to every sink; None when muted."""
+        if self.muted:
+            return None
         event = make_event(message, source=self.source, epoch=self.epoch, seq=self.seq)
         if self.key is not None:
             event = sign_event(event, self.key)

@@ -62,6 +62,10 @@ to the angle of repose (the default), stand steeper, stand and fail later as one
 stand. A run that ends on its own (no ``duration_h``) ends a minute after the last assay
 or a minute after the last delayed failure, whichever is later.
 
+Live mode (``live_at_ns``, CLI ``--live-at``; :mod:`sim.live`): the same world, fast-forwarded
+without sensors or output to a live moment, then paced from a given wall-clock moment, with
+every producer in a new epoch.
+
 Adapters (``adapters``, CLI ``--adapters``): ``"sim"`` (default) publishes as above; ``"real"``
 hands the machines', lab's and scanner's facts to a real yard's devices (:mod:`sim.adapters`).
 """
@@ -85,6 +89,8 @@ from sim.encoders import EncoderModel
 from sim.gnss import GnssModel
 from sim.adapters import LMS511_FIELD_DEG, RealDevices, check_adapters
 from sim.grades import ANALYTES, LabResult
+from sim.live import (LATE_S, REBASE_S, LiveStart, Pacer, live_schedule0, live_start,
+                      prefixed_assays, rates_of)
 from sim.material import RNG_STREAM, CutFaces
 from sim.motion import Motion, move_speed_m_s, patrol_legs, patrol_pose, scanner_pose
 from sim.publish import JsonlSink, Producer, Sink
@@ -97,17 +103,10 @@ from sim.scenario import Scenario
 from sim.timetable import CHUNK_S, Milestones, Queue, stacking_plan
 from sim.world import Grid, World
 
-__all__ = ["CUT_SUBSWEEPS", "SCAN_EVENTS", "RunStats", "Simulation"]
+__all__ = ["CUT_SUBSWEEPS", "LATE_S", "REBASE_S", "SCAN_EVENTS", "RunStats", "Simulation"]
 
 #: values of ``Simulation.scan_events`` / ``--scan-events`` (see the module docstring)
 SCAN_EVENTS = ("off", "truth", "encoders")
-#: a paced event handled this much (real seconds) behind schedule counts as late
-LATE_S = 0.005
-#: a paced run that falls further behind than this (real seconds) gives the lost time up:
-#: its schedule moves on (site time runs slower for a moment) rather than catching up in a
-#: burst, in which telegrams and clock ticks arrive together and a service that maps
-#: arrival onto site time dates them seconds off
-REBASE_S = 0.05
 
 @dataclass
 class RunStats:
@@ -129,6 +128,11 @@ class RunStats:
     #: times the schedule moved on (REBASE_S), and the real seconds it gave up in all
     rebases: int = 0
     given_up_s: float = 0.0
+    #: live runs: the live moment (UTC ns), the wall seconds the fast-forward to it took,
+    #: and how late (wall s) it was reached after its wall time (0: on time)
+    live_at_ns: int | None = None
+    fast_forward_wall_s: float = 0.0
+    live_late_s: float = 0.0
 
 
 @dataclass
@@ -230,12 +234,14 @@ class Simulation(ReclaimRun):
         epoch = sc.start_ns // NS_PER_S
         keys = self.signing_keys
         self.record_only = ("encoders", "stacker", "reclaimer", "lab") if self.real else ()
+        yard = sc.yard_sources()
+        if not sc.emits_clock:
+            del yard["clock"]
         producers = {name: Producer(source, epoch,
                                     [self.jsonl] if name in self.record_only else all_sinks,
                                     keys.get(source)) for name, source in (
-            ("config", "yard.config"), ("clock", "sim.clock"),
-            ("encoders", f"{sc.machine_id}.encoders"), ("stacker", f"{sc.stacker_id}.plc"),
-            ("reclaimer", f"{sc.machine_id}.plc"), ("lims", "lims"), ("lab", "lab1"))}
+            *yard.items(), ("encoders", f"{sc.machine_id}.encoders"),
+            ("stacker", f"{sc.stacker_id}.plc"), ("reclaimer", f"{sc.machine_id}.plc"))}
         if self.scan_events != "off":
             producers["scans"] = Producer(f"{sc.machine_id}.scanner", epoch, all_sinks)
             producers["poses"] = Producer(f"{sc.machine_id}.poses", epoch, all_sinks)
@@ -258,38 +264,56 @@ class Simulation(ReclaimRun):
     # -- the run ----------------------------------------------------------------------------
 
     def run(self, *, duration_h: float | None = None, speed: float = 0.0,
-            idle_speed: float = 0.0) -> RunStats:
+            idle_speed: float = 0.0, live_at_ns: int | None = None,
+            live_wall_s: float | None = None) -> RunStats:
         """Run the scenario until ``duration_h`` site hours (default: a minute after the
         last assay or after the last delayed failure of a cut's faces, if later), paced at
         ``speed`` site seconds per wall second (0: as fast as possible; ``idle_speed``
-        while no machine moves); writes every output."""
+        while no machine moves); writes every output.  With ``live_at_ns`` (UTC ns) a live
+        run: unpaced, without sensors and output up to then, paced from the wall time
+        ``live_wall_s`` (Unix s; default: when it gets there) on (:mod:`sim.live`)."""
         sc = self.scenario
-        wall0 = time.monotonic()
+        self._wall0 = wall0 = time.monotonic()
         t0 = sc.start_ns
+        plan = stacking_plan(sc)
+        self.belts, results = lab_schedule(sc, plan, self.rng_belt)
+        self.lab_results = prefixed_assays(results, sc.source_prefix)
+        ms = Milestones.of(sc, plan, self.move_m_s, self.lab_results, duration_h)
+        self.live = live_start(sc, ms.end_ns, live_at_ns, live_wall_s, speed)
+        if self.live is not None and self.real:
+            raise ValueError("a live run feeds no real devices: use adapters 'sim'")
+        self.rates = rates_of(sc, self.live)
+        self.pacer = Pacer(speed, idle_speed, self.stats)
+        if self.live is None:
+            self.pacer.start(wall0)
+        else:
+            self.stats.live_at_ns = self.live.at_ns
+            for producer in self.producers.values():   # silent until the live moment
+                producer.muted = self.live.at_ns > t0
         for msg in messages.declarations(sc, self.machine, t0):
             self.producers["config"].emit(msg)
-        plan = stacking_plan(sc)
-        self.belts, self.lab_results = lab_schedule(sc, plan, self.rng_belt)
-        ms = Milestones.of(sc, plan, self.move_m_s, self.lab_results, duration_h)
         queue = self._schedule(plan, ms)
         self.stacking_until = ms.survey_end
         self.reclaiming = False
         self.lab_windows = lab_windows(self.lab_results, "Fe")
         # a run that ends on its own goes on past its delayed failures (sim.reclaim_run)
         self.end_ns, self.end_fixed = ms.end_ns, duration_h is not None
-        self._work_through(queue, speed, idle_speed, wall0)
+        self._work_through(queue)
         self.stats.site_s = (self.end_ns - t0) / NS_PER_S
         self.stats.wall_s = time.monotonic() - wall0
         self._finish()
         return self.stats
 
     def _schedule(self, plan: list[dict], ms: Milestones) -> Queue:
-        """The queue at the start: lots, passes in chunks, assays, the first cut, the
-        clock and sensors, and the survey after the last pass."""
+        """The queue at the start: the live moment, lots, passes in chunks, assays, the
+        first cut, the clock and sensors (from the live moment in a live run), and the
+        survey after the last pass."""
         sc = self.scenario
         t0 = sc.start_ns
         queue = Queue()
         at = queue.at
+        if self.live is not None:   # first of everything at its time
+            at(self.live.at_ns, "live", self.live)
         for p in plan:
             first_of_lot = p is next(q for q in plan if q["lot_index"] == p["lot_index"])
             if first_of_lot:
@@ -302,21 +326,23 @@ class Simulation(ReclaimRun):
         for r in self.lab_results:
             at(r.reported_ns, "assay", r)
         at(ms.reclaim_start, "reclaim", (0, 0, None))
-        at(t0, "clock", int(sc.clock_period_s * NS_PER_S))
-        at(t0, "encoder", None)
-        at(t0, "gnss", None)
-        at(t0, "scan", None)
+        sensors_from = t0 if self.live is None else self.live.at_ns
+        if sc.emits_clock:
+            at(sensors_from, "clock", int(sc.clock_period_s * NS_PER_S))
+        at(sensors_from, "encoder", None)
+        at(sensors_from, "gnss", None)
+        at(sensors_from, "scan", None)
         last_forward = plan[-1]["y1"] >= plan[-1]["y0"]
         survey_to = sc.pile_origin_y_m + (0.0 if last_forward else sc.pile_length_m)
         at(ms.run_on_end, "patrol", (ms.survey_end, survey_to))
         return queue
 
-    def _work_through(self, queue: Queue, speed: float, idle_speed: float,
-                      wall0: float) -> None:
-        """Handle the queue's events up to ``self.end_ns``, paced at ``speed`` (see :meth:`run`)."""
+    def _work_through(self, queue: Queue) -> None:
+        """Handle the queue's events up to ``self.end_ns``, paced by ``self.pacer`` (see
+        :meth:`run`)."""
         t0 = self.scenario.start_ns
         next_report = time.monotonic() + 10.0
-        t_prev, wall_due, schedule0, busy = t0, 0.0, wall0, None
+        t_prev, busy = t0, None
         while queue:
             t, _, kind, payload = queue.pop()
             if t > self.end_ns:
@@ -337,29 +363,20 @@ class Simulation(ReclaimRun):
                 # there), so that a service dating its readings between ticks (the
                 # scanner) has the corner of the site-time line
                 self._tick(t_prev)
-            if speed > 0:
-                # pacing site time against the wall clock; idle stretches (no machine
-                # moves, only late assays to wait for) run at idle_speed
-                rate = idle_speed if (idle_speed and not busy) else speed
-                wall_due += (t - t_prev) / NS_PER_S / rate
-                schedule0 = self._pace(wall_due, schedule0)
+            # pacing site time against the wall clock; idle stretches (no machine moves,
+            # only late assays to wait for) run at idle_speed
+            self.pacer.wait(t - t_prev, busy)
             t_prev = t
             getattr(self, f"_on_{kind}")(t, payload, queue.at)
 
-    def _pace(self, wall_due: float, schedule0: float) -> float:
-        """Sleep until ``wall_due`` seconds after ``schedule0`` (wall clock); a run further
-        behind than REBASE_S moves its schedule on. Returns the schedule's start."""
-        lag = wall_due - (time.monotonic() - schedule0)
-        if lag > 0:
-            time.sleep(lag)
-        elif -lag > LATE_S:
-            self.stats.late_events += 1
-            self.stats.max_lag_s = max(self.stats.max_lag_s, -lag)
-            if -lag > REBASE_S:
-                schedule0 -= lag          # lag < 0: the schedule moves on by it
-                self.stats.rebases += 1
-                self.stats.given_up_s -= lag
-        return schedule0
+    def _on_live(self, t: int, live: LiveStart, at) -> None:
+        """The live moment: every producer muted so far restarts (epoch of its second,
+        seq 0) and pacing starts at the live wall time (kept to: no rebase), or now."""
+        for producer in self.producers.values():
+            if producer.muted:
+                producer.restart(live.epoch)
+        self.stats.fast_forward_wall_s = time.monotonic() - self._wall0
+        self.pacer.start(live_schedule0(live.wall_s, self.stats), rebase=live.wall_s is None)
 
     # -- handlers -------------------------------------------------------------------------------
 
@@ -372,10 +389,12 @@ class Simulation(ReclaimRun):
         at(t + (int(busy_s * NS_PER_S) if busy_s and self._busy(t) else period), "clock", period)
 
     def _tick(self, t: int) -> None:
-        """One ``clock`` event at site time ``t`` (never two at one time, never back)."""
-        if t > self._last_tick_ns:
+        """One ``clock`` event at site time ``t`` (never two at one time, never back; none
+        without a clock or before the live moment)."""
+        clock = self.producers.get("clock")
+        if clock is not None and not clock.muted and t > self._last_tick_ns:
             self._last_tick_ns = t
-            self.producers["clock"].emit(messages.clock(t))
+            clock.emit(messages.clock(t))
 
     def _busy(self, t: int) -> bool:
         """Whether a machine works (full sensor rates) or the yard waits for assays."""
@@ -393,7 +412,7 @@ class Simulation(ReclaimRun):
         self.last_reading = (t, msg.travel_m, msg.slew_rad, msg.luff_rad)
         if self.real:
             self.devices.encoder_sample(*self.last_reading)
-        at(t + self._period_ns(t, self.scenario.encoder_hz), "encoder", None)
+        at(t + self._period_ns(t, self.rates.encoder_hz), "encoder", None)
 
     def _on_gnss(self, t: int, period: int, at) -> None:
         joints = np.asarray(self._joints(t))
@@ -407,10 +426,9 @@ class Simulation(ReclaimRun):
         self._write(self.gnss_file, self.gnss_pty, data)
         self.stats.gga += 1
         self.stats.gnss_bytes += len(data)
-        at(t + self._period_ns(t, self.scenario.gnss_hz), "gnss", None)
+        at(t + self._period_ns(t, self.rates.gnss_hz), "gnss", None)
 
     def _on_scan(self, t: int, _payload, at) -> None:
-        sc = self.scenario
         joints = self._joints(t)
         position, rotation = self._scanner_pose(joints)
         g = self.grid
@@ -428,7 +446,7 @@ class Simulation(ReclaimRun):
             # queued at this very time: handled after everything already due now (the
             # encoders read at t among them), and nothing else moves in the queue
             at(t, "scan_events", (data, position, rotation))
-        at(t + self._period_ns(t, sc.scan_hz), "scan", None)
+        at(t + self._period_ns(t, self.rates.scan_hz), "scan", None)
 
     def _lms200_telegram(self, t: int, ranges: np.ndarray, status: np.ndarray, at) -> bytes:
         """The scan's LMS200 telegram, queued to leave its serial transfer time after ``t``."""

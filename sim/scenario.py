@@ -1,29 +1,43 @@
 """Simulator scenarios: the yard, its pile, machines, lots and timetable as data.
 
-=============  =========================================================================
-scenario       what it is
-=============  =========================================================================
-``demo``       a small pile (60 m), 8 chevron layers from 3 lots, one reclaim bench,
-               assays arriving 2-6 h late; the default behind ``make demo``
-``full-scale`` the thesis' 220 m pile, ~30 m high, tens of layers, several benches
-``bench-scale`` the thesis' laboratory pile in metres (Table 4.1 sizes), two reclaims of
-               10 and 5 cuts (§5.3.4)
-``load``       the demo pile with every sensor at its maximum rate (reliability tests)
-``cohesive``   the demo with cohesive ore: a cut's faces stand at up to 50 deg
-``delayed``    the demo with faces that stand as cut and fail to repose 5-60 min later
-``standing``   the demo with faces that never slide
-=============  =========================================================================
+===================  =====================================================================
+scenario             what it is
+===================  =====================================================================
+``demo``             a small pile (60 m), 8 chevron layers from 3 lots, one reclaim bench,
+                     assays arriving 2-6 h late; the default behind ``make demo``
+``full-scale``       the thesis' 220 m pile, ~30 m high, tens of layers, several benches
+``bench-scale``      the thesis' laboratory pile in metres (Table 4.1 sizes), two reclaims of
+                     10 and 5 cuts (§5.3.4)
+``load``             the demo pile with every sensor at its maximum rate (reliability tests)
+``cohesive``         the demo with cohesive ore: a cut's faces stand at up to 50 deg
+``delayed``          the demo with faces that stand as cut and fail to repose 5-60 min later
+``standing``         the demo with faces that never slide
+``two-bed-stack``    bed A of a two-bed blending yard: the full-scale pile at y 0-220 m,
+                     sources ``bedA.*``, the yard's clock; starts 12 h after bed B, so it is
+                     stacking (about 9.5 h in) when bed B starts reclaiming
+``two-bed-reclaim``  bed B: the same pile at y 300-520 m along the same rail (pile ``B``,
+                     machines ``bwr2``/``stk2``, lots ``*-B``), sources ``bedB.*``, no clock
+===================  =====================================================================
+
+The two-bed scenarios are meant to run as two ``stockpile sim`` processes on one site:
+history at the full-scale rates (scan 2 Hz, encoders 2 Hz, GNSS 1 Hz), and from a live
+moment (``--live-at``, :mod:`sim.live`) the rates of ``live_rates`` (an LMS200 at 75 Hz,
+GNSS at 10 Hz, encoders at 50 Hz; 75 telegrams of 412 bytes a second are 309 kbit/s, within
+the scanner's 500 kbaud line).
 
 The material (:class:`sim.material.Material`) says what a cut's faces do after the cut;
-every scenario but the last three slumps them at once to the angle of repose.
+every scenario but ``cohesive``, ``delayed`` and ``standing`` slumps them at once to the
+angle of repose.
 
 Lengths in metres, times in seconds of site time unless a name says otherwise.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field, replace
 
+from schemas.events import is_valid_source
 from sim.grades import LotSpec, table_5_4_lots
 from sim.kinematics import BENCH_SCALE, FULL_SCALE, Machine
 from sim.material import Material
@@ -97,11 +111,39 @@ class Scenario:
     #: dating its readings between ticks follows a paced run's unsteady pace closer
     clock_busy_period_s: float | None = None
     idle_hz: float = 0.1   # every sensor's rate cap while no machine moves (late assays)
+    #: (scan_hz, gnss_hz, encoder_hz) of a live run from its live moment on (``--live-at``);
+    #: None: ``scan_hz``, ``gnss_hz``, ``encoder_hz`` throughout
+    live_rates: tuple[float, float, float] | None = None
+
+    # the yard's sources
+    #: non-empty: the yard-wide sources are ``<prefix>.config``, ``<prefix>.clock``,
+    #: ``<prefix>.lims`` and ``<prefix>.lab`` (not ``yard.config``, ``sim.clock``, ``lims``,
+    #: ``lab1``) and the lab's assay ids ``<prefix>-AS-00001`` ..., so that two runs on one
+    #: site (two beds) publish under sources and assay ids of their own
+    source_prefix: str = ""
+    #: whether the run publishes ``clock`` events (a yard has one clock: False for every
+    #: run on a site but one)
+    emits_clock: bool = True
 
     def __post_init__(self) -> None:
         if not isinstance(self.material, Material):
             raise TypeError("material must be a sim.material.Material")
         self.material.check_repose(self.repose_deg)
+        if self.source_prefix and not is_valid_source(f"{self.source_prefix}.config"):
+            raise ValueError(f"source_prefix must be letters, digits, '.', '_' or '-', "
+                             f"starting with a letter or digit, got {self.source_prefix!r}")
+        if self.live_rates is not None and not (
+                len(self.live_rates) == 3
+                and all(math.isfinite(hz) and hz > 0 for hz in self.live_rates)):
+            raise ValueError(f"live_rates must be three rates > 0 Hz (scan, gnss, encoder), "
+                             f"got {self.live_rates!r}")
+
+    def yard_sources(self) -> dict[str, str]:
+        """The yard-wide sources (``config``, ``clock``, ``lims``, ``lab``) -> their names:
+        ``yard.config``, ``sim.clock``, ``lims``, ``lab1``, or ``<source_prefix>.<kind>``."""
+        if self.source_prefix:
+            return {kind: f"{self.source_prefix}.{kind}" for kind in ("config", "clock", "lims", "lab")}
+        return {"config": "yard.config", "clock": "sim.clock", "lims": "lims", "lab": "lab1"}
 
     @property
     def benches(self) -> int:
@@ -178,8 +220,34 @@ def standing() -> Scenario:
     return replace(demo(), name="standing", material=Material("standing"))
 
 
+#: an LMS200 at 75 Hz, GNSS at 10 Hz, encoders at 50 Hz: the two-bed yard's live rates
+TWO_BED_LIVE_RATES = (75.0, 10.0, 50.0)
+#: bed B's pile starts this far along the rail (m), 80 m beyond bed A's 220 m pile
+BED_B_ORIGIN_Y_M = 300.0
+#: bed A starts this long after bed B (ns): stacking about 9.5 h in when B starts reclaiming
+BED_A_DELAY_NS = 12 * 3600 * 1_000_000_000
+
+
+def two_bed_stack() -> Scenario:
+    # bed A: being stacked while bed B is reclaimed; it publishes the yard's clock
+    return replace(full_scale(), name="two-bed-stack", pile_id="A", machine_id="bwr1",
+                   stacker_id="stk1", pile_origin_y_m=0.0, source_prefix="bedA",
+                   emits_clock=True, start_ns=DEFAULT_START_NS + BED_A_DELAY_NS,
+                   live_rates=TWO_BED_LIVE_RATES)
+
+
+def two_bed_reclaim() -> Scenario:
+    # bed B: beyond bed A along the same rail, its own machines, lots and sources, no clock
+    lots = tuple(replace(lot, lot_id=f"{lot.lot_id}-B") for lot in full_scale().lots)
+    return replace(full_scale(), name="two-bed-reclaim", pile_id="B", machine_id="bwr2",
+                   stacker_id="stk2", pile_origin_y_m=BED_B_ORIGIN_Y_M, lots=lots,
+                   source_prefix="bedB", emits_clock=False, start_ns=DEFAULT_START_NS,
+                   live_rates=TWO_BED_LIVE_RATES)
+
+
 SCENARIOS = {"demo": demo, "full-scale": full_scale, "bench-scale": bench_scale, "load": load,
-             "cohesive": cohesive, "delayed": delayed, "standing": standing}
+             "cohesive": cohesive, "delayed": delayed, "standing": standing,
+             "two-bed-stack": two_bed_stack, "two-bed-reclaim": two_bed_reclaim}
 
 
 def scenario_by_name(name: str) -> Scenario:
