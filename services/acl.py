@@ -187,6 +187,10 @@ ROLE_GRANTS: dict[str, list[Grant]] = {
 ROLE_GRANTS["localizer"] = ROLE_GRANTS["localizer"] + _event_reader(
     tuple(f"stockpile/{{site}}/@v1/{t}/**" for t in SUBSCRIBES["localizer"]),
     tuple(f"stockpile/{{site}}/@v1/{t}/**/@adv/**" for t in SUBSCRIBES["localizer"]))
+#: a localizer started after its declarations' publishers left reads them from the ledger
+LEDGER_EVENTS_Q = "stockpile/{site}/@ledger/q/events"
+ROLE_GRANTS["localizer"] += [Grant(("query",), ("ingress",), (LEDGER_EVENTS_Q,)),
+                             Grant(("reply",), ("egress",), (LEDGER_EVENTS_Q,))]
 for _role, _service in ROLE_SERVICE.items():
     ROLE_GRANTS[_role] = ROLE_GRANTS.get(_role, []) + [
         Grant(("liveliness_token",), ("ingress",), (LIVE_OF.replace("{service}", _service),))]

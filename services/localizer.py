@@ -4,7 +4,8 @@ One process per reclaimer (``--machine-id``, default ``bwr1``).  It subscribes o
 ``stockpile/<site>/@v1/`` to ``site_declared``, ``machine_declared``, ``joint_reading``
 and ``location_fix`` with Zenoh advanced subscribers (history with late-publisher
 detection, so declarations published before it started come from the publishers'
-caches, and the last ``HISTORY_SAMPLES`` measurements of each source), runs
+caches, or from the ledger service when no cache has them
+(:mod:`services.localizer_declarations`), and the last ``HISTORY_SAMPLES`` measurements of each source), runs
 :class:`services.localizer_filter.LocalizerFilter` (a UKF over the joints,
 the encoder biases and the correlated GNSS error) and publishes, as source
 ``<machine>.localizer``:
@@ -79,6 +80,8 @@ from schemas.events import Event, Malformed, event_from_sample, is_valid_source,
 from schemas.times import NS_PER_S
 from schemas.validate import InvalidEvent, check_event
 from projector.kinematics import MachineGeometry
+from services.ledger_client import LedgerClient
+from services.localizer_declarations import FromLedger, LedgerDeclarations
 from services.localizer_filter import GNSS_ERROR_STATES, N_STATE, LocalizerFilter
 from services.localizer_messages import estimate_messages, fix_covariance_m2, fix_enu_m
 from services.localizer_smoother import FixedLagSmoother
@@ -296,6 +299,17 @@ class Localizer:
                 return
             self._buffer(_FIX, item, message, now_s)
 
+    @property
+    def needs_declarations(self) -> bool:
+        """True while the site's datum or this machine's geometry is unknown."""
+        return self.datum is None or self.geometry is None
+
+    def fill_declaration(self, event: Event) -> None:
+        """Take a declaration read from the ledger only when it is still missing."""
+        if ((event.type == "site_declared" and self.datum is None)
+                or (event.type == "machine_declared" and self.geometry is None)):
+            self.handle(event)
+
     def _fix_is_ours(self, source: str, frame_id: str) -> bool:
         m = self.config.machine_id
         if frame_id:
@@ -484,6 +498,10 @@ def main(config: Config, *, stopper: Stopper | None = None) -> int:
         runtime.log("subscribed", machine_id=config.machine_id,
                     keys=",".join(f"{t}/**" for t in INPUT_TYPES))
         runtime.announce()     # the liveliness token: subscribed and serving
+        LedgerDeclarations(LedgerClient(runtime.session, config.site, stop=runtime.stopper.event),
+                           config.machine_id, samples.put,
+                           lambda: localizer.needs_declarations, runtime.stopper.event,
+                           runtime.log).start()
         stop = runtime.stopper
         try:
             while not stop.is_set():
@@ -517,7 +535,10 @@ def main(config: Config, *, stopper: Stopper | None = None) -> int:
 def _handle_safely(localizer: Localizer, item, status, runtime: ServiceRuntime) -> None:
     """Decode and handle one raw sample; an unexpected failure is counted, never fatal."""
     try:
-        localizer.handle(event_from_sample(*item))
+        if isinstance(item, FromLedger):
+            localizer.fill_declaration(item.event)
+        else:
+            localizer.handle(event_from_sample(*item))
     except Exception as exc:  # noqa: BLE001 - bad input must not stop the service
         status.add("errors")
         runtime.log("sample skipped", level="warning", error=f"{type(exc).__name__}: {exc}")
