@@ -36,6 +36,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shutil
 import subprocess
 import sys
 import time
@@ -173,9 +174,7 @@ def _remove(*paths: Path) -> None:
     """Delete files, and folders of files, that a stage writes afresh."""
     for path in paths:
         if path.is_dir():
-            for child in path.iterdir():
-                child.unlink()
-            path.rmdir()
+            shutil.rmtree(path)
         elif path.exists():
             path.unlink()
 

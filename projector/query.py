@@ -101,6 +101,11 @@ class PileState:
     grade_sd: dict[str, float] = field(default_factory=dict)   # analyte -> pp
 
     @property
+    def join(self) -> "GradeJoin | None":
+        """The grades as known at K (None: the pile is not declared)."""
+        return self._join
+
+    @property
     def surface_m(self) -> np.ndarray:
         """The top surface (nx, ny), metres."""
         return self.state.stack.surface()
@@ -492,7 +497,7 @@ def _unpack(blob: bytes) -> F.ProjectorState:
     state = pickle.loads(parts[0], buffers=parts[1:])
     if state.height is not None:
         state.height = state.height.copy()
-    if getattr(state, "face_sightings", None) is not None:
+    if state.face_sightings is not None:
         state.face_sightings = tuple(a.copy() for a in state.face_sightings)
     return state
 

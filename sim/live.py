@@ -12,9 +12,8 @@ From then on it runs paced (:class:`Pacer`) at the scenario's ``live_rates`` whe
 With a wall-clock moment ``live_wall_s`` (Unix s) the run waits after its fast-forward
 until then, so that site time t happens at wall ``live_wall_s + (t - live_at_ns) / speed``
 (throughout without an ``idle_speed``): two runs given the same live moment run in step.
-Such a run keeps that mapping: behind it (a full-scale bench's landing is planned in about
-a second) it catches up rather than moving its schedule on (:data:`REBASE_S`), so that the
-other bed's clock still dates its readings.  One that reaches the live moment late starts
+Such a run keeps that mapping: behind it, it catches up rather than moving its schedule
+on (:data:`REBASE_S`), so that the other bed's clock still dates its readings.  One that reaches the live moment late starts
 at once and says on stderr how late.
 
 :func:`milestones` is ``stockpile sim --milestones``: the timetable's moments without

@@ -12,12 +12,10 @@ the blueprint, and the pile tonnes against ``project()`` on the same ledger.
 from __future__ import annotations
 
 import shutil
-import threading
 from collections import defaultdict
 from pathlib import Path
 
 import pytest
-import zenoh
 
 import rerun.chunk as rrc
 
@@ -30,8 +28,9 @@ from services.dashboard import Config, render_ledger
 from services.ledger_client import LedgerClient
 from services.service import EventPublisher
 from test_audit import CUT, PILE, SEED, audit_ledger
-from zenoh_helpers import (client_args, log_lines, open_router, service_on_a_stuck_ledger, stockpile,
-                           stop, stop_all, wait_liveliness, wait_until)
+from zenoh_helpers import (client_args, last_status, log_lines, open_router,
+                           service_on_a_stuck_ledger, stockpile, stop, stop_all, wait_liveliness,
+                           wait_token, wait_until)
 
 from schemas.times import NS_PER_S as S  # noqa: E402
 SITE = "dash"
@@ -277,21 +276,6 @@ def test_merged_voxels_keep_tonnes_and_grade_tonnes():
     assert tuple(colours[2]) == (150, 150, 150)
 
 
-def _wait_token(session: zenoh.Session, key: str, process, timeout_s: float) -> None:
-    """Until a liveliness token matching ``key`` exists; fails at once if ``process`` exits."""
-    seen = threading.Event()
-    sub = session.liveliness().declare_subscriber(key, lambda s: seen.set(), history=True)
-    try:
-        wait_until(lambda: seen.is_set() or process.poll() is not None, timeout_s, key)
-    finally:
-        sub.undeclare()
-    assert seen.is_set(), f"{process.args} exited with {process.returncode}"
-
-
-def _status(path: Path) -> dict[str, str]:
-    lines = [line for line in log_lines(path) if line.get("msg") == "status"]
-    return lines[-1] if lines else {}
-
 
 def test_live_service_follows_the_ledger_service(ledger, tmp_path):
     path = tmp_path / "ledger.duckdb"
@@ -310,7 +294,7 @@ def test_live_service_follows_the_ledger_service(ledger, tmp_path):
                               "--out", str(out), "--every", "10min", "--update-period-s", "0",
                               "--status-period", "0.2", *client_args(endpoint),
                               stderr_path=tmp_path / "dashboard.log")
-        _wait_token(router, f"stockpile/{SITE}/@live/dashboard/**", dashboard, 90)
+        wait_token(router, f"stockpile/{SITE}/@live/dashboard/**", dashboard, 90)
         caught = next(line for line in log_lines(tmp_path / "dashboard.log")
                       if line["msg"] == "caught up")
         assert int(caught["head"]) == head
@@ -326,8 +310,8 @@ def test_live_service_follows_the_ledger_service(ledger, tmp_path):
         lab.publish(assay)
         LedgerClient(router, SITE).wait_for(lambda h: h["global_seq"] >= head + 1, 30)
         updates0 = int(caught["updates"])
-        wait_until(lambda: int(_status(tmp_path / "dashboard.log").get("records", 0)) >= head + 2
-                   and int(_status(tmp_path / "dashboard.log").get("updates", 0)) > updates0,
+        wait_until(lambda: int(last_status(tmp_path / "dashboard.log").get("records", 0)) >= head + 2
+                   and int(last_status(tmp_path / "dashboard.log").get("updates", 0)) > updates0,
                    60, "the dashboard's update after the live assay")
     finally:
         try:

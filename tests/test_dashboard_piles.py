@@ -16,11 +16,9 @@ import json
 import shutil
 import subprocess
 import sys
-import threading
 from pathlib import Path
 
 import pytest
-import zenoh
 
 import rerun.chunk as rrc
 
@@ -35,7 +33,8 @@ from services.ledger_client import LedgerClient
 from services.service import EventPublisher
 from stockpile import cli
 from test_dashboard import Rrd
-from zenoh_helpers import client_args, log_lines, open_router, stockpile, stop_all, wait_until
+from zenoh_helpers import (client_args, last_status, log_lines, open_router, stockpile, stop_all,
+                           wait_token, wait_until)
 
 PILES = ("P1", "P2")
 SITE = "beds"
@@ -192,21 +191,6 @@ def test_live_catch_up_feeds_each_pile_from_one_reading(ledger, truth, tmp_path)
     assert all(o.startswith("/piles/") for o in origins), origins
 
 
-def _wait_token(session: zenoh.Session, key: str, process, timeout_s: float) -> None:
-    """Until a liveliness token ``key`` exists; fails at once if ``process`` exits."""
-    seen = threading.Event()
-    sub = session.liveliness().declare_subscriber(key, lambda s: seen.set(), history=True)
-    try:
-        wait_until(lambda: seen.is_set() or process.poll() is not None, timeout_s, key)
-    finally:
-        sub.undeclare()
-    assert seen.is_set(), f"{process.args} exited with {process.returncode}"
-
-
-def _status(path: Path) -> dict[str, str]:
-    lines = [line for line in log_lines(path) if line.get("msg") == "status"]
-    return lines[-1] if lines else {}
-
 
 def test_live_service_follows_the_ledger_once_for_two_piles(ledger, truth, tmp_path):
     path = tmp_path / "ledger.duckdb"
@@ -219,13 +203,13 @@ def test_live_service_follows_the_ledger_once_for_two_piles(ledger, truth, tmp_p
                         stderr_path=tmp_path / "ledger.log")
     dashboard = None
     try:
-        _wait_token(router, f"stockpile/{SITE}/@live/ledger/**", service, 30)
+        wait_token(router, f"stockpile/{SITE}/@live/ledger/**", service, 30)
         dashboard = stockpile("service", "dashboard", "--pile", "P1", "--pile", "P2",
                               "--site", SITE, "--out", str(out), "--every", "10min",
                               "--update-period-s", "0", "--status-period", "0.2",
                               *client_args(endpoint), stderr_path=dash_log)
         # one process, one token naming both piles
-        _wait_token(router, f"stockpile/{SITE}/@live/dashboard/P1+P2", dashboard, 90)
+        wait_token(router, f"stockpile/{SITE}/@live/dashboard/P1+P2", dashboard, 90)
         caught = next(line for line in log_lines(dash_log) if line["msg"] == "caught up")
         assert int(caught["head"]) == head and caught["piles"] == "P1,P2"
         assert int(caught["records"]) == head + 1   # read once, not once per pile
@@ -241,8 +225,8 @@ def test_live_service_follows_the_ledger_once_for_two_piles(ledger, truth, tmp_p
         lab.publish(assay)
         LedgerClient(router, SITE).wait_for(lambda h: h["global_seq"] >= head + 1, 30)
         updates0 = int(caught["updates"])
-        wait_until(lambda: int(_status(dash_log).get("records", 0)) >= head + 2
-                   and int(_status(dash_log).get("updates", 0)) >= updates0 + 2,
+        wait_until(lambda: int(last_status(dash_log).get("records", 0)) >= head + 2
+                   and int(last_status(dash_log).get("updates", 0)) >= updates0 + 2,
                    60, "both piles' updates after the live assay")
     finally:
         try:

@@ -338,7 +338,7 @@ def test_a_packed_state_unpacks_to_the_same_arrays_and_a_foreign_file_is_refused
     arrays = [np.zeros(0), np.arange(3.0), np.zeros((0, 2)), np.arange(4), np.zeros(0)]
     for threads in (1, 3):
         monkeypatch.setattr(Q, "SNAPSHOT_THREADS", threads)
-        back = _unpack(_pack(SimpleNamespace(height=None, arrays=arrays)))
+        back = _unpack(_pack(SimpleNamespace(height=None, face_sightings=None, arrays=arrays)))
         assert [a.shape for a in back.arrays] == [a.shape for a in arrays]
         for a, b in zip(back.arrays, arrays):
             np.testing.assert_array_equal(a, b)

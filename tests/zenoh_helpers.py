@@ -196,6 +196,23 @@ def wait_until(predicate: Callable[[], bool], timeout_s: float, what: str,
         time.sleep(interval_s)
 
 
+
+def wait_token(session: zenoh.Session, key: str, process, timeout_s: float) -> None:
+    """Until a liveliness token matching ``key`` exists; fails at once if ``process`` exits."""
+    seen = threading.Event()
+    sub = session.liveliness().declare_subscriber(key, lambda s: seen.set(), history=True)
+    try:
+        wait_until(lambda: seen.is_set() or process.poll() is not None, timeout_s, key)
+    finally:
+        sub.undeclare()
+    assert seen.is_set(), f"{process.args} exited with {process.returncode}"
+
+
+def last_status(path: Path) -> dict[str, str]:
+    """The last ``status`` log line a service wrote to ``path`` ({} before the first)."""
+    lines = [line for line in log_lines(path) if line.get("msg") == "status"]
+    return lines[-1] if lines else {}
+
 def wait_liveliness(session: zenoh.Session, key: str, timeout_s: float) -> None:
     """Block until a liveliness token matching ``key`` exists (a service is up)."""
     seen = threading.Event()
