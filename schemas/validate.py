@@ -68,6 +68,8 @@ ANALYTE_SUM_TOLERANCE_PCT = 0.1
 #: widest field of view a scan may cover, degrees (one turn), and the allowance on it for
 #: the rounding of the angles, radians
 MAX_SCAN_FIELD_DEG = 360.0
+#: the largest code of EPSG's registry (its codes run 1024-32767)
+MAX_EPSG = 32767
 _FIELD_TOLERANCE_RAD = 1e-9
 
 # Times are stored as signed 64-bit UTC nanoseconds: MIN_TIME_NS .. MAX_TIME_NS (schemas.times).
@@ -457,6 +459,8 @@ def _check_joint_estimate(m) -> None:
 def _check_site(m) -> None:
     _require(-90.0 <= m.datum_lat_deg <= 90.0, "out_of_range", f"datum_lat_deg {m.datum_lat_deg}")
     _require(-180.0 <= m.datum_lon_deg <= 180.0, "out_of_range", f"datum_lon_deg {m.datum_lon_deg}")
+    _require(m.crs_epsg == 0 or 1024 <= m.crs_epsg <= MAX_EPSG, "out_of_range",
+             f"crs_epsg {m.crs_epsg} is not an EPSG code (1024-{MAX_EPSG}, or 0 for none)")
 
 
 def _check_pile(m) -> None:

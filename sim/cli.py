@@ -3,17 +3,18 @@
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import json
 import math
 import sys
 import threading
-from common.options import add_duration, non_negative_float
+from common.options import add_duration, non_negative_float, positive_float
 from dataclasses import replace
 from pathlib import Path
 
 import zenoh
 
-from schemas.times import parse_time_ns
+from schemas.times import format_time_ns, parse_time_ns
 from security.event_keys import load_signing_key
 from services.service import Stopper, log
 from services.zenoh_config import DEFAULT_LISTEN, add_zenoh_arguments, config_from_args
@@ -23,6 +24,8 @@ from sim.publish import ZenohSink
 from sim.pty import PtyDevice
 from sim.runner import Simulation
 from sim.scenario import SCENARIOS, scenario_by_name
+from sim.survey import (DEFAULT_DENSITY_PER_M2, DEFAULT_SD_HORIZONTAL_M, DEFAULT_SD_VERTICAL_M,
+                        DroneSurveys, survey_stem)
 
 
 def _wait_liveliness(session, key: str, timeout_s: float) -> bool:
@@ -80,6 +83,46 @@ def check_live(args: argparse.Namespace, scenario) -> None:
         fail(f"--live-at: {exc}")
 
 
+#: the packages a drone survey (``--survey-at``) needs (the [sim] extra has them)
+SURVEY_IMPORTS = ("laspy", "lazrs", "pyproj")
+
+
+def check_surveys(args: argparse.Namespace, scenario) -> None:
+    """One-line usage errors for ``--survey-at`` (before anything opens): every time
+    between the run's start and end, no two in one second, laspy, lazrs and pyproj installed."""
+    fail = args._parser.error
+    if not args.survey_at:
+        for flag, given in (("--survey-density", args.survey_density),
+                            ("--survey-seed", args.survey_seed)):
+            if given is not None:
+                fail(f"{flag} needs --survey-at")
+        return
+    if args.survey_density is not None and not math.isfinite(args.survey_density):
+        fail(f"--survey-density must be finite, got {args.survey_density}")
+    missing = [name for name in SURVEY_IMPORTS if importlib.util.find_spec(name) is None]
+    if missing:
+        fail(f"--survey-at needs laspy, lazrs and pyproj ({', '.join(missing)} missing): "
+             "pip install 'stockpile-ledger[sim]'")
+    end_ns = milestones(scenario, args.seed, _duration_h(args))["end_ns"]
+    for t in args.survey_at:
+        if not scenario.start_ns <= t <= end_ns:
+            fail(f"--survey-at {format_time_ns(t)}: not between the run's start "
+                 f"{format_time_ns(scenario.start_ns)} and end {format_time_ns(end_ns)}")
+    stems = [survey_stem(t) for t in args.survey_at]
+    if len(set(stems)) != len(stems):
+        fail("--survey-at: two surveys in one second of site time (one file name)")
+
+
+def _drone_surveys(args: argparse.Namespace, scenario, out: Path) -> DroneSurveys | None:
+    """The run's drone surveys (``--survey-at``), each reported on stdout; None: none."""
+    if not args.survey_at:
+        return None
+    seed = args.seed if args.survey_seed is None else args.survey_seed
+    density = DEFAULT_DENSITY_PER_M2 if args.survey_density is None else args.survey_density
+    return DroneSurveys(args.survey_at, out, scenario, seed, density,
+                        report=lambda line: print(line, flush=True))
+
+
 def _duration_h(args: argparse.Namespace) -> float | None:
     return None if args.duration is None else args.duration / 3600.0
 
@@ -94,6 +137,7 @@ def run_sim(args: argparse.Namespace) -> int:
         print(json.dumps(milestones(scenario, args.seed, _duration_h(args))), flush=True)
         return 0
     check_live(args, scenario)
+    check_surveys(args, scenario)
     out = Path(args.out or f"sim-out/{args.scenario}-seed{args.seed}")
     sinks: list = []
     ptys: dict[str, object] = {}
@@ -136,6 +180,7 @@ def run_sim(args: argparse.Namespace) -> int:
                          gnss_pty=ptys.get("gnss"), scan_events=args.scan_events,
                          cut_surfaces=args.truth_cut_surfaces, noise_seed=args.noise_seed,
                          signing_keys=keys, adapters=args.adapters, devices=devices,
+                         drone_surveys=_drone_surveys(args, scenario, out),
                          progress=lambda line: print(f"  {line}", file=sys.stderr, flush=True))
         if args.live_at is not None:
             print(f"fast-forwarding to the live moment {args.live_at} (UTC ns)"
@@ -301,6 +346,18 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    "to it (behind, it catches up rather than moving its schedule on), so runs "
                    "given the same T and UNIX_S keep in step; reached late, it starts at once "
                    "and says how late on stderr")
+    p.add_argument("--survey-at", type=site_time_ns, action="append", default=[], metavar="T",
+                   help="when site time reaches T (ISO-8601 or integer UTC ns, between the "
+                   "start and the end), write a drone survey of the true surface: "
+                   "OUT/survey-<YYYYmmddTHHMMSSZ>.laz (mine grid, the scenario's EPSG), "
+                   ".json (its truth: time, seed, noise, true volume) and .truth.npz (the "
+                   "true surface); changes no other output (repeatable)")
+    p.add_argument("--survey-density", type=positive_float, metavar="PER_M2",
+                   help=f"--survey-at's points per square metre (default "
+                   f"{DEFAULT_DENSITY_PER_M2:g}; noise sd {DEFAULT_SD_VERTICAL_M:g} m "
+                   f"vertical, {DEFAULT_SD_HORIZONTAL_M:g} m horizontal)")
+    p.add_argument("--survey-seed", type=int, metavar="N",
+                   help="draw --survey-at's points and noise from this seed (default: --seed)")
     p.add_argument("--milestones", action="store_true",
                    help="print the run's timetable as one JSON object (UTC ns: start_ns, "
                    "stacking_end_ns, survey_end_ns, reclaim_start_ns, first_cut_start_ns = "

@@ -28,7 +28,8 @@ def stamp(message, field_name: str, t_ns: int):
 def declarations(sc: Scenario, m: Machine, t: int) -> list:
     """The site, the pile and both machines (the reclaimer with its scanner mount)."""
     site = pb.SiteDeclared(site_id=sc.site_id, datum_lat_deg=sc.datum_lat_deg,
-                           datum_lon_deg=sc.datum_lon_deg, datum_alt_m=sc.datum_alt_m)
+                           datum_lon_deg=sc.datum_lon_deg, datum_alt_m=sc.datum_alt_m,
+                           crs_epsg=sc.crs_epsg)
     out = [stamp(site, "time", t)]
     pile = pb.PileDeclared(pile_id=sc.pile_id, origin_x_m=sc.pile_origin_x_m,
                            origin_y_m=sc.pile_origin_y_m, length_m=sc.pile_length_m,

@@ -17,6 +17,9 @@ the same world again):
     ground truth: the pile (surface, layer tops, parcels), every pass and cut, the
     true joints, scanner poses and antenna positions over time; with ``cut_surfaces``
     (CLI ``--truth-cut-surfaces``) also the true surface at each cut's start.
+``survey-<YYYYmmddTHHMMSSZ>.laz`` / ``.json`` / ``.truth.npz``
+    with ``drone_surveys`` (CLI ``--survey-at``): a drone survey of the true surface at
+    each time and its truth (:mod:`sim.survey`); no other output changes.
 
 Time is site time (UTC ns).  The site clock is published as ``clock`` events every
 ``clock_period_s``; at ``speed`` > 0 the run is paced against the wall clock
@@ -100,6 +103,7 @@ from sim.reclaim_run import CUT_SUBSWEEPS, ReclaimRun
 from sim.rng import named_rng
 from sim.scanner import BEAM_ERROR_CODE, ScannerModel
 from sim.scenario import Scenario
+from sim.survey import DroneSurveys
 from sim.timetable import CHUNK_S, Milestones, Queue, stacking_plan
 from sim.world import Grid, World
 
@@ -168,6 +172,8 @@ class Simulation(ReclaimRun):
     #: the module docstring); ``devices``: the real devices (made when not given)
     adapters: str = "sim"
     devices: RealDevices | None = None
+    #: drone surveys of the true surface to take during the run (:mod:`sim.survey`)
+    drone_surveys: DroneSurveys | None = None
 
     def __post_init__(self) -> None:
         sc = self.scenario
@@ -299,6 +305,8 @@ class Simulation(ReclaimRun):
         # a run that ends on its own goes on past its delayed failures (sim.reclaim_run)
         self.end_ns, self.end_fixed = ms.end_ns, duration_h is not None
         self._work_through(queue)
+        if self.drone_surveys is not None:   # those after the last event handled
+            self.drone_surveys.take_due(self.end_ns + 1, self.world)
         self.stats.site_s = (self.end_ns - t0) / NS_PER_S
         self.stats.wall_s = time.monotonic() - wall0
         self._finish()
@@ -351,6 +359,8 @@ class Simulation(ReclaimRun):
                     if kind_late in ("telegram", "lms511"):
                         getattr(self, f"_on_{kind_late}")(t_late, data, queue.at)
                 break
+            if self.drone_surveys is not None:   # the world before anything at t happens
+                self.drone_surveys.take_due(t, self.world)
             if self.progress is not None and time.monotonic() >= next_report:
                 next_report = time.monotonic() + 10.0
                 self.progress(f"site time {(t - t0) / NS_PER_H:6.2f} of "

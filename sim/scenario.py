@@ -55,6 +55,8 @@ class Scenario:
     datum_lat_deg: float = -20.659739
     datum_lon_deg: float = 117.078497
     datum_alt_m: float = 5.0
+    #: the mine grid's projected CRS (EPSG; 7850: GDA2020 / MGA zone 50, the Pilbara's)
+    crs_epsg: int = 7850
     start_ns: int = DEFAULT_START_NS
 
     # the pile (site ENU; the pile's long axis is +y, along the rail)

@@ -44,8 +44,12 @@ EXTRA_IMPORTS: dict[str, frozenset[str]] = {
     "projector": frozenset({"zenoh", "scipy"}),
     "dashboard": frozenset({"zenoh", "scipy", "rerun", "rerun_cli"}),
     # sim.runner emulates the scanner with services.scanner, which imports serial;
-    # sim.opcua_server serves the machine PLCs with asyncua
-    "sim": frozenset({"zenoh", "scipy", "pymap3d", "serial", "asyncua"}),
+    # sim.opcua_server serves the machine PLCs with asyncua; sim.survey writes LAZ
+    "sim": frozenset({"zenoh", "scipy", "pymap3d", "serial", "asyncua", "pyproj", "laspy",
+                      "lazrs"}),
+    # the mine grid, GeoTIFF, DXF and its contours, LAS/LAZ
+    "geo": frozenset({"zenoh", "scipy", "pyproj", "rasterio", "affine", "ezdxf", "contourpy",
+                      "laspy", "lazrs"}),
 }
 
 

@@ -46,6 +46,11 @@ def _stockpile_demo() -> ModuleType:
     return demo
 
 
+def _exports_cli() -> ModuleType:
+    from exports import cli  # deferred: see COMMAND_MODULES
+    return cli
+
+
 def _ledger_cli() -> ModuleType:
     from ledger import cli  # deferred: see COMMAND_MODULES
     return cli
@@ -135,6 +140,8 @@ COMMAND_MODULES: tuple[CommandModule, ...] = (
                    "export-mcap": "write a ledger's events as an MCAP file"}),
     CommandModule(_audit_cli, ("projector",),
                   {"audit": "audit and reconciliation reports (cuts, history, assays)"}),
+    CommandModule(_exports_cli, ("geo",),
+                  {"export": "surfaces, meshes, block models and cuts for mine planning and GIS"}),
     CommandModule(_services_dashboard, ("dashboard",),
                   {"dashboard": "render a ledger to a Rerun dashboard"}),
     CommandModule(_stockpile_info, (),

@@ -74,7 +74,7 @@ def _declare_yard(arrivals: _Arrivals, t0: int, config: _Stream) -> None:
     """The site, the pile and the reclaimer, declared at the session's start."""
     emit = arrivals.emit
     emit(t0, _stamp(pb.SiteDeclared(site_id="demo", datum_lat_deg=-20.3, datum_lon_deg=118.6,
-                                     datum_alt_m=6.0), "time", t0), config)
+                                     datum_alt_m=6.0, crs_epsg=7850), "time", t0), config)
     emit(t0, _stamp(pb.PileDeclared(pile_id="P1", origin_x_m=0.0, origin_y_m=0.0, length_m=220.0,
                                     width_m=60.0, ground_z_m=0.0, cell_m=0.25, voxel_m=1.0,
                                     default_bulk_density_t_m3=2.4), "time", t0), config)

@@ -76,18 +76,20 @@ class Mount(_message.Message):
     def __init__(self, parent_frame_id: _Optional[str] = ..., child_frame_id: _Optional[str] = ..., translation: _Optional[_Union[Vector3, _Mapping]] = ..., rotation: _Optional[_Union[Quaternion, _Mapping]] = ...) -> None: ...
 
 class SiteDeclared(_message.Message):
-    __slots__ = ("time", "site_id", "datum_lat_deg", "datum_lon_deg", "datum_alt_m")
+    __slots__ = ("time", "site_id", "datum_lat_deg", "datum_lon_deg", "datum_alt_m", "crs_epsg")
     TIME_FIELD_NUMBER: _ClassVar[int]
     SITE_ID_FIELD_NUMBER: _ClassVar[int]
     DATUM_LAT_DEG_FIELD_NUMBER: _ClassVar[int]
     DATUM_LON_DEG_FIELD_NUMBER: _ClassVar[int]
     DATUM_ALT_M_FIELD_NUMBER: _ClassVar[int]
+    CRS_EPSG_FIELD_NUMBER: _ClassVar[int]
     time: _timestamp_pb2.Timestamp
     site_id: str
     datum_lat_deg: float
     datum_lon_deg: float
     datum_alt_m: float
-    def __init__(self, time: _Optional[_Union[datetime.datetime, _timestamp_pb2.Timestamp, _Mapping]] = ..., site_id: _Optional[str] = ..., datum_lat_deg: _Optional[float] = ..., datum_lon_deg: _Optional[float] = ..., datum_alt_m: _Optional[float] = ...) -> None: ...
+    crs_epsg: int
+    def __init__(self, time: _Optional[_Union[datetime.datetime, _timestamp_pb2.Timestamp, _Mapping]] = ..., site_id: _Optional[str] = ..., datum_lat_deg: _Optional[float] = ..., datum_lon_deg: _Optional[float] = ..., datum_alt_m: _Optional[float] = ..., crs_epsg: _Optional[int] = ...) -> None: ...
 
 class PileDeclared(_message.Message):
     __slots__ = ("time", "pile_id", "origin_x_m", "origin_y_m", "length_m", "width_m", "ground_z_m", "cell_m", "voxel_m", "default_bulk_density_t_m3")
