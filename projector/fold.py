@@ -70,7 +70,7 @@ from projector.grid import GridGeometry
 from projector.kinematics import Reclaimer
 from projector.layers import DepositInfo, LayerStack
 from projector.material_fit import close_face, open_face
-from projector.scans import process_scans
+from projector.scans import note_pending, note_pose, process_scans
 from projector.state import (CutRecord, PassRecord, PendingScan, PileInfo, PoseTrack,
                              ProjectorState, around, initial_state, settling_last_pass)
 
@@ -88,7 +88,7 @@ GEOMETRY_TYPES = ("pile_declared", "machine_declared", "stack_started", "stack_e
 #: module paths).  Snapshots are keyed by it as well as by the config, so those of another
 #: version are never used (:class:`projector.query.SnapshotStore`, which reads it from this
 #: module, and ``SnapshotStore.drop_other_versions`` deletes them).
-FOLD_VERSION = 29
+FOLD_VERSION = 30
 
 DEFAULT_CELL_M = 0.25
 DEFAULT_VOXEL_M = 1.0
@@ -204,7 +204,8 @@ def _on_frame_transform(state: ProjectorState, event, msg) -> None:
         return
     t = timestamp_ns(msg.timestamp)
     track = state.poses.get(msg.child_frame_id)
-    if track is None:
+    new_track = track is None
+    if new_track:
         track = state.poses[msg.child_frame_id] = PoseTrack()
     if track.t_ns and t <= track.t_ns[-1]:
         if t < track.t_ns[-1]:
@@ -215,18 +216,20 @@ def _on_frame_transform(state: ProjectorState, event, msg) -> None:
     track.q.append((msg.rotation.x, msg.rotation.y, msg.rotation.z, msg.rotation.w))
     if len(track.t_ns) > 4096:  # keep the recent track only
         del track.t_ns[:2048], track.xyz[:2048], track.q[:2048]
-    if len(state.pending) >= state.config.scan_batch:
+    note_pose(state, msg.child_frame_id, t, new_track)
+    # settled: no waiting scan has its pose, and a pass would fuse nothing
+    if len(state.pending) >= state.config.scan_batch and not state.pending_settled:
         process_scans(state)
 
 
 def _on_scan(state: ProjectorState, event, msg) -> None:
     if state.stack is None:
         return
-    state.pending.append(PendingScan(timestamp_ns(msg.timestamp),
-                                     np.asarray(msg.ranges, np.float64),
-                                     float(msg.start_angle), float(msg.end_angle),
-                                     msg.frame_id))
-    if len(state.pending) >= 2 * state.config.scan_batch:
+    note_pending(state, PendingScan(timestamp_ns(msg.timestamp),
+                                    np.asarray(msg.ranges, np.float64),
+                                    float(msg.start_angle), float(msg.end_angle),
+                                    msg.frame_id))
+    if len(state.pending) >= 2 * state.config.scan_batch and not state.pending_settled:
         process_scans(state)
 
 

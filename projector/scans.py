@@ -24,7 +24,8 @@ from projector.follow import follow_height
 from projector.repose import flank_reach_m
 from projector.state import PendingScan, ProjectorState, around
 
-__all__ = ["process_scans", "reference_ground", "refresh_crossed"]
+__all__ = ["note_pending", "note_pose", "process_scans", "reference_ground", "refresh_crossed",
+           "scan_is_ready"]
 
 
 def process_scans(state: ProjectorState, *, until_ns: int | None = None,
@@ -87,6 +88,7 @@ def _ready_scans(state: ProjectorState, until_ns: int | None,
     if not state.pending or state.pile is None:
         return []
     ready, waiting = [], []
+    floors: dict[str, int] = {}
     for scan in state.pending:
         frame = track_frame(state, scan.frame_id)
         last_pose = state.poses[frame].t_ns[-1] if frame is not None else None
@@ -99,8 +101,35 @@ def _ready_scans(state: ProjectorState, until_ns: int | None,
             state.count("scans_without_pose")
         else:
             waiting.append(scan)
-    state.pending = waiting
+            if scan.t_ns < floors.get(scan.frame_id, scan.t_ns + 1):
+                floors[scan.frame_id] = scan.t_ns
+    state.pending, state.pending_floor_ns = waiting, floors
+    state.pending_settled = True
     return ready
+
+
+def note_pending(state: ProjectorState, scan: PendingScan) -> None:
+    """Add ``scan`` to the waiting scans; unsettle them if its pose is already here."""
+    state.pending.append(scan)
+    floors = state.pending_floor_ns
+    if scan.t_ns < floors.get(scan.frame_id, scan.t_ns + 1):
+        floors[scan.frame_id] = scan.t_ns
+    if scan_is_ready(state, scan):
+        state.pending_settled = False
+
+
+def note_pose(state: ProjectorState, frame: str, t_ns: int, new_track: bool) -> None:
+    """A pose at ``t_ns`` was added to track ``frame``: unsettle the waiting scans if it
+    makes one ready (a new track may place scans of other frames: always)."""
+    if new_track or any(floor <= t_ns and track_frame(state, f) == frame
+                        for f, floor in state.pending_floor_ns.items()):
+        state.pending_settled = False
+
+
+def scan_is_ready(state: ProjectorState, scan: PendingScan) -> bool:
+    """Whether ``scan`` has a pose of its own scanner at or after its time."""
+    frame = track_frame(state, scan.frame_id)
+    return frame is not None and scan.t_ns <= state.poses[frame].t_ns[-1]
 
 
 def _fuse_batch(state: ProjectorState, obs, t_ns: int) -> None:

@@ -127,6 +127,12 @@ class ProjectorState:
     #: place their own scans
     poses: dict[str, PoseTrack] = field(default_factory=dict)
     pending: list[PendingScan] = field(default_factory=list)
+    #: no waiting scan has its pose yet: True after each pass over ``pending``
+    #: (:func:`projector.scans.process_scans`), False when a scan or a pose arrives that
+    #: makes one ready; while it holds, a pass over every waiting scan would fuse nothing
+    pending_settled: bool = False
+    #: the earliest time (UTC ns) of the waiting scans of each frame id
+    pending_floor_ns: dict[str, int] = field(default_factory=dict)
     flagged_loss_m3: float = 0.0
     #: recent rises of the stack's top, ``(t_ns, flat cell indices, top before (m))``
     #: (:func:`projector.cuts.journal_rises`), so a cut can undo those its own digging caused
@@ -171,7 +177,8 @@ class ProjectorState:
             cuts=[replace(c, removals=list(c.removals)) for c in self.cuts],
             assays=list(self.assays),
             poses={frame: track.copy() for frame, track in self.poses.items()},
-            pending=list(self.pending), counters=dict(self.counters),
+            pending=list(self.pending), pending_floor_ns=dict(self.pending_floor_ns),
+            counters=dict(self.counters),
             rises_journal=list(self.rises_journal), slide_fits=list(self.slide_fits),
             face_sightings=(None if self.face_sightings is None
                             else tuple(a.copy() for a in self.face_sightings)),

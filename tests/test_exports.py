@@ -264,3 +264,18 @@ def test_export_errors_are_one_line(yard, tmp_path, capsys):
     assert "not a projected CRS" in err and "\n" not in err
     assert not (tmp_path / "x.tif").exists()
     assert not list(tmp_path.iterdir())          # no half-written file left
+
+
+def test_a_site_declares_an_epsg_code_or_none():
+    from schemas import pb
+    from schemas.events import make_event
+    from schemas.validate import InvalidEvent, check_event
+
+    def site(code: int):
+        return make_event(pb.SiteDeclared(site_id="s", datum_lat_deg=LAT, datum_lon_deg=LON,
+                                          crs_epsg=code), source="yard.config", epoch=1, seq=0)
+    for code in (0, 1024, EPSG, 32767):
+        assert check_event(site(code)).crs_epsg == code
+    for code in (1, 1023, 32768):
+        with pytest.raises(InvalidEvent, match="crs_epsg"):
+            check_event(site(code))
