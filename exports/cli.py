@@ -10,13 +10,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 from pathlib import Path
 
 from common.options import add_bitemporal, add_ledger, add_out, describe_ledger
 from ledger import open_ledger
 from ledger.mirror import ledger_for
 from projector.query import SnapshotStore, project
+from schemas.jsonl import json_safe
 from schemas.times import parse_time_ns
 
 from exports.placement import site_crs_from_ledger
@@ -42,19 +42,8 @@ def _projected(args: argparse.Namespace):
 
 
 def _report(args: argparse.Namespace, summary: dict, line: str) -> int:
-    print(json.dumps(_clean(summary), indent=1, default=str) if args.json else line)
+    print(json.dumps(json_safe(summary), indent=1, default=str) if args.json else line)
     return 0
-
-
-def _clean(value):
-    """NaN -> None, recursively (JSON has no NaN)."""
-    if isinstance(value, float):
-        return value if math.isfinite(value) else None
-    if isinstance(value, dict):
-        return {k: _clean(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_clean(v) for v in value]
-    return value
 
 
 def cmd_surfaces(args: argparse.Namespace) -> int:

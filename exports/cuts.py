@@ -10,7 +10,6 @@ the file names its CRS in the ``crs`` member that GDAL and QGIS read.
 from __future__ import annotations
 
 import json
-import math
 from collections import defaultdict
 from pathlib import Path
 
@@ -19,6 +18,7 @@ import numpy as np
 from exports.placement import atomic_path
 from geo.site_crs import SiteCrs
 from projector.query import PileState
+from schemas.jsonl import json_safe
 from schemas.times import format_time_ns
 
 __all__ = ["footprint_rings", "write_cuts"]
@@ -108,14 +108,6 @@ def _inside(point, ring) -> bool:
     return inside
 
 
-def _clean(value):
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    if isinstance(value, dict):
-        return {k: _clean(v) for k, v in value.items()}
-    return value
-
-
 def write_cuts(path: str | Path, pile: PileState, site: SiteCrs) -> dict:
     """Write the GeoJSON FeatureCollection (one feature per cut); returns a summary."""
     if pile.geometry is None:
@@ -132,7 +124,7 @@ def write_cuts(path: str | Path, pile: PileState, site: SiteCrs) -> dict:
             polygons.append([_ring_coords(r, g, site, z_m) for r in (outer, *holes)])
         geometry = ({"type": "MultiPolygon", "coordinates": polygons} if polygons else None)
         features.append({"type": "Feature", "id": summary.cut_id, "geometry": geometry,
-                         "properties": _clean({
+                         "properties": json_safe({
                              "cut_id": summary.cut_id, "bench_id": summary.bench_id,
                              "start_time": format_time_ns(summary.start_time_ns),
                              "end_time": format_time_ns(summary.end_time_ns),
