@@ -1,4 +1,4 @@
-"""``stockpile audit cuts|history|assays``: audit and reconciliation reports for people.
+"""``stockpile audit cuts|history|assays|survey``: audit and reconciliation reports for people.
 
 The computations are in audit.report; this module parses options, shows progress
 on stderr during long folds and prints readable tables (or one JSON object with
@@ -26,6 +26,7 @@ from common.progress import Progress, enabled_from_args, progress
 from ledger import open_ledger
 from ledger.mirror import is_database_url, ledger_for, mirrored_sites
 from audit.report import audit_assays, audit_cuts, audit_history
+from audit.surveys import audit_surveys
 
 # -- output helpers -------------------------------------------------------------------------
 
@@ -246,6 +247,45 @@ def cmd_cuts(args: argparse.Namespace) -> int:
     return 0
 
 
+def _survey_row(r) -> dict[str, Any]:
+    return {"survey_id": r.survey_id, "time": format_time_ns(r.time_ns),
+            "recorded_time": format_time_ns(r.recorded_time_ns), "provider": r.provider,
+            "accuracy_m": r.accuracy_m, "points": r.points, "cells": r.cells,
+            "area_m2": r.area_m2, "survey_m3": r.survey_m3, "model_then_m3": r.model_then_m3,
+            "model_now_m3": r.model_now_m3, "diff_then_m3": r.diff_then_m3,
+            "diff_now_m3": r.diff_now_m3, "diff_then_pct": r.diff_then_pct,
+            "diff_now_pct": r.diff_now_pct, "density_t_m3": r.density_t_m3,
+            "diff_then_t": r.diff_then_t, "diff_now_t": r.diff_now_t,
+            "map": {"block_m": r.block_m, "origin_m": list(r.map_origin_m),
+                    "diff_m3": r.map_m3.tolist()},
+            "largest_blocks": [{"x_m": x, "y_m": y, "diff_m3": d}
+                               for x, y, d in r.largest_blocks()]}
+
+
+def cmd_survey(args: argparse.Namespace) -> int:
+    with _open(args) as store:
+        rows = audit_surveys(store, args.pile, _known(args), block_m=args.block_m)
+    if args.json:
+        _dump({"pile_id": args.pile, "surveys": [_survey_row(r) for r in rows]})
+        return 0
+    if not rows:
+        print(f"no survey of pile {args.pile} in the ledger")
+        return 0
+    for r in rows:
+        print(f"survey {r.survey_id} at {format_time_ns(r.time_ns)} ({r.provider or '-'}, "
+              f"{r.points:,} points over {r.area_m2:,.0f} m2)")
+        print(f"  survey {_num(r.survey_m3)} m3; model {_num(r.model_now_m3)} m3 as known "
+              f"now, {_num(r.model_then_m3)} m3 as known then")
+        print(f"  difference (survey - model): now {_num(r.diff_now_m3, '+,.1f')} m3 "
+              f"{_num(r.diff_now_t, '+,.1f')} t {_num(r.diff_now_pct, '+.2f')} %; then "
+              f"{_num(r.diff_then_m3, '+,.1f')} m3 {_num(r.diff_then_pct, '+.2f')} %")
+        blocks = r.largest_blocks()
+        if blocks:
+            print(f"  where ({r.block_m:g} m blocks, site frame): " + "; ".join(
+                f"x {x:.0f} y {y:.0f}: {d:+,.1f} m3" for x, y, d in blocks))
+    return 0
+
+
 def cmd_history(args: argparse.Namespace) -> int:
     every = int(round(args.every * NS_PER_S))
     start = parse_time_ns(args.start) if args.start else None
@@ -439,6 +479,17 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="last valid time (default: the last in the ledger)")
     add_max_rows(h, what="rows (valid times)")
     h.set_defaults(func=cmd_history)
+
+    v = sub.add_parser("survey", help="each survey against the model: volumes, the "
+                       "difference and where it lies",
+                       description="One row per survey of the pile (stockpile survey import): "
+                       "the model's volume over the surveyed cells as of the survey's time, as "
+                       "known then and as known at K, the survey's volume, the difference in "
+                       "m3, t and %, and the blocks where it lies.")
+    common(v, pile=True, fold=False)
+    v.add_argument("--block-m", type=float, default=10.0, metavar="M",
+                   help="edge of the difference map's blocks, metres (default 10)")
+    v.set_defaults(func=cmd_survey)
 
     a = sub.add_parser("assays", help="lateness per lab, superseded and provisional assays, "
                        "unknown lots, lots without assays",

@@ -306,6 +306,17 @@ def add_analytes(parser: argparse.ArgumentParser | Any) -> None:
                         "what the ledger recorded, else flag)")
 
 
+def epsg_code(text: str) -> int:
+    """``--crs``'s value: ``7850`` or ``EPSG:7850`` -> 7850 (an argparse type)."""
+    try:
+        code = int(text.strip().upper().removeprefix("EPSG:"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not an EPSG code: {text!r}") from None
+    if code <= 0:
+        raise argparse.ArgumentTypeError(f"not an EPSG code: {text!r}")
+    return code
+
+
 def non_negative_float(text: str) -> float:
     """argparse type: a float >= 0 (speeds where 0 means as fast as possible)."""
     try:

@@ -12,7 +12,7 @@ import argparse
 import json
 from pathlib import Path
 
-from common.options import add_bitemporal, add_ledger, add_out, describe_ledger
+from common.options import add_bitemporal, add_ledger, add_out, describe_ledger, epsg_code
 from ledger import open_ledger
 from ledger.mirror import ledger_for
 from projector.query import SnapshotStore, project
@@ -90,16 +90,6 @@ def cmd_cuts(args: argparse.Namespace) -> int:
     return _report(args, s, f"wrote {s['path']}: {cuts}, EPSG:{s['epsg']}")
 
 
-def _epsg(text: str) -> int:
-    try:
-        code = int(text.upper().removeprefix("EPSG:"))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not an EPSG code: {text!r}") from None
-    if code <= 0:
-        raise argparse.ArgumentTypeError(f"not an EPSG code: {text!r}")
-    return code
-
-
 def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
         "export", help="surfaces, meshes, block models and cuts for mine planning and GIS",
@@ -125,7 +115,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         add_bitemporal(q)
         q.add_argument("--snapshots", metavar="PATH",
                        help="a snapshot file to start from (DuckDB)")
-        q.add_argument("--crs", type=_epsg, metavar="EPSG",
+        q.add_argument("--crs", type=epsg_code, metavar="EPSG",
                        help="the mine grid's projected CRS (default: the one the site "
                        "declares)")
         add_out(q, help=out_help, required=True)

@@ -50,6 +50,7 @@ EVENT_TYPES: dict[str, type[Message]] = {
     "clock": pb.Clock,
     "source_key_declared": pb.SourceKeyDeclared,
     "source_key_revoked": pb.SourceKeyRevoked,
+    "survey": pb.Survey,
 }
 
 #: High-rate sensor streams; everything else is a low-rate domain event.

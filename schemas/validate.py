@@ -95,6 +95,7 @@ REQUIRED_IDS: dict[str, tuple[str, ...]] = {
     "assay": ("assay_id", "lot_id"),
     "source_key_declared": ("key_id", "role", "name"),
     "source_key_revoked": ("key_id",),
+    "survey": ("survey_id", "pile_id"),
 }
 
 #: Enum fields that must hold a defined, non-zero value.
@@ -515,6 +516,25 @@ def _check_source_key(m) -> None:
         "out_of_range", "valid_from is not before valid_until")
 
 
+#: the most cells a survey's grid part may have (a 1 km x 1 km pile at 0.25 m)
+MAX_SURVEY_CELLS = 16_000_000
+
+
+def _check_survey(m) -> None:
+    _require(m.cell_m > 0 and m.nx >= 1 and m.ny >= 1, "out_of_range",
+             "cell_m must be > 0 and nx, ny >= 1")
+    _require(m.nx * m.ny <= MAX_SURVEY_CELLS, "out_of_range",
+             f"{m.nx} x {m.ny} cells, more than {MAX_SURVEY_CELLS}")
+    _require(len(m.heights_m) == 4 * m.nx * m.ny and len(m.counts) == 2 * m.nx * m.ny,
+             "out_of_range", f"heights_m ({len(m.heights_m)} bytes) and counts "
+             f"({len(m.counts)} bytes) must hold nx * ny = {m.nx * m.ny} cells")
+    _require(len(m.source_sha256) == 32, "out_of_range",
+             f"source_sha256 is {len(m.source_sha256)} bytes, a sha256 is 32")
+    _require(m.accuracy_m >= 0, "out_of_range", f"accuracy_m {m.accuracy_m} must be >= 0")
+    _require(m.points_in_grid <= m.points, "out_of_range",
+             "points_in_grid must not exceed points")
+
+
 _TYPE_CHECKS = {
     "scan": _check_scan,
     "location_fix": _check_location_fix,
@@ -528,4 +548,5 @@ _TYPE_CHECKS = {
     "reclaim_cut": _check_reclaim_cut,
     "assay": _check_assay,
     "source_key_declared": _check_source_key,
+    "survey": _check_survey,
 }

@@ -46,6 +46,11 @@ def _stockpile_demo() -> ModuleType:
     return demo
 
 
+def _surveys_cli() -> ModuleType:
+    from surveys import cli  # deferred: see COMMAND_MODULES
+    return cli
+
+
 def _exports_cli() -> ModuleType:
     from exports import cli  # deferred: see COMMAND_MODULES
     return cli
@@ -142,6 +147,8 @@ COMMAND_MODULES: tuple[CommandModule, ...] = (
                   {"audit": "audit and reconciliation reports (cuts, history, assays)"}),
     CommandModule(_exports_cli, ("geo",),
                   {"export": "surfaces, meshes, block models and cuts for mine planning and GIS"}),
+    CommandModule(_surveys_cli, ("geo",),
+                  {"survey": "surveys of the piles: import LAS/LAZ"}),
     CommandModule(_services_dashboard, ("dashboard",),
                   {"dashboard": "render a ledger to a Rerun dashboard"}),
     CommandModule(_stockpile_info, (),

@@ -339,3 +339,43 @@ class SourceKeyRevoked(_message.Message):
     key_id: str
     reason: str
     def __init__(self, time: _Optional[_Union[datetime.datetime, _timestamp_pb2.Timestamp, _Mapping]] = ..., key_id: _Optional[str] = ..., reason: _Optional[str] = ...) -> None: ...
+
+class Survey(_message.Message):
+    __slots__ = ("time", "survey_id", "pile_id", "provider", "accuracy_m", "source_sha256", "crs_epsg", "origin_x_m", "origin_y_m", "cell_m", "ix0", "iy0", "nx", "ny", "heights_m", "counts", "points", "points_in_grid")
+    TIME_FIELD_NUMBER: _ClassVar[int]
+    SURVEY_ID_FIELD_NUMBER: _ClassVar[int]
+    PILE_ID_FIELD_NUMBER: _ClassVar[int]
+    PROVIDER_FIELD_NUMBER: _ClassVar[int]
+    ACCURACY_M_FIELD_NUMBER: _ClassVar[int]
+    SOURCE_SHA256_FIELD_NUMBER: _ClassVar[int]
+    CRS_EPSG_FIELD_NUMBER: _ClassVar[int]
+    ORIGIN_X_M_FIELD_NUMBER: _ClassVar[int]
+    ORIGIN_Y_M_FIELD_NUMBER: _ClassVar[int]
+    CELL_M_FIELD_NUMBER: _ClassVar[int]
+    IX0_FIELD_NUMBER: _ClassVar[int]
+    IY0_FIELD_NUMBER: _ClassVar[int]
+    NX_FIELD_NUMBER: _ClassVar[int]
+    NY_FIELD_NUMBER: _ClassVar[int]
+    HEIGHTS_M_FIELD_NUMBER: _ClassVar[int]
+    COUNTS_FIELD_NUMBER: _ClassVar[int]
+    POINTS_FIELD_NUMBER: _ClassVar[int]
+    POINTS_IN_GRID_FIELD_NUMBER: _ClassVar[int]
+    time: _timestamp_pb2.Timestamp
+    survey_id: str
+    pile_id: str
+    provider: str
+    accuracy_m: float
+    source_sha256: bytes
+    crs_epsg: int
+    origin_x_m: float
+    origin_y_m: float
+    cell_m: float
+    ix0: int
+    iy0: int
+    nx: int
+    ny: int
+    heights_m: bytes
+    counts: bytes
+    points: int
+    points_in_grid: int
+    def __init__(self, time: _Optional[_Union[datetime.datetime, _timestamp_pb2.Timestamp, _Mapping]] = ..., survey_id: _Optional[str] = ..., pile_id: _Optional[str] = ..., provider: _Optional[str] = ..., accuracy_m: _Optional[float] = ..., source_sha256: _Optional[bytes] = ..., crs_epsg: _Optional[int] = ..., origin_x_m: _Optional[float] = ..., origin_y_m: _Optional[float] = ..., cell_m: _Optional[float] = ..., ix0: _Optional[int] = ..., iy0: _Optional[int] = ..., nx: _Optional[int] = ..., ny: _Optional[int] = ..., heights_m: _Optional[bytes] = ..., counts: _Optional[bytes] = ..., points: _Optional[int] = ..., points_in_grid: _Optional[int] = ...) -> None: ...

@@ -1,0 +1,142 @@
+"""The model against each survey of a pile (``stockpile audit survey``).
+
+For each ``survey`` event of the pile (as known at K), over the cells the survey covers
+(its points' cells on the pile's grid) and above the model's ground:
+
+- the model's volume as of the survey's time, as known then (K = the survey's time) and
+  as known at K; the survey's volume (its mean height per cell);
+- the difference, survey minus model, in m3, in tonnes (at the model's bulk density as
+  known at K) and in % of the model's volume;
+- where it lies: the difference summed over blocks of ``block_m`` (a map, m3 per block,
+  and the blocks with the largest differences).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from projector.query import project
+from projector.surveys import survey_heights
+from schemas.events import decode_payload
+
+__all__ = ["SurveyReconciliation", "audit_surveys"]
+
+#: edge of the blocks the difference map sums over (m)
+DEFAULT_BLOCK_M = 10.0
+
+
+@dataclass(frozen=True)
+class SurveyReconciliation:
+    """One survey against the model (volumes m3, tonnes t, times UTC ns)."""
+
+    survey_id: str
+    time_ns: int
+    recorded_time_ns: int
+    provider: str
+    accuracy_m: float
+    points: int
+    cells: int
+    area_m2: float
+    survey_m3: float
+    model_then_m3: float
+    model_now_m3: float
+    density_t_m3: float
+    block_m: float
+    #: the blocks' corner (site frame, m) and the difference per block, survey - model now
+    #: (m3; rows along x, columns along y; NaN: no surveyed cell in the block)
+    map_origin_m: tuple[float, float] = (0.0, 0.0)
+    map_m3: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)), repr=False)
+
+    @property
+    def diff_then_m3(self) -> float:
+        return self.survey_m3 - self.model_then_m3
+
+    @property
+    def diff_now_m3(self) -> float:
+        return self.survey_m3 - self.model_now_m3
+
+    @property
+    def diff_now_t(self) -> float:
+        return self.diff_now_m3 * self.density_t_m3
+
+    @property
+    def diff_then_t(self) -> float:
+        return self.diff_then_m3 * self.density_t_m3
+
+    @property
+    def diff_now_pct(self) -> float:
+        return 100.0 * self.diff_now_m3 / self.model_now_m3 if self.model_now_m3 else math.nan
+
+    @property
+    def diff_then_pct(self) -> float:
+        return 100.0 * self.diff_then_m3 / self.model_then_m3 if self.model_then_m3 else math.nan
+
+    def largest_blocks(self, n: int = 5) -> list[tuple[float, float, float]]:
+        """The ``n`` blocks with the largest |difference|: ``(centre x, centre y, m3)``."""
+        values = np.nan_to_num(self.map_m3, nan=0.0)
+        order = np.argsort(-np.abs(values), axis=None)[:n]
+        out = []
+        for flat in order:
+            i, j = np.unravel_index(flat, values.shape)
+            if values[i, j] == 0.0:
+                break
+            out.append((self.map_origin_m[0] + (i + 0.5) * self.block_m,
+                        self.map_origin_m[1] + (j + 0.5) * self.block_m, float(values[i, j])))
+        return out
+
+
+def _above_ground_m3(top_m: np.ndarray, ground_m: np.ndarray, cells: np.ndarray,
+                     area_m2: float) -> np.ndarray:
+    """Per cell, the volume above the ground (m3, >= 0) where ``cells``, else 0."""
+    return np.where(cells, np.clip(top_m - ground_m, 0.0, None), 0.0) * area_m2
+
+
+def _block_sums(values: np.ndarray, cells: np.ndarray, per_block: int) -> np.ndarray:
+    nx, ny = values.shape
+    bx, by = -(-nx // per_block), -(-ny // per_block)
+    pad = np.zeros((bx * per_block, by * per_block))
+    pad[:nx, :ny] = np.where(cells, values, 0.0)
+    seen = np.zeros(pad.shape, bool)
+    seen[:nx, :ny] = cells
+    sums = pad.reshape(bx, per_block, by, per_block).sum(axis=(1, 3))
+    any_seen = seen.reshape(bx, per_block, by, per_block).any(axis=(1, 3))
+    return np.where(any_seen, sums, np.nan)
+
+
+def audit_surveys(store, pile_id: str, known_time_ns: int | None = None, *,
+                  block_m: float = DEFAULT_BLOCK_M) -> list[SurveyReconciliation]:
+    """Every survey of ``pile_id`` known at K (default: now), against the model."""
+    if not (block_m > 0 and math.isfinite(block_m)):
+        raise ValueError(f"the block edge must be > 0 m, got {block_m}")
+    known = 2**63 - 1 if known_time_ns is None else int(known_time_ns)
+    surveys = [r for r in store.as_of(2**63 - 1, known, types=["survey"])
+               if decode_payload(r.type, r.payload).pile_id == pile_id]
+    out = []
+    for record in surveys:
+        msg = decode_payload(record.type, record.payload)
+        now = project(store, pile_id, record.valid_time_ns, known_time_ns)
+        then = project(store, pile_id, record.valid_time_ns, record.valid_time_ns)
+        if now.geometry is None:
+            raise ValueError(f"pile {pile_id!r} is not declared as of survey {msg.survey_id}")
+        g = now.geometry
+        heights, counts = survey_heights(msg, g)
+        cells = counts > 0
+        area = g.cell_area_m2
+        ground = now.state.stack.ground()
+        survey_cells = _above_ground_m3(np.nan_to_num(heights), ground, cells, area)
+        now_cells = _above_ground_m3(now.state.stack.surface(), ground, cells, area)
+        then_m3 = (float(_above_ground_m3(then.state.stack.surface(), then.state.stack.ground(),
+                                          cells, area).sum())
+                   if then.geometry is not None else 0.0)
+        per_block = max(1, int(round(block_m / g.cell_m)))
+        density = now.tonnes / now.volume_m3 if now.volume_m3 > 0 else math.nan
+        out.append(SurveyReconciliation(
+            msg.survey_id, record.valid_time_ns, record.recorded_time_ns, msg.provider,
+            msg.accuracy_m, int(msg.points), int(cells.sum()), float(cells.sum() * area),
+            float(survey_cells.sum()), then_m3, float(now_cells.sum()), density,
+            per_block * g.cell_m, (g.origin_x_m, g.origin_y_m),
+            _block_sums(survey_cells - now_cells, cells, per_block)))
+    return out
