@@ -12,12 +12,11 @@ import argparse
 import json
 from pathlib import Path
 
-from common.options import add_bitemporal, add_ledger, add_out, describe_ledger, epsg_code
+from common.options import add_bitemporal, add_ledger, add_out, epsg_code
 from ledger import open_ledger
 from ledger.mirror import ledger_for
-from projector.query import SnapshotStore, project
+from projector.cli import project_from_args
 from schemas.jsonl import json_safe
-from schemas.times import parse_time_ns
 
 from exports.placement import site_crs_from_ledger
 
@@ -25,18 +24,8 @@ from exports.placement import site_crs_from_ledger
 
 def _projected(args: argparse.Namespace):
     """(pile state, site CRS) as of the command's times."""
-    valid = parse_time_ns(args.valid_time) if args.valid_time else None
-    known = parse_time_ns(args.known_time) if args.known_time else None
     with open_ledger(ledger_for(args.ledger, args.site), read_only=True) as store:
-        snapshots = SnapshotStore(args.snapshots) if args.snapshots else None
-        try:
-            pile = project(store, args.pile, valid, known, snapshots=snapshots)
-        finally:
-            if snapshots is not None:
-                snapshots.close()
-        if pile.geometry is None:
-            raise ValueError(f"pile {args.pile!r} is not declared in "
-                             f"{describe_ledger(args.ledger)} as of that time")
+        pile = project_from_args(store, args)
         site = site_crs_from_ledger(store, pile.valid_time_ns, pile.known_time_ns, args.crs)
     return pile, site
 

@@ -33,27 +33,34 @@ def _clean(value):
     return value
 
 
-def cmd_project(args: argparse.Namespace) -> int:
+def project_from_args(store, args: argparse.Namespace):
+    """``project()`` of ``--pile`` as of ``--valid-time`` as known at ``--known-time``,
+    from ``--snapshots`` when given; ValueError when the pile is not declared by then."""
     valid = parse_time_ns(args.valid_time) if args.valid_time else None
     known = parse_time_ns(args.known_time) if args.known_time else None
-    with open_ledger(ledger_for(args.ledger, args.site), read_only=True) as store:
-        head = store.head().global_seq   # the head this answer is computed at
-        snapshots = SnapshotStore(args.snapshots) if args.snapshots else None
-        try:
-            state = project(store, args.pile, valid, known, snapshots=snapshots)
-        finally:
-            if snapshots is not None:
-                snapshots.close()
+    snapshots = SnapshotStore(args.snapshots) if args.snapshots else None
+    try:
+        state = project(store, args.pile, valid, known, snapshots=snapshots)
+    finally:
+        if snapshots is not None:
+            snapshots.close()
     if state.geometry is None:
         raise ValueError(f"pile {args.pile!r} is not declared in {describe_ledger(args.ledger)} "
                          "as of that time")
+    return state
+
+
+def cmd_project(args: argparse.Namespace) -> int:
+    with open_ledger(ledger_for(args.ledger, args.site), read_only=True) as store:
+        head = store.head().global_seq   # the head this answer is computed at
+        state = project_from_args(store, args)
     if args.json:
         out = {**state.to_json(), "head_global_seq": head}
         json.dump(_clean(out), sys.stdout, indent=1, default=_json_default)
         print()
         return 0
-    when_v = "everything" if valid is None else format_time_ns(valid)
-    when_k = "now" if known is None else format_time_ns(known)
+    when_v = format_time_ns(parse_time_ns(args.valid_time)) if args.valid_time else "everything"
+    when_k = format_time_ns(parse_time_ns(args.known_time)) if args.known_time else "now"
     print(f"pile {state.pile_id} as of {when_v}, as known {when_k}")
     print(f"  volume {state.volume_m3:,.1f} m3, {state.tonnes:,.1f}{plus_minus(state.tonnes_sd)} t; "
           f"grade {format_grades(state.grade, state.grade_sd)} (assayed fraction "
