@@ -1,7 +1,8 @@
 """The model against each survey of a pile (``stockpile audit survey``).
 
 For each ``survey`` event of the pile (as known at K), over the cells the survey covers
-(its points' cells on the pile's grid) and above the model's ground:
+(its points' cells on the pile's grid) and above the model's ground (net volumes: a
+surface below the ground counts negative, so a survey's noise on bare ground cancels):
 
 - the model's volume as of the survey's time, as known then (K = the survey's time) and
   as known at K; the survey's volume (its mean height per cell);
@@ -18,11 +19,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from projector.config import FoldConfig
 from projector.query import project
 from projector.surveys import survey_heights
 from schemas.events import decode_payload
 
-__all__ = ["SurveyReconciliation", "audit_surveys"]
+__all__ = ["SurveyReconciliation", "audit_surveys", "reconcile_survey"]
 
 #: edge of the blocks the difference map sums over (m)
 DEFAULT_BLOCK_M = 10.0
@@ -49,6 +51,10 @@ class SurveyReconciliation:
     #: (m3; rows along x, columns along y; NaN: no surveyed cell in the block)
     map_origin_m: tuple[float, float] = (0.0, 0.0)
     map_m3: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)), repr=False)
+    #: per cell of the pile's grid (from ``map_origin_m``), survey - model now (m; NaN: no
+    #: survey point in the cell) and the cell's edge (m)
+    cells_m: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)), repr=False)
+    cell_m: float = 0.0
 
     @property
     def diff_then_m3(self) -> float:
@@ -90,8 +96,9 @@ class SurveyReconciliation:
 
 def _above_ground_m3(top_m: np.ndarray, ground_m: np.ndarray, cells: np.ndarray,
                      area_m2: float) -> np.ndarray:
-    """Per cell, the volume above the ground (m3, >= 0) where ``cells``, else 0."""
-    return np.where(cells, np.clip(top_m - ground_m, 0.0, None), 0.0) * area_m2
+    """Per cell, the net volume above the ground (m3, negative where the surface is below
+    it) where ``cells``, else 0."""
+    return np.where(cells, top_m - ground_m, 0.0) * area_m2
 
 
 def _block_sums(values: np.ndarray, cells: np.ndarray, per_block: int) -> np.ndarray:
@@ -107,36 +114,48 @@ def _block_sums(values: np.ndarray, cells: np.ndarray, per_block: int) -> np.nda
 
 
 def audit_surveys(store, pile_id: str, known_time_ns: int | None = None, *,
-                  block_m: float = DEFAULT_BLOCK_M) -> list[SurveyReconciliation]:
-    """Every survey of ``pile_id`` known at K (default: now), against the model."""
+                  block_m: float = DEFAULT_BLOCK_M,
+                  config: FoldConfig | None = None) -> list[SurveyReconciliation]:
+    """Every survey of ``pile_id`` known at K (default: now), against the model folded
+    with ``config`` (default: the fold's defaults)."""
+    known = 2**63 - 1 if known_time_ns is None else int(known_time_ns)
+    return [reconcile_survey(store, r, known_time_ns, block_m=block_m, config=config)
+            for r in store.as_of(2**63 - 1, known, types=["survey"])
+            if decode_payload(r.type, r.payload).pile_id == pile_id]
+
+
+def reconcile_survey(store, record, known_time_ns: int | None = None, *,
+                     block_m: float = DEFAULT_BLOCK_M, config: FoldConfig | None = None,
+                     then: bool = True) -> SurveyReconciliation:
+    """One ``survey`` record of ``store`` against the model as of its time, as known at K
+    (default: now) and, with ``then``, as known at the survey's time (else NaN)."""
     if not (block_m > 0 and math.isfinite(block_m)):
         raise ValueError(f"the block edge must be > 0 m, got {block_m}")
-    known = 2**63 - 1 if known_time_ns is None else int(known_time_ns)
-    surveys = [r for r in store.as_of(2**63 - 1, known, types=["survey"])
-               if decode_payload(r.type, r.payload).pile_id == pile_id]
-    out = []
-    for record in surveys:
-        msg = decode_payload(record.type, record.payload)
-        now = project(store, pile_id, record.valid_time_ns, known_time_ns)
-        then = project(store, pile_id, record.valid_time_ns, record.valid_time_ns)
-        if now.geometry is None:
-            raise ValueError(f"pile {pile_id!r} is not declared as of survey {msg.survey_id}")
-        g = now.geometry
-        heights, counts = survey_heights(msg, g)
-        cells = counts > 0
-        area = g.cell_area_m2
-        ground = now.state.stack.ground()
-        survey_cells = _above_ground_m3(np.nan_to_num(heights), ground, cells, area)
-        now_cells = _above_ground_m3(now.state.stack.surface(), ground, cells, area)
-        then_m3 = (float(_above_ground_m3(then.state.stack.surface(), then.state.stack.ground(),
-                                          cells, area).sum())
-                   if then.geometry is not None else 0.0)
-        per_block = max(1, int(round(block_m / g.cell_m)))
-        density = now.tonnes / now.volume_m3 if now.volume_m3 > 0 else math.nan
-        out.append(SurveyReconciliation(
-            msg.survey_id, record.valid_time_ns, record.recorded_time_ns, msg.provider,
-            msg.accuracy_m, int(msg.points), int(cells.sum()), float(cells.sum() * area),
-            float(survey_cells.sum()), then_m3, float(now_cells.sum()), density,
-            per_block * g.cell_m, (g.origin_x_m, g.origin_y_m),
-            _block_sums(survey_cells - now_cells, cells, per_block)))
-    return out
+    msg = decode_payload(record.type, record.payload)
+    pile_id = msg.pile_id
+    now = project(store, pile_id, record.valid_time_ns, known_time_ns, config=config)
+    if now.geometry is None:
+        raise ValueError(f"pile {pile_id!r} is not declared as of survey {msg.survey_id}")
+    g = now.geometry
+    heights, counts = survey_heights(msg, g)
+    cells = counts > 0
+    area = g.cell_area_m2
+    ground = now.state.stack.ground()
+    survey_cells = _above_ground_m3(np.nan_to_num(heights), ground, cells, area)
+    now_cells = _above_ground_m3(now.state.stack.surface(), ground, cells, area)
+    then_m3 = math.nan
+    if then:
+        before = project(store, pile_id, record.valid_time_ns, record.valid_time_ns,
+                         config=config)
+        then_m3 = (float(_above_ground_m3(before.state.stack.surface(),
+                                          before.state.stack.ground(), cells, area).sum())
+                   if before.geometry is not None else 0.0)
+    per_block = max(1, int(round(block_m / g.cell_m)))
+    density = now.tonnes / now.volume_m3 if now.volume_m3 > 0 else math.nan
+    return SurveyReconciliation(
+        msg.survey_id, record.valid_time_ns, record.recorded_time_ns, msg.provider,
+        msg.accuracy_m, int(msg.points), int(cells.sum()), float(cells.sum() * area),
+        float(survey_cells.sum()), then_m3, float(now_cells.sum()), density,
+        per_block * g.cell_m, (g.origin_x_m, g.origin_y_m),
+        _block_sums(survey_cells - now_cells, cells, per_block),
+        np.where(cells, (survey_cells - now_cells) / area, np.nan), g.cell_m)

@@ -6,7 +6,8 @@ It ties together the collaborators that hold each concern: the
 :class:`~services.dashboard.tracker.PileTracker` (what the records said), the
 :class:`~services.dashboard.history.History` (the pile over time), the
 :class:`~services.dashboard.cuts.CutLog` (reclaim cuts) and the
-:class:`~services.dashboard.scene.PileScene` (the 3D pile), all logging through one
+:class:`~services.dashboard.scene.PileScene` (the 3D pile), the
+:class:`~services.dashboard.surveys.SurveyMaps` (survey minus model), all logging through one
 :class:`~services.dashboard.recorder.Recorder`.  :func:`feed` and :func:`rebuild_from`
 drive a dashboard from a source of records, live or offline.
 """
@@ -25,6 +26,7 @@ from services.dashboard.history import History, HistoryPoint
 from services.dashboard.recorder import Recorder, entity_prefix, rr
 from services.dashboard.scene import PileScene, log_machines, log_scan, log_status
 from services.dashboard.style import blueprint, log_series_styles
+from services.dashboard.surveys import SurveyMaps
 from services.dashboard.tracker import GEOMETRY_TYPES, PileTracker
 from services.projector_service import catch_up
 
@@ -61,6 +63,7 @@ class Dashboard:
         self.history = History(self.out, self.tracker, int(config.every_s * NS_PER_S))
         self.cuts = CutLog(self.out, self.tracker, config)
         self.scene = PileScene(self.out, self.tracker, config)
+        self.surveys = SurveyMaps(self.out, pile_id)
         self.updates = 0
         self.rebuilds = 0
         self.last_update_valid_ns: int | None = None
@@ -118,6 +121,8 @@ class Dashboard:
         """Take one committed record (global order)."""
         for text, level in self.tracker.add(record):
             self.out.text(text, level, seq=record.global_seq)
+        if record.type == "survey" and self.surveys.add(record):
+            self.tracker.reasons.add("survey")
 
     # -- updates ---------------------------------------------------------------------------
 
@@ -176,6 +181,9 @@ class Dashboard:
         log_machines(self.out, tracker.machines, tracker.projection.state.pile)
         self._log_scan()
         log_status(self.out, self.pile_id, state, updates=self.updates, rebuilds=self.rebuilds)
+        if self.surveys.pending:
+            self.surveys.log_pending()
+            self.out.at(v, tracker.seq)
         if grades_changed and self.live:
             self.history.revise(state, v)
         self._joined_version = tracker.assay_version

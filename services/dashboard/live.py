@@ -18,7 +18,7 @@ from services.dashboard.config import READ_CHUNK, SERVICE, Config
 from services.dashboard.core import Dashboard, rebuild_from
 from services.dashboard.piles import PileSet
 from services.dashboard.viewer import WebViewer, close_recording, make_recording
-from services.ledger_client import LedgerClient, LedgerUnavailable
+from services.ledger_client import LedgerClient, LedgerUnavailable, RemoteLedger
 from services.projector_service import newest_head
 from services.service import Inbox, ServiceRuntime, Stopper
 
@@ -92,6 +92,8 @@ class Follower:
         self.config, self.runtime, self.client = config, runtime, client
         self.status = runtime.status
         self.piles = PileSet(rec, config)
+        for dash in self.piles:
+            dash.surveys.source = lambda: RemoteLedger(client)
         self.seen_gaps: set = set()
         self.quarantined = 0
 

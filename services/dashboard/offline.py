@@ -167,6 +167,8 @@ def _render(store, head, rec, config: Config, progress, url,
     render_piles)."""
     piles = PileSet(rec, config, offline=True)
     source = StoreSource(store, head.global_seq)
+    for dash in piles:
+        dash.surveys.source = lambda: store
     gaps, quarantine = store.gaps(), store.quarantine()
     seen: set = set()
     total = head.global_seq + 1
