@@ -1,7 +1,7 @@
 """The voxel block model as CSV or Parquet, in the mine grid (a regular block model).
 
 One row per block with material (:func:`projector.blocks.block_model`).  Columns, in order
-(:data:`COLUMNS`, then one per analyte, then the last two):
+(:data:`COLUMNS`, then one per analyte, then the last three):
 
 ``X``, ``Y``, ``Z``
     The block's centre in the mine grid (easting, northing, ellipsoidal height; m).
@@ -12,6 +12,10 @@ One row per block with material (:func:`projector.blocks.block_model`).  Columns
     The material in the block (t, m3) and its bulk density (t/m3).
 ``<analyte>_PCT``
     Mass % over the block's graded tonnes (empty where none is graded).
+``GRADED_FRACTION``
+    Tonnes with a grade (an assay or the lot's plan) / tonnes, 0 to 1.  The pile's grade
+    is the analyte weighted by ``TONNES * GRADED_FRACTION``; weighted by ``TONNES`` alone
+    it would count ungraded material (an undeclared lot) as grade 0 or skip its blocks.
 ``ASSAYED_FRACTION``
     Tonnes graded by an assay / tonnes, 0 to 1.
 ``DOMINANT_LOT``
@@ -44,6 +48,7 @@ def block_table(blocks: BlockModel, site: SiteCrs) -> dict[str, np.ndarray]:
              "DENSITY_T_M3": blocks.density_t_m3}
     for a, analyte in enumerate(blocks.analytes):
         table[f"{analyte.upper()}_PCT"] = blocks.grade_pct[:, a]
+    table["GRADED_FRACTION"] = blocks.graded_fraction
     table["ASSAYED_FRACTION"] = blocks.assayed_fraction
     table["DOMINANT_LOT"] = blocks.dominant_lot
     return table

@@ -81,6 +81,11 @@ class BlockModel:
         """Assayed tonnes / tonnes, in [0, 1]."""
         return self.assayed_tonnes / self.tonnes
 
+    @property
+    def graded_fraction(self) -> np.ndarray:
+        """Graded tonnes / tonnes, in [0, 1]."""
+        return self.graded_tonnes / self.tonnes
+
 
 def block_model(pile: PileState) -> BlockModel:
     """The pile's blocks as of its (V, K) (:func:`projector.query.project`'s answer).

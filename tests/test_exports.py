@@ -205,6 +205,44 @@ def test_block_model_adds_up_to_the_pile(yard, tmp_path, capsys, suffix):
                   - np.rint((x - g.origin_x_m - col["DX"] / 2) / v)).max() < 1e-4
 
 
+def test_block_model_weights_grades_by_graded_tonnes(small_yard_sim, tmp_path_factory,
+                                                     tmp_path, capsys):
+    """The small yard with its second pass stacked from an undeclared lot: that material
+    has no grade, so the pile's Fe is over the graded tonnes only, and so is the blocks'."""
+    audit_ledger(small_yard_sim, tmp_path_factory.getbasetemp())
+    lines = (tmp_path_factory.getbasetemp() / "audit-ledger.jsonl").read_text()
+    second = '"lot_id":"LOT-A","machine_id":"stk1","pass_id":"LOT-A-P2"'
+    assert lines.count(second) == 1
+    jsonl = tmp_path / "undeclared.jsonl"
+    jsonl.write_text(lines.replace(second, second.replace('"LOT-A",', '"LOT-X",')))
+    ledger = tmp_path / "undeclared.duckdb"
+    assert cli.main(["ledger", "import", str(jsonl), "--ledger", str(ledger),
+                     "--clock", "events"]) == 0
+    with open_ledger(ledger, read_only=True) as store:
+        pile = project(store, PILE)
+    ungraded = sum(d.tonnes for d in pile.deposits if d.lot_id == "LOT-X")
+    assert ungraded > 1.0
+    out = tmp_path / "blocks.csv"
+    capsys.readouterr()
+    _export({"ledger": ledger}, "blocks", out, capsys=capsys)
+    with open(out, newline="") as f:
+        rows = list(csv.DictReader(f))
+    tonnes = np.array([float(r["TONNES"]) for r in rows])
+    graded = np.array([float(r["GRADED_FRACTION"]) for r in rows]) * tonnes
+    fe = np.array([float(r["FE_PCT"]) if r["FE_PCT"] else math.nan for r in rows])
+    print(f"ungraded {ungraded:.1f} t of {pile.tonnes:.1f} t; pile Fe {pile.grade['Fe']:.4f}")
+    assert math.isclose(tonnes.sum() - graded.sum(), ungraded, rel_tol=1e-6)
+    assert np.isnan(fe[graded == 0]).all() and np.isfinite(fe[graded > 0]).all()
+    ok = graded > 0
+    assert math.isclose((fe[ok] * graded[ok]).sum() / graded.sum(), pile.grade["Fe"],
+                        rel_tol=1e-6)
+    # blocks that mix the two: their Fe is the graded material's (one lot, one grade), not
+    # diluted by the ungraded tonnes
+    mixed = ok & (graded < tonnes * (1 - 1e-9))
+    assert mixed.sum() >= 3
+    np.testing.assert_allclose(fe[mixed], pile.grade["Fe"], rtol=1e-9)
+
+
 # -- GeoJSON --------------------------------------------------------------------------------
 
 
