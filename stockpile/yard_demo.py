@@ -34,6 +34,7 @@ from typing import Any
 import numpy as np
 
 from schemas.events import decode_payload
+from schemas.times import format_time_ns
 
 from ledger import open_ledger
 from projector.query import project
@@ -44,6 +45,7 @@ from stockpile.demo_adapters import (
     adapter_members, expected_counts, opcua_certificates, sim_options, start_adapters,
     wait_delivered)
 from stockpile.demo_signing import money_sources, prepare_signing
+from stockpile.demo_survey import reconcile_survey, say_survey, survey_time_ns
 from stockpile.orchestrate import Supervisor, fresh_ledger_path
 
 SITE_OF_SCENARIO = "capelambert"
@@ -342,7 +344,7 @@ def _start_services(yard: Supervisor, ledger_path: Path, site: str, record: Path
 def _start_sim_and_sensors(yard: Supervisor, sim_dir: Path, *, site: str,
                            scenario: str, seed: int, speed: float, idle_speed: float,
                            duration_h: float | None, signing: list[str],
-                           real: list[str] | None = None):
+                           real: list[str] | None = None, survey_ns: int | None = None):
     """Start the simulator on pseudo-terminals and the scanner and GNSS services on its ports
     (``real``: the simulator's options of the real devices; then no serial scanner)."""
     live = f"stockpile/{site}/@live"
@@ -354,6 +356,8 @@ def _start_sim_and_sensors(yard: Supervisor, sim_dir: Path, *, site: str,
                 *(real or [])]
     if duration_h is not None:
         sim_args += ["--duration", f"{duration_h * 3600:g}s"]
+    if survey_ns is not None:
+        sim_args += ["--survey-at", format_time_ns(survey_ns)]
     sim = yard.start("sim", sim_args)
     scanner_path = "LMS511 (TCP)"
     if real is None:
@@ -522,6 +526,7 @@ def run_yard_demo(out_dir: Path, *, seed: int = 1, speed: float = 40.0, idle_spe
     sim_opcua, adapter_opcua = opcua_certificates(out_dir) if real else ([], [])
     signing = prepare_signing(out_dir, ledger_path, money_sources(sc.machine_id, sc.stacker_id),
                               sc.start_ns)
+    survey_ns = survey_time_ns(sc, seed, duration_h)
     with Supervisor(out_dir, site=site, members=members) as yard:
         link = "plain TCP" if insecure else f"mutual TLS, access by role, PKI in {yard.pki}"
         _say(f"== the yard as processes: zenoh router on {yard.endpoint} (loopback, scouting "
@@ -532,6 +537,7 @@ def run_yard_demo(out_dir: Path, *, seed: int = 1, speed: float = 40.0, idle_spe
         sim = _start_sim_and_sensors(yard, sim_dir, site=site, scenario=scenario,
                                      seed=seed, speed=speed, idle_speed=idle_speed,
                                      duration_h=duration_h, signing=signing.sim_args,
+                                     survey_ns=survey_ns,
                                      real=sim_options(site, sc.machine_id, sc.stacker_id,
                                                       sim_opcua) if real else None)
         names = start_adapters(yard, sim, machine=sc.machine_id, stacker=sc.stacker_id,
@@ -552,12 +558,18 @@ def run_yard_demo(out_dir: Path, *, seed: int = 1, speed: float = 40.0, idle_spe
     _say_localizer(rmse, timing, speed, pacing)
     _say("\n== the layered model as of the end (stockpile project) against the simulator's truth")
     _say_projector(model)
+    survey = None
+    if survey_ns is not None:
+        _say("\n== the drone survey against the model (stockpile survey import, audit survey)")
+        survey = reconcile_survey(ledger_path, sim_dir, model["pile_id"], survey_ns)
+        say_survey(survey, ledger_path, model["pile_id"])
     ok = (verify.ok and not gaps and all(r["exact"] and not r["open_gaps"] for r in exact)
           and all(code == 0 for code in rc.values()))
     summary = {"ok": ok, "exit_codes": rc, "published": published, "exactly_once": exact,
                "signed_events": verify.signatures,
                "per_type": stats.per_type, "open_gaps": len(gaps), "quarantined": len(quarantine),
-               "verify_ok": verify.ok, "pile_book": book, "projector": model, "localizer": rmse,
+               "verify_ok": verify.ok, "pile_book": book, "projector": model, "survey": survey,
+               "localizer": rmse,
                "scan_timing": timing, "speed": speed, "sim_pacing": pacing,
                "sim_max_lag_s": sim_max_lag_s, "wall_s": time.monotonic() - started}
     (out_dir / "summary.json").write_text(json.dumps(summary, indent=2, default=list))
