@@ -28,9 +28,8 @@ from services.dashboard import Config, render_ledger
 from services.ledger_client import LedgerClient
 from services.service import EventPublisher
 from test_audit import CUT, PILE, SEED, audit_ledger
-from zenoh_helpers import (client_args, last_status, log_lines, open_router,
-                           service_on_a_stuck_ledger, stockpile, stop, stop_all, wait_liveliness,
-                           wait_token, wait_until)
+from zenoh_helpers import (last_status, live_dashboard, log_lines, service_on_a_stuck_ledger,
+                           stop, wait_until)
 
 from schemas.times import NS_PER_S as S  # noqa: E402
 SITE = "dash"
@@ -283,23 +282,10 @@ def test_live_service_follows_the_ledger_service(ledger, tmp_path):
     with open_ledger(path, read_only=True) as store:
         head = store.head().global_seq
     out = tmp_path / "live.rrd"
-    router, endpoint = open_router()
-    service = stockpile("service", "ledger", "--ledger", str(path), "--site", SITE,
-                        "--status-period", "1", *client_args(endpoint),
-                        stderr_path=tmp_path / "ledger.log")
-    dashboard = None
-    try:
-        wait_liveliness(router, f"stockpile/{SITE}/@live/ledger/**", 30)
-        dashboard = stockpile("service", "dashboard", "--pile", PILE, "--site", SITE,
-                              "--out", str(out), "--every", "10min", "--update-period-s", "0",
-                              "--status-period", "0.2", *client_args(endpoint),
-                              stderr_path=tmp_path / "dashboard.log")
-        wait_token(router, f"stockpile/{SITE}/@live/dashboard/**", dashboard, 90)
-        caught = next(line for line in log_lines(tmp_path / "dashboard.log")
-                      if line["msg"] == "caught up")
-        assert int(caught["head"]) == head
+    with live_dashboard(path, SITE, (PILE,), out, tmp_path) as run:
+        assert int(run.caught["head"]) == head
         # live: the lab revises the FINAL of pass 1 (Fe up 2 points)
-        lab = EventPublisher(router, SITE, "lab9", epoch=7)
+        lab = EventPublisher(run.router, SITE, "lab9", epoch=7)
         assay = pb.Assay(assay_id="AS-LIVE", lot_id="LOT-A", status=pb.FINAL, lab_id="lab9",
                          supersedes="AS-00001", bulk_density_t_m3=2.39)
         assay.analytes.update({"Fe": 60.728, "SiO2": 4.0})
@@ -308,17 +294,12 @@ def test_live_service_follows_the_ledger_service(ledger, tmp_path):
         set_timestamp_ns(assay.reported_time, 1793520000 * S)
         lab.wait_matched("assay", 30)
         lab.publish(assay)
-        LedgerClient(router, SITE).wait_for(lambda h: h["global_seq"] >= head + 1, 30)
-        updates0 = int(caught["updates"])
-        wait_until(lambda: int(last_status(tmp_path / "dashboard.log").get("records", 0)) >= head + 2
-                   and int(last_status(tmp_path / "dashboard.log").get("updates", 0)) > updates0,
+        LedgerClient(run.router, SITE).wait_for(lambda h: h["global_seq"] >= head + 1, 30)
+        updates0 = int(run.caught["updates"])
+        wait_until(lambda: int(last_status(run.log).get("records", 0)) >= head + 2
+                   and int(last_status(run.log).get("updates", 0)) > updates0,
                    60, "the dashboard's update after the live assay")
-    finally:
-        try:
-            codes = stop_all(dashboard, service)
-        finally:
-            router.close()
-    assert codes == [0, 0]
+    assert run.codes == [0, 0]
     with open_ledger(path, read_only=True) as store:
         everything = project(store, PILE)
         assert store.head().global_seq == head + 1

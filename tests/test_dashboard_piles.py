@@ -33,8 +33,7 @@ from services.ledger_client import LedgerClient
 from services.service import EventPublisher
 from stockpile import cli
 from test_dashboard import Rrd
-from zenoh_helpers import (client_args, last_status, log_lines, open_router, stockpile, stop_all,
-                           wait_token, wait_until)
+from zenoh_helpers import last_status, live_dashboard, log_lines, wait_until
 
 PILES = ("P1", "P2")
 SITE = "beds"
@@ -197,24 +196,13 @@ def test_live_service_follows_the_ledger_once_for_two_piles(ledger, truth, tmp_p
     shutil.copy(ledger, path)
     head = truth["head"]
     out, dash_log = tmp_path / "live.rrd", tmp_path / "dashboard.log"
-    router, endpoint = open_router()
-    service = stockpile("service", "ledger", "--ledger", str(path), "--site", SITE,
-                        "--status-period", "1", *client_args(endpoint),
-                        stderr_path=tmp_path / "ledger.log")
-    dashboard = None
-    try:
-        wait_token(router, f"stockpile/{SITE}/@live/ledger/**", service, 30)
-        dashboard = stockpile("service", "dashboard", "--pile", "P1", "--pile", "P2",
-                              "--site", SITE, "--out", str(out), "--every", "10min",
-                              "--update-period-s", "0", "--status-period", "0.2",
-                              *client_args(endpoint), stderr_path=dash_log)
-        # one process, one token naming both piles
-        wait_token(router, f"stockpile/{SITE}/@live/dashboard/P1+P2", dashboard, 90)
-        caught = next(line for line in log_lines(dash_log) if line["msg"] == "caught up")
+    # one process, one token naming both piles
+    with live_dashboard(path, SITE, ("P1", "P2"), out, tmp_path) as run:
+        caught = run.caught
         assert int(caught["head"]) == head and caught["piles"] == "P1,P2"
         assert int(caught["records"]) == head + 1   # read once, not once per pile
         # live: the lab's first assay of LOT-A, the lot of both beds' passes
-        lab = EventPublisher(router, SITE, "lab9", epoch=7)
+        lab = EventPublisher(run.router, SITE, "lab9", epoch=7)
         assay = pb.Assay(assay_id="AS-BEDS", lot_id="LOT-A", status=pb.FINAL, lab_id="lab9",
                          bulk_density_t_m3=2.2)
         assay.analytes.update({"Fe": 64.5, "SiO2": 3.0})
@@ -223,17 +211,12 @@ def test_live_service_follows_the_ledger_once_for_two_piles(ledger, truth, tmp_p
         set_timestamp_ns(assay.reported_time, 1793520000 * S)
         lab.wait_matched("assay", 30)
         lab.publish(assay)
-        LedgerClient(router, SITE).wait_for(lambda h: h["global_seq"] >= head + 1, 30)
+        LedgerClient(run.router, SITE).wait_for(lambda h: h["global_seq"] >= head + 1, 30)
         updates0 = int(caught["updates"])
         wait_until(lambda: int(last_status(dash_log).get("records", 0)) >= head + 2
                    and int(last_status(dash_log).get("updates", 0)) >= updates0 + 2,
                    60, "both piles' updates after the live assay")
-    finally:
-        try:
-            codes = stop_all(dashboard, service)
-        finally:
-            router.close()
-    assert codes == [0, 0]
+    assert run.codes == [0, 0]
     stopped = log_lines(dash_log)[-1]
     assert stopped["msg"] == "stopped" and int(stopped["records"]) == head + 2
     with open_ledger(path, read_only=True) as store:

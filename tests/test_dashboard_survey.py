@@ -115,3 +115,48 @@ def test_heat_map_checks_its_input():
         heat_map(np.zeros(3))
     image, values, scale = heat_map(np.full((2, 3), np.nan))
     assert image.shape == (3, 2, 4) and not image[..., 3].any() and scale == 0.05
+
+
+def test_a_live_dashboard_draws_a_survey_from_the_ledger_service(small_yard_sim,
+                                                                 tmp_path_factory, tmp_path):
+    """A survey published while the dashboard follows a real ledger service over Zenoh:
+    the dashboard folds the model through the service's queries (RemoteLedger) and draws
+    survey minus model."""
+    from surveys.grid import CellAccumulator, survey_message
+    from services.ledger_client import LedgerClient
+    from services.service import EventPublisher
+    from zenoh_helpers import last_status, live_dashboard, wait_until
+
+    site = "dash-survey"
+    source, _info = audit_ledger(small_yard_sim, tmp_path_factory.getbasetemp())
+    path = tmp_path / "ledger.duckdb"
+    shutil.copy(source, path)
+    with open_ledger(path, read_only=True) as store:
+        head = store.head().global_seq
+        model = project(store, PILE, parse_time_ns(TIME))
+    g, top = model.geometry, model.state.stack.surface()
+    ix, iy = np.meshgrid(np.arange(MARGIN, g.nx - MARGIN), np.arange(MARGIN, g.ny - MARGIN),
+                         indexing="ij")
+    acc = CellAccumulator(g)
+    acc.add(g.origin_x_m + (ix.ravel() + 0.5) * g.cell_m,
+            g.origin_y_m + (iy.ravel() + 0.5) * g.cell_m, top[ix, iy].ravel() + 0.10)
+    msg = survey_message(acc, time_ns=parse_time_ns(TIME), survey_id="LIVE-1", pile_id=PILE,
+                         provider="test", accuracy_m=0.03, source_sha256=bytes(32),
+                         crs_epsg=7850)
+    out = tmp_path / "live.rrd"
+    with live_dashboard(path, site, (PILE,), out, tmp_path) as run:
+        drone = EventPublisher(run.router, site, "survey.import",
+                               epoch=parse_time_ns(TIME) // 10**9)
+        drone.wait_matched("survey", 30)
+        drone.publish(msg)
+        LedgerClient(run.router, site).wait_for(lambda h: h["global_seq"] >= head + 1, 30)
+        wait_until(lambda: int(last_status(run.log).get("records", 0)) >= head + 2
+                   and int(last_status(run.log).get("updates", 0))
+                   > int(run.caught["updates"]), 60, "the dashboard's update after the survey")
+    assert run.codes == [0, 0]
+    rrd = Rrd(out)
+    (row,) = rrd.rows("/surveys/difference_m", "Tensor:data")
+    values = np.asarray(row[2][0]["buffer"], dtype=np.float32)
+    surveyed = values[np.isfinite(values)]
+    assert row[1] == head + 1 and surveyed.size == ix.size
+    np.testing.assert_allclose(surveyed, 0.10, atol=1e-5)     # float32 heights

@@ -157,3 +157,15 @@ def test_whole_demo_reconciles_its_drone_survey(whole_demo):
           f"{survey['diff_pct']:+.3f} %")
     assert survey["area_m2"] > 1000 and survey["survey_m3"] > 1000
     assert abs(survey["diff_pct"]) <= 1.0, survey
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=False, reason=(
+    "fidelity (issues 40, 42): on the localizer's path the demo's model is short of its "
+    "survey by +0.47 %, +0.49 % and +0.49 % (three make demo runs), against the 0.5 % "
+    "target; on the "
+    "true poses +0.50 .. +0.52 % (tests/test_survey_reconcile.py); not strict: it grazes "
+    "the target"))
+def test_whole_demo_survey_within_half_a_percent(whole_demo):
+    summary, _truth = whole_demo
+    assert abs(summary["survey"]["diff_pct"]) <= 0.5, summary["survey"]

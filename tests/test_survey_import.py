@@ -16,6 +16,7 @@ import json
 import shutil
 import subprocess
 import sys
+import time
 
 import numpy as np
 import pytest
@@ -229,3 +230,29 @@ def test_reconciliation_finds_a_survey_10_cm_above_the_model(ledger, geometry, t
     assert cli.main(["audit", "survey", "--ledger", str(ledger), "--pile", PILE]) == 0
     text = capsys.readouterr().out
     assert "difference (survey - model)" in text and "where" in text
+
+
+#: the issue's large survey: generated here, never committed
+LARGE_POINTS = 50_000_000
+#: a 50 M-point file's coordinates alone, read at once, are 1.2 GB (three float64 each)
+LARGE_BOUND_MIB = 600
+
+
+@pytest.mark.slow
+def test_a_50_million_point_survey_imports_in_bounded_memory(small_yard_sim, tmp_path_factory,
+                                                            tmp_path, geometry, seed):
+    source, _info = audit_ledger(small_yard_sim, tmp_path_factory.getbasetemp())
+    laz = tmp_path / "large.laz"
+    assert _plane_laz(laz, geometry, LARGE_POINTS, seed, chunk=1_000_000) == LARGE_POINTS
+    path = tmp_path / "yard.duckdb"
+    shutil.copy(source, path)
+    started = time.monotonic()
+    peak = _peak_rss_mib(["survey", "import", str(laz), "--ledger", str(path), "--pile", PILE,
+                          "--time", TIME, "--no-progress"])
+    wall_s = time.monotonic() - started
+    (record,) = _survey(path)
+    msg = decode_payload(record.type, record.payload)
+    print(f"{LARGE_POINTS:,} points ({laz.stat().st_size / 2**20:,.0f} MiB of LAZ): "
+          f"{wall_s:.1f} s wall, peak RSS {peak:.0f} MiB")
+    assert msg.points == LARGE_POINTS and msg.points_in_grid > 0.99 * LARGE_POINTS
+    assert peak < LARGE_BOUND_MIB

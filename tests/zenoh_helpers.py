@@ -297,3 +297,44 @@ class SiteClock:
     def __exit__(self, *exc) -> None:
         self._stop.set()
         self._thread.join()
+
+
+class LiveDashboard:
+    """A running :func:`live_dashboard`: its router session, the dashboard's ``caught up``
+    log line, its log file, and (after the block) both processes' exit codes."""
+
+    def __init__(self, router: zenoh.Session, log: Path) -> None:
+        self.router, self.log = router, log
+        self.caught: dict = {}
+        self.codes: list[int] | None = None
+
+
+@contextlib.contextmanager
+def live_dashboard(ledger_path: Path, site: str, piles: tuple[str, ...], out: Path,
+                   logs: Path):
+    """A real ledger service on ``ledger_path`` and ``stockpile service dashboard`` of
+    ``piles`` following it, writing ``out``, on a fresh loopback router (their logs in
+    ``logs``); yields a :class:`LiveDashboard` once the dashboard has caught up, and stops
+    both (the ledger last) and the router when the block ends."""
+    router, endpoint = open_router()
+    run = LiveDashboard(router, logs / "dashboard.log")
+    service = stockpile("service", "ledger", "--ledger", str(ledger_path), "--site", site,
+                        "--status-period", "1", *client_args(endpoint),
+                        stderr_path=logs / "ledger.log")
+    dashboard = None
+    try:
+        wait_token(router, f"stockpile/{site}/@live/ledger/**", service, 30)
+        dashboard = stockpile("service", "dashboard",
+                              *[arg for pile in piles for arg in ("--pile", pile)],
+                              "--site", site, "--out", str(out), "--every", "10min",
+                              "--update-period-s", "0", "--status-period", "0.2",
+                              *client_args(endpoint), stderr_path=run.log)
+        token = "+".join(piles) if len(piles) > 1 else "**"
+        wait_token(router, f"stockpile/{site}/@live/dashboard/{token}", dashboard, 90)
+        run.caught = next(line for line in log_lines(run.log) if line["msg"] == "caught up")
+        yield run
+    finally:
+        try:
+            run.codes = stop_all(dashboard, service)
+        finally:
+            router.close()
