@@ -259,7 +259,24 @@ def _survey_row(r) -> dict[str, Any]:
             "map": {"block_m": r.block_m, "origin_m": list(r.map_origin_m),
                     "diff_m3": r.map_m3.tolist()},
             "largest_blocks": [{"x_m": x, "y_m": y, "diff_m3": d}
-                               for x, y, d in r.largest_blocks()]}
+                               for x, y, d in r.largest_blocks()],
+            "rebase": None if r.rebase is None else {
+                "cells_scaled": r.rebase.cells_scaled,
+                "cells_bare_above": r.rebase.cells_bare_above,
+                "volume_change_m3": r.rebase.volume_change_m3,
+                "tonnes_change_t": r.rebase.volume_change_m3 * r.density_t_m3,
+                "deposits": [{"lot_id": lot, "pass_id": pass_id, "volume_change_m3": dv}
+                             for lot, pass_id, dv in r.rebase.deposits_m3]}}
+
+
+def _print_rebase(rebase, density_t_m3: float) -> None:
+    """The audit trail of a rebase on a survey (the pile's policy)."""
+    print(f"  rebased on it (the pile's policy): {rebase.cells_scaled:,} cells scaled, "
+          f"{_num(rebase.volume_change_m3, '+,.1f')} m3 "
+          f"({_num(rebase.volume_change_m3 * density_t_m3, '+,.1f')} t); "
+          f"{rebase.cells_bare_above:,} bare cells the survey shows above the ground left bare")
+    for lot, pass_id, dv in rebase.deposits_m3:
+        print(f"    {pass_id or '-'} (lot {lot or '-'}): {_num(dv, '+,.1f')} m3")
 
 
 def cmd_survey(args: argparse.Namespace) -> int:
@@ -283,6 +300,8 @@ def cmd_survey(args: argparse.Namespace) -> int:
         if blocks:
             print(f"  where ({r.block_m:g} m blocks, site frame): " + "; ".join(
                 f"x {x:.0f} y {y:.0f}: {d:+,.1f} m3" for x, y, d in blocks))
+        if r.rebase is not None:
+            _print_rebase(r.rebase, r.density_t_m3)
     return 0
 
 

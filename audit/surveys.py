@@ -4,12 +4,15 @@ For each ``survey`` event of the pile (as known at K), over the cells the survey
 (its points' cells on the pile's grid) and above the model's ground (net volumes: a
 surface below the ground counts negative, so a survey's noise on bare ground cancels):
 
-- the model's volume as of the survey's time, as known then (K = the survey's time) and
-  as known at K; the survey's volume (its mean height per cell);
+- the model's volume just before the survey's time (a rebase on the survey,
+  :mod:`projector.rebase`, is at its time), as known then (K = the survey's time) and as
+  known at K; the survey's volume (its mean height per cell);
 - the difference, survey minus model, in m3, in tonnes (at the model's bulk density as
   known at K) and in % of the model's volume;
 - where it lies: the difference summed over blocks of ``block_m`` (a map, m3 per block,
-  and the blocks with the largest differences).
+  and the blocks with the largest differences);
+- under the pile's ``survey_rebase`` policy, what the rebase changed (its
+  :class:`projector.state.RebaseRecord`).
 """
 
 from __future__ import annotations
@@ -21,6 +24,7 @@ import numpy as np
 
 from projector.config import FoldConfig
 from projector.query import project
+from projector.state import RebaseRecord
 from projector.surveys import survey_heights
 from schemas.events import decode_payload
 
@@ -55,6 +59,9 @@ class SurveyReconciliation:
     #: survey point in the cell) and the cell's edge (m)
     cells_m: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)), repr=False)
     cell_m: float = 0.0
+    #: what the model's rebase on this survey changed (the pile's ``survey_rebase``
+    #: policy), as known at K; None: no rebase
+    rebase: RebaseRecord | None = None
 
     @property
     def diff_then_m3(self) -> float:
@@ -133,7 +140,8 @@ def reconcile_survey(store, record, known_time_ns: int | None = None, *,
         raise ValueError(f"the block edge must be > 0 m, got {block_m}")
     msg = decode_payload(record.type, record.payload)
     pile_id = msg.pile_id
-    now = project(store, pile_id, record.valid_time_ns, known_time_ns, config=config)
+    before_ns = record.valid_time_ns - 1      # the model just before the survey
+    now = project(store, pile_id, before_ns, known_time_ns, config=config)
     if now.geometry is None:
         raise ValueError(f"pile {pile_id!r} is not declared as of survey {msg.survey_id}")
     g = now.geometry
@@ -145,11 +153,14 @@ def reconcile_survey(store, record, known_time_ns: int | None = None, *,
     now_cells = _above_ground_m3(now.state.stack.surface(), ground, cells, area)
     then_m3 = math.nan
     if then:
-        before = project(store, pile_id, record.valid_time_ns, record.valid_time_ns,
-                         config=config)
+        before = project(store, pile_id, before_ns, record.valid_time_ns, config=config)
         then_m3 = (float(_above_ground_m3(before.state.stack.surface(),
                                           before.state.stack.ground(), cells, area).sum())
                    if before.geometry is not None else 0.0)
+    rebase = None
+    if now.state.pile.survey_rebase:
+        after = project(store, pile_id, record.valid_time_ns, known_time_ns, config=config)
+        rebase = next((r for r in after.state.rebases if r.survey_id == msg.survey_id), None)
     per_block = max(1, int(round(block_m / g.cell_m)))
     density = now.tonnes / now.volume_m3 if now.volume_m3 > 0 else math.nan
     return SurveyReconciliation(
@@ -158,4 +169,4 @@ def reconcile_survey(store, record, known_time_ns: int | None = None, *,
         float(survey_cells.sum()), then_m3, float(now_cells.sum()), density,
         per_block * g.cell_m, (g.origin_x_m, g.origin_y_m),
         _block_sums(survey_cells - now_cells, cells, per_block),
-        np.where(cells, (survey_cells - now_cells) / area, np.nan), g.cell_m)
+        np.where(cells, (survey_cells - now_cells) / area, np.nan), g.cell_m, rebase)

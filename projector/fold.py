@@ -37,6 +37,8 @@ How each event type acts
                       composition) and opens the face this cut leaves: the stack keeps
                       it as cut, the height map takes the predicted slide
 ``assay``             kept (with its recorded time) for the grade join
+``survey``            under the pile's ``survey_rebase`` policy only: the model follows
+                      the survey (:mod:`projector.rebase`); otherwise ignored
 
 After each batch of scans the layer stack follows the height map: a cell that rose
 beyond the noise margin adds to the open pass's deposit (outside any pass: to a
@@ -70,6 +72,7 @@ from projector.grid import GridGeometry
 from projector.kinematics import Reclaimer
 from projector.layers import DepositInfo, LayerStack
 from projector.material_fit import close_face, open_face
+from projector.rebase import rebase_on_survey
 from projector.scans import note_pending, note_pose, process_scans
 from projector.state import (CutRecord, PassRecord, PendingScan, PileInfo, PoseTrack,
                              ProjectorState, around, initial_state, settling_last_pass)
@@ -81,14 +84,14 @@ __all__ = ["FOLD_VERSION", "FoldConfig", "PileInfo", "PassRecord", "CutRecord", 
 
 #: event types that change the geometric state (assays and lots only feed the join)
 GEOMETRY_TYPES = ("pile_declared", "machine_declared", "stack_started", "stack_ended",
-                  "frame_transform", "scan", "reclaim_cut")
+                  "frame_transform", "scan", "reclaim_cut", "survey")
 
 #: The fold's version: bumped whenever a change makes the same events and config fold to
 #: a different state, or changes what a snapshot stores (the classes it pickles, by their
 #: module paths).  Snapshots are keyed by it as well as by the config, so those of another
 #: version are never used (:class:`projector.query.SnapshotStore`, which reads it from this
 #: module, and ``SnapshotStore.drop_other_versions`` deletes them).
-FOLD_VERSION = 30
+FOLD_VERSION = 31
 
 DEFAULT_CELL_M = 0.25
 DEFAULT_VOXEL_M = 1.0
@@ -101,6 +104,9 @@ def apply(state: ProjectorState, event) -> ProjectorState:
     Returns the state, updated in place (the caller copies it to keep a snapshot).
     """
     handler = _HANDLERS.get(event.type)
+    if event.type == "survey" and (state.pile is None or not state.pile.survey_rebase):
+        state.count("surveys_not_rebased")
+        return state          # without the policy a survey is not part of the fold at all
     state.high_water = (event.valid_time_ns, event.global_seq)
     if handler is None:
         return state
@@ -136,7 +142,7 @@ def _on_pile(state: ProjectorState, event, msg) -> None:
     # the voxel edge must be a whole number of cells
     voxel = max(cell, round(voxel / cell) * cell)
     state.pile = PileInfo(msg.pile_id, geometry, float(msg.ground_z_m), voxel,
-                          float(msg.default_bulk_density_t_m3))
+                          float(msg.default_bulk_density_t_m3), bool(msg.survey_rebase))
     config = state.config
     state.point_sd_m = (config.point_sd_m if config.point_sd_m is not None
                         else (0.015 if cell < 0.05 else 0.05))
@@ -303,5 +309,5 @@ _HANDLERS = {
     "pile_declared": _on_pile, "machine_declared": _on_machine, "lot_declared": _on_lot,
     "stack_started": _on_stack_started, "stack_ended": _on_stack_ended,
     "frame_transform": _on_frame_transform, "scan": _on_scan,
-    "reclaim_cut": _on_reclaim_cut, "assay": _on_assay,
+    "reclaim_cut": _on_reclaim_cut, "assay": _on_assay, "survey": rebase_on_survey,
 }

@@ -412,6 +412,21 @@ class LayerStack:
         times[k - 1] = _frozen(new_time)
         return LayerStack(self._geometry, tuple(surfaces), tuple(times), self._infos, epoch)
 
+    def scaled(self, factor) -> "LayerStack":
+        """Every band scaled about the ground by ``factor`` per cell (``(nx, ny)``, finite,
+        >= 0; 1 leaves a column as it is): each deposit keeps its share of the column's
+        material and its deposition times (a rebase on a survey, :mod:`projector.rebase`).
+        """
+        f = np.asarray(factor, dtype=np.float64)
+        if f.shape != self._geometry.shape:
+            raise ValueError(f"factor must have shape {self._geometry.shape}, got {f.shape}")
+        if not np.all(np.isfinite(f) & (f >= 0)):
+            raise ValueError("factor must be finite and >= 0")
+        ground = self._surfaces[0]
+        surfaces = (ground,) + tuple(_frozen(ground + (s - ground) * f)
+                                     for s in self._surfaces[1:])
+        return LayerStack(self._geometry, surfaces, self._times, self._infos, self._epoch_ns)
+
     def fit_top_above(self, floor_m, window: int = 7) -> "LayerStack":
         """The stack with its top, where it or its fit stands above ``floor_m``, replaced
         by a local quadratic fit: the surface a cut down to that floor is measured on.

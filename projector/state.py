@@ -24,7 +24,7 @@ from projector.grades import AssayRecord
 from projector.grid import GridGeometry
 from projector.layers import LayerStack, Removal
 
-__all__ = ["PileInfo", "PassRecord", "CutRecord", "PendingScan", "ProjectorState",
+__all__ = ["PileInfo", "PassRecord", "CutRecord", "PendingScan", "ProjectorState", "RebaseRecord",
            "initial_state", "settling_last_pass", "last_event_ns", "around"]
 
 
@@ -37,6 +37,26 @@ class PileInfo:
     ground_z_m: float
     voxel_m: float
     default_bulk_density_t_m3: float
+    #: the site's policy: the model follows each survey of the pile (:mod:`projector.rebase`)
+    survey_rebase: bool = False
+
+
+@dataclass(frozen=True)
+class RebaseRecord:
+    """What one rebase on a survey changed (:mod:`projector.rebase`).
+
+    ``deposits_m3``: per deposit touched, ``(lot id, pass id, volume change m3)``;
+    cells: surveyed cells whose columns were scaled, and surveyed cells the model held as
+    bare but the survey shows above the ground by more than the survey's accuracy (left
+    bare: they have no composition to scale).
+    """
+
+    survey_id: str
+    time_ns: int
+    cells_scaled: int
+    cells_bare_above: int
+    volume_change_m3: float
+    deposits_m3: tuple[tuple[str, str, float], ...]
 
 
 @dataclass
@@ -160,6 +180,8 @@ class ProjectorState:
     slide_fits: list[tuple[str, float, int]] = field(default_factory=list)
     #: every later failure of a face the scans saw: ``(seen at UTC ns, volume moved m3)``
     delayed_failures: list[tuple[int, float]] = field(default_factory=list)
+    #: every rebase on a survey (records are immutable)
+    rebases: list[RebaseRecord] = field(default_factory=list)
     counters: dict[str, int] = field(default_factory=dict)
     high_water: tuple[int, int] = (-(2 ** 62), -1)   # (valid ns, global seq) folded so far
 
@@ -182,7 +204,7 @@ class ProjectorState:
             rises_journal=list(self.rises_journal), slide_fits=list(self.slide_fits),
             face_sightings=(None if self.face_sightings is None
                             else tuple(a.copy() for a in self.face_sightings)),
-            delayed_failures=list(self.delayed_failures))
+            delayed_failures=list(self.delayed_failures), rebases=list(self.rebases))
 
 
 def initial_state(config: FoldConfig | str) -> ProjectorState:

@@ -92,7 +92,7 @@ class SiteDeclared(_message.Message):
     def __init__(self, time: _Optional[_Union[datetime.datetime, _timestamp_pb2.Timestamp, _Mapping]] = ..., site_id: _Optional[str] = ..., datum_lat_deg: _Optional[float] = ..., datum_lon_deg: _Optional[float] = ..., datum_alt_m: _Optional[float] = ..., crs_epsg: _Optional[int] = ...) -> None: ...
 
 class PileDeclared(_message.Message):
-    __slots__ = ("time", "pile_id", "origin_x_m", "origin_y_m", "length_m", "width_m", "ground_z_m", "cell_m", "voxel_m", "default_bulk_density_t_m3")
+    __slots__ = ("time", "pile_id", "origin_x_m", "origin_y_m", "length_m", "width_m", "ground_z_m", "cell_m", "voxel_m", "default_bulk_density_t_m3", "survey_rebase")
     TIME_FIELD_NUMBER: _ClassVar[int]
     PILE_ID_FIELD_NUMBER: _ClassVar[int]
     ORIGIN_X_M_FIELD_NUMBER: _ClassVar[int]
@@ -103,6 +103,7 @@ class PileDeclared(_message.Message):
     CELL_M_FIELD_NUMBER: _ClassVar[int]
     VOXEL_M_FIELD_NUMBER: _ClassVar[int]
     DEFAULT_BULK_DENSITY_T_M3_FIELD_NUMBER: _ClassVar[int]
+    SURVEY_REBASE_FIELD_NUMBER: _ClassVar[int]
     time: _timestamp_pb2.Timestamp
     pile_id: str
     origin_x_m: float
@@ -113,7 +114,8 @@ class PileDeclared(_message.Message):
     cell_m: float
     voxel_m: float
     default_bulk_density_t_m3: float
-    def __init__(self, time: _Optional[_Union[datetime.datetime, _timestamp_pb2.Timestamp, _Mapping]] = ..., pile_id: _Optional[str] = ..., origin_x_m: _Optional[float] = ..., origin_y_m: _Optional[float] = ..., length_m: _Optional[float] = ..., width_m: _Optional[float] = ..., ground_z_m: _Optional[float] = ..., cell_m: _Optional[float] = ..., voxel_m: _Optional[float] = ..., default_bulk_density_t_m3: _Optional[float] = ...) -> None: ...
+    survey_rebase: bool
+    def __init__(self, time: _Optional[_Union[datetime.datetime, _timestamp_pb2.Timestamp, _Mapping]] = ..., pile_id: _Optional[str] = ..., origin_x_m: _Optional[float] = ..., origin_y_m: _Optional[float] = ..., length_m: _Optional[float] = ..., width_m: _Optional[float] = ..., ground_z_m: _Optional[float] = ..., cell_m: _Optional[float] = ..., voxel_m: _Optional[float] = ..., default_bulk_density_t_m3: _Optional[float] = ..., survey_rebase: _Optional[bool] = ...) -> None: ...
 
 class MachineDeclared(_message.Message):
     __slots__ = ("time", "machine_id", "kind", "rail_x_m", "rail_z_m", "l2_m", "l3_m", "l4_m", "l5_m", "wheel_radius_m", "cutting_radius_m", "wheel_tilt_rad", "bucket_width_m", "fall_angle_rad", "scanner")
