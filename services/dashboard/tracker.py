@@ -27,7 +27,7 @@ from services.projector_service import LiveProjection
 
 #: record types that change what is drawn in 3D
 GEOMETRY_TYPES = ("scan", "frame_transform", "stack_started", "stack_ended",
-                  "reclaim_cut", "pile_declared", "machine_declared")
+                  "reclaim_cut", "pile_declared", "machine_declared", "survey")
 #: a machine's scanner poses kept for georeferencing its latest scan
 SCANNER_POSES_KEPT = 64
 
