@@ -12,7 +12,9 @@ reconciles them:
 - the same events with the scanner's height 10 cm off (every scanner pose raised):
   the fold's ground reference removes the bias, so the report moves by under 0.1 pp; with
   the ground reference off, the report shows the bias as -0.1 m3 per m2 surveyed in every
-  block on the pile.
+  block on the pile;
+- the pile's ground declared 10 cm high (the reference the scans are tied to): the report
+  shows -0.1 m3 per m2 over every surveyed cell.
 """
 
 from __future__ import annotations
@@ -59,6 +61,17 @@ def _raise_scanner(src: Path, dst: Path, dz_m: float) -> int:
     return changed
 
 
+def _raise_declared_ground(src: Path, dst: Path, dz_m: float) -> None:
+    """Copy an events file with the pile's declared ground ``dz_m`` higher."""
+    with src.open() as lines, dst.open("w") as out:
+        for line in lines:
+            if '"pile_declared"' in line:
+                event = json.loads(line)
+                event["body"]["ground_z_m"] = event["body"].get("ground_z_m", 0.0) + dz_m
+                line = json.dumps(event, separators=(",", ":")) + "\n"
+            out.write(line)
+
+
 def _ledger(events: Path, laz: Path, path: Path) -> Path:
     for argv in (["ledger", "import", str(events), "--ledger", str(path), "--clock", "events"],
                  ["survey", "import", str(laz), "--ledger", str(path), "--pile", PILE,
@@ -69,7 +82,7 @@ def _ledger(events: Path, laz: Path, path: Path) -> Path:
 
 @pytest.fixture(scope="module")
 def yard(tmp_path_factory, seed):
-    """(sim dir, unbiased ledger, biased ledger)."""
+    """(sim dir, unbiased ledger, scanner 10 cm high, declared ground 10 cm high)."""
     base = tmp_path_factory.mktemp("survey-reconcile")
     sim = base / "sim"
     run = subprocess.run([sys.executable, "-m", "stockpile.cli", "sim", "--scenario", "demo",
@@ -80,8 +93,11 @@ def yard(tmp_path_factory, seed):
     laz = sim / f"{STEM}.laz"
     biased = base / "events-biased.jsonl"
     assert _raise_scanner(sim / "events.jsonl", biased, BIAS_M) > 10_000
+    high_ground = base / "events-ground.jsonl"
+    _raise_declared_ground(sim / "events.jsonl", high_ground, BIAS_M)
     return (sim, _ledger(sim / "events.jsonl", laz, base / "yard.duckdb"),
-            _ledger(biased, laz, base / "biased.duckdb"))
+            _ledger(biased, laz, base / "biased.duckdb"),
+            _ledger(high_ground, laz, base / "ground.duckdb"))
 
 
 def _report(path: Path, config: FoldConfig | None = None):
@@ -115,7 +131,7 @@ def _true_surface(sim: Path, geometry) -> np.ndarray:
 
 
 def test_the_survey_measures_the_true_surface(yard):
-    sim, path, _biased = yard
+    sim, path = yard[:2]
     report = _report(path)
     cells, geometry = _survey_cells(path)
     true = _true_surface(sim, geometry)
@@ -149,7 +165,7 @@ def test_the_model_agrees_with_the_survey_within_half_a_percent(yard):
 
 
 def test_a_scanner_10_cm_high_is_removed_by_the_ground_reference(yard):
-    _sim, path, biased = yard
+    _sim, path, biased = yard[:3]
     plain, raised = _report(path), _report(biased)
     with open_ledger(biased, read_only=True) as store:
         counters = project(store, PILE, raised.time_ns).state.counters
@@ -161,7 +177,7 @@ def test_a_scanner_10_cm_high_is_removed_by_the_ground_reference(yard):
 
 
 def test_a_scanner_10_cm_high_shows_in_the_report_without_the_ground_reference(yard):
-    sim, path, biased = yard
+    sim, path, biased = yard[:3]
     plain, raised = _report(path, NO_GROUND_REFERENCE), _report(biased, NO_GROUND_REFERENCE)
     cells, geometry = _survey_cells(path)
     on_pile = _true_surface(sim, geometry) > 0
@@ -186,3 +202,26 @@ def test_a_scanner_10_cm_high_shows_in_the_report_without_the_ground_reference(y
                 checked += 1
     assert checked >= 3
     assert all(d < 0 for _x, _y, d in raised.largest_blocks())
+
+
+def test_a_ground_declared_10_cm_high_shows_in_the_report(yard):
+    """The scans are referenced to the declared ground, so with the pile's ground declared
+    10 cm high the whole model stands 10 cm high: the survey, measured above that ground,
+    shows -0.1 m3 per m2 over every surveyed cell, bare ground included."""
+    _sim, path, _biased, high = yard
+    plain, raised = _report(path), _report(high)
+    cells, geometry = _survey_cells(path)
+    shift = raised.map_m3 - plain.map_m3
+    print(f"report {plain.diff_now_pct:+.3f} % -> {raised.diff_now_pct:+.3f} % "
+          f"({raised.diff_now_m3 - plain.diff_now_m3:+,.1f} m3); shift by block (m3):\n"
+          f"{np.array2string(shift, precision=1, suppress_small=True)}")
+    surveyed_m2 = cells.sum() * geometry.cell_area_m2
+    assert raised.diff_now_m3 - plain.diff_now_m3 == pytest.approx(-BIAS_M * surveyed_m2,
+                                                                   rel=0.02)
+    per = int(round(raised.block_m / geometry.cell_m))
+    for i in range(shift.shape[0]):
+        for j in range(shift.shape[1]):
+            block_m2 = cells[i * per:(i + 1) * per, j * per:(j + 1) * per].sum() \
+                * geometry.cell_area_m2
+            if block_m2 >= 20:
+                assert shift[i, j] == pytest.approx(-BIAS_M * block_m2, rel=0.05), (i, j)
